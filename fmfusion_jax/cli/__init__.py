@@ -1,0 +1,52 @@
+"""The `fmfusion` command line: one module per subcommand, each with `register(subparsers)`.
+
+A subcommand module defines `register(subparsers)` that adds its parser and sets `func` to a function
+taking the parsed arguments and returning an exit code. Heavy imports (JAX) stay inside those functions
+so that `fmfusion --help` is instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from fmfusion_jax.errors import UserError
+
+#: Subcommand modules, in the order `--help` lists them.
+SUBCOMMANDS = ("info", "simulate", "eval")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fmfusion",
+        description="Instance-aware semantic mapping from RGB-D video with open-set foundation-model detections.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in SUBCOMMANDS:
+        importlib.import_module(f"fmfusion_jax.cli.{name}").register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except UserError as error:
+        print(f"fmfusion {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
