@@ -15,7 +15,7 @@ import sys
 from fmfusion_jax.errors import UserError
 
 #: Subcommand modules, in the order `--help` lists them.
-SUBCOMMANDS = ("info", "simulate", "eval")
+SUBCOMMANDS = ("info", "eval")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,199 @@
+"""`fmfusion eval`: the ScanNet 3D semantic instance benchmark (AP, AP50, AP25) on benchmark-format predictions."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+from pathlib import Path
+
+from fmfusion_jax.errors import UserError
+
+log = logging.getLogger(__name__)
+
+_EPILOG = """\
+PRED is a <scene>.txt prediction file (lines 'pred_mask/<file>.txt <nyu40 id> <confidence>', one 0/1 mask
+line per mesh vertex) or a folder of them. GT is a ScanNet scene folder (<scene>_vh_clean_2.ply, segs and
+aggregation json; labels tsv in it or its parent), a benchmark ground-truth <scene>.txt (one
+nyu40*1000+instance id per vertex), or a folder of either. Predictions and ground truth are paired by scene
+name; a single PRED with a single GT is paired whatever the names. --gt and --pred take several
+paths, so list positional PREDs before them.
+
+examples:
+  fmfusion eval OUT/benchmark/scene0000_00.txt --gt ../shared/data/scannet/scene0000_00
+  fmfusion eval OUT/benchmark --gt ../shared/data/scannet --json scores.json
+  fmfusion eval --gt ../shared/data/scannet/scene0000_00 --export-gt /tmp/gt_as_pred
+  fmfusion eval /tmp/gt_as_pred --gt ../shared/data/scannet/scene0000_00    # scores 1.000 everywhere
+"""
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "eval", help="score instance predictions with the ScanNet benchmark (AP, AP50, AP25)",
+        description="Scores instance predictions in the ScanNet benchmark format by the rules of the ScanNet 3D\n"
+                    "semantic instance benchmark (18 classes; AP over IoU 0.50:0.05:0.90, AP50, AP25; per mesh\n"
+                    "vertex; scenes pooled per class) and prints the per-class table.",
+        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("pred", nargs="*", type=Path, metavar="PRED",
+                        help="prediction <scene>.txt files or folders of them")
+    parser.add_argument("--pred", dest="pred_option", action="extend", nargs="+", type=Path, default=[],
+                        metavar="PRED", help="same as the positional PRED (either form, or both)")
+    parser.add_argument("--gt", action="extend", nargs="+", type=Path, default=[], metavar="GT",
+                        help="ground truth: scene folders, benchmark gt <scene>.txt files, or folders of either "
+                             "(required)")
+    parser.add_argument("--labels-tsv", type=Path, metavar="TSV",
+                        help="raw label -> nyu40 tsv for scene folders (default: scannetv2-labels.combined.tsv or "
+                             "scannet-labels.combined.tsv in the scene folder, then its parent)")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores to this JSON file")
+    parser.add_argument("--export-gt", type=Path, metavar="OUT_DIR",
+                        help="instead of evaluating, write each GT scene's instances as benchmark-format "
+                             "predictions (confidence 1) into OUT_DIR, to check that ground truth scores 1.0")
+    parser.set_defaults(func=run)
+
+
+@dataclasses.dataclass(frozen=True)
+class _GroundTruthSource:
+    scene: str
+    path: Path
+    kind: str        # "scene" (a ScanNet scene folder) or "txt" (benchmark ids per vertex)
+    explicit: bool   # named on the command line rather than found in a folder
+
+
+def run(args: argparse.Namespace) -> int:
+    predictions = [*args.pred, *args.pred_option]
+    if not args.gt:
+        raise UserError("no ground truth: pass --gt with a ScanNet scene folder, a benchmark gt .txt, "
+                        "or a folder of them")
+    sources = _find_ground_truth(args.gt)
+    if args.export_gt is not None:
+        if predictions:
+            raise UserError("--export-gt writes ground truth as predictions; do not pass predictions with it")
+        return _export_ground_truth(sources, args.export_gt, args.labels_tsv)
+    if not predictions:
+        raise UserError("nothing to evaluate: pass prediction <scene>.txt files or folders (PRED), "
+                        "or --export-gt OUT_DIR to write the ground truth as predictions")
+    pairs = _pair(_find_predictions(predictions), sources)
+    return _evaluate(pairs, args.labels_tsv, args.json)
+
+
+def _evaluate(pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | None, json_path: Path | None) -> int:
+    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+    from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
+
+    scenes, names = [], []
+    for pred_path, source in pairs:
+        gt_ids = _load_ground_truth_ids(source, labels_tsv)
+        preds = read_benchmark_predictions(pred_path, num_vertices=len(gt_ids))
+        log.info("%s: %d predictions vs ground truth %s", pred_path, preds.num_instances, source.path)
+        scenes.append((gt_ids, preds))
+        names.append(pred_path.stem)
+    result = evaluate_scenes(scenes, scene_names=names)
+    print(f"ScanNet instance benchmark, {len(names)} scene(s): {', '.join(names)}")
+    print(result.to_table())
+    if json_path is not None:
+        summary = result.to_json_dict()
+        summary["predictions"] = {p.stem: str(p) for p, _ in pairs}
+        summary["ground_truth"] = {p.stem: str(s.path) for p, s in pairs}
+        try:
+            json_path.parent.mkdir(parents=True, exist_ok=True)
+            json_path.write_text(json.dumps(summary, indent=2) + "\n")
+        except OSError as error:
+            raise UserError(f"cannot write {json_path}: {error}") from error
+        print(f"wrote {json_path}")
+    return 0
+
+
+def _export_ground_truth(sources: list[_GroundTruthSource], out_dir: Path, labels_tsv: Path | None) -> int:
+    from fmfusion_jax.io.benchmark_format import export_ground_truth_as_predictions, write_benchmark_predictions
+
+    for source in sources:
+        preds = export_ground_truth_as_predictions(_load_ground_truth_ids(source, labels_tsv))
+        try:
+            txt = write_benchmark_predictions(out_dir, source.scene, preds)
+        except OSError as error:
+            raise UserError(f"cannot write into {out_dir}: {error}") from error
+        print(f"wrote {txt} ({preds.num_instances} ground-truth instances of benchmark classes)")
+    gt_args = " ".join(str(s.path) for s in sources)
+    print(f"check with: fmfusion eval {out_dir} --gt {gt_args}")
+    return 0
+
+
+def _load_ground_truth_ids(source: _GroundTruthSource, labels_tsv: Path | None):
+    from fmfusion_jax.io.ground_truth import load_benchmark_gt_txt, load_scannet_ground_truth
+
+    if source.kind == "txt":
+        return load_benchmark_gt_txt(source.path)
+    return load_scannet_ground_truth(source.path, labels_tsv).benchmark_ids()
+
+
+def _is_scene_folder(path: Path) -> bool:
+    return (path / f"{path.name}_vh_clean_2.ply").is_file()
+
+
+def _find_ground_truth(paths: list[Path]) -> list[_GroundTruthSource]:
+    """Ground-truth sources by scene name: explicit scene folders / gt txts, or those found in folders."""
+    sources: dict[str, _GroundTruthSource] = {}
+
+    def add(source: _GroundTruthSource) -> None:
+        other = sources.get(source.scene)
+        if other is not None and other.path != source.path:
+            raise UserError(f"two ground truths for scene {source.scene}: {other.path} and {source.path}; pass one")
+        sources[source.scene] = source
+
+    for path in paths:
+        if path.is_file():
+            if path.suffix != ".txt":
+                raise UserError(f"--gt {path}: a file must be a benchmark ground-truth <scene>.txt")
+            add(_GroundTruthSource(path.stem, path, "txt", True))
+        elif path.is_dir() and _is_scene_folder(path):
+            add(_GroundTruthSource(path.name, path, "scene", True))
+        elif path.is_dir():
+            found = [_GroundTruthSource(p.name, p, "scene", False) for p in sorted(path.iterdir())
+                     if p.is_dir() and _is_scene_folder(p)]
+            found += [_GroundTruthSource(p.stem, p, "txt", False) for p in sorted(path.glob("*.txt"))]
+            if not found:
+                raise UserError(f"--gt {path}: no ScanNet scene folder (<scene>/<scene>_vh_clean_2.ply) or "
+                                "ground-truth <scene>.txt in it")
+            for source in found:
+                add(source)
+        else:
+            raise UserError(f"--gt {path}: no such file or folder")
+    return list(sources.values())
+
+
+def _find_predictions(paths: list[Path]) -> list[Path]:
+    """Prediction `<scene>.txt` files: the files given and the `*.txt` directly inside the folders given."""
+    files: dict[str, Path] = {}
+    for path in paths:
+        if path.is_dir():
+            found = sorted(path.glob("*.txt"))
+            if not found:
+                raise UserError(f"{path}: no prediction <scene>.txt in this folder")
+        elif path.is_file():
+            found = [path]
+        else:
+            raise UserError(f"{path}: no such prediction file or folder")
+        for file in found:
+            if file.stem in files and files[file.stem].resolve() != file.resolve():
+                raise UserError(f"two predictions for scene {file.stem}: {files[file.stem]} and {file}; pass one")
+            files[file.stem] = file
+    return list(files.values())
+
+
+def _pair(predictions: list[Path], sources: list[_GroundTruthSource]) -> list[tuple[Path, _GroundTruthSource]]:
+    """Pairs predictions with ground truth by scene name (a lone pair of explicit paths is paired as given)."""
+    if len(predictions) == 1 and len(sources) == 1 and sources[0].explicit:
+        if predictions[0].stem != sources[0].scene:
+            log.warning("pairing %s with ground truth of %s (names differ)", predictions[0], sources[0].scene)
+        return [(predictions[0], sources[0])]
+    by_scene = {s.scene: s for s in sources}
+    missing = [p.stem for p in predictions if p.stem not in by_scene]
+    if missing:
+        raise UserError(f"no ground truth for scene(s) {', '.join(missing)}: pass their scene folders or gt .txt "
+                        "files with --gt (prediction files are named <scene>.txt)")
+    predicted = {p.stem for p in predictions}
+    unpredicted = [s.scene for s in sources if s.explicit and s.scene not in predicted]
+    if unpredicted:
+        raise UserError(f"no predictions for scene(s) {', '.join(unpredicted)}: pass their <scene>.txt files")
+    return [(p, by_scene[p.stem]) for p in predictions]

@@ -1,0 +1,190 @@
+"""The ScanNet instance benchmark's prediction format.
+
+A scene's predictions are `<out>/<scene>.txt`, one line per instance::
+
+    pred_mask/<scene>_<k>.txt <nyu40 id> <confidence>
+
+where the mask path is relative to the folder of `<scene>.txt` and each mask file holds one `0`/`1` per
+line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fmfusion_jax.errors import DataError
+from fmfusion_jax.labels import BENCHMARK_NYU40_IDS
+
+if TYPE_CHECKING:
+    from fmfusion_jax.io.ground_truth import SceneGroundTruth
+
+#: Folder of the mask files, beside the `<scene>.txt` files.
+MASK_FOLDER = "pred_mask"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class InstancePredictions:
+    """Predicted instances of one scene, on the vertices of its evaluation mesh.
+
+    Attributes:
+      masks: `(P, V)` bool, one vertex mask per instance.
+      nyu40_ids: `(P,)` int64 nyu40 class of each instance.
+      confidences: `(P,)` float64 confidence of each instance.
+    """
+
+    masks: np.ndarray
+    nyu40_ids: np.ndarray
+    confidences: np.ndarray
+
+    def __post_init__(self) -> None:
+        masks = np.asarray(self.masks, bool)
+        if masks.ndim != 2:
+            raise ValueError(f"masks must be (P, V), got shape {masks.shape}")
+        ids = np.asarray(self.nyu40_ids).astype(np.int64).reshape(-1)
+        confidences = np.asarray(self.confidences, np.float64).reshape(-1)
+        if ids.shape[0] != masks.shape[0] or confidences.shape[0] != masks.shape[0]:
+            raise ValueError(f"{masks.shape[0]} masks but {ids.shape[0]} nyu40 ids and {confidences.shape[0]} "
+                             "confidences")
+        # Normalised copies on a frozen dataclass.
+        object.__setattr__(self, "masks", masks)
+        object.__setattr__(self, "nyu40_ids", ids)
+        object.__setattr__(self, "confidences", confidences)
+
+    @property
+    def num_instances(self) -> int:
+        return int(self.masks.shape[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.masks.shape[1])
+
+    @staticmethod
+    def empty(num_vertices: int) -> "InstancePredictions":
+        return InstancePredictions(np.zeros((0, num_vertices), bool), np.zeros(0, np.int64), np.zeros(0))
+
+
+def write_benchmark_predictions(out_dir: str | Path, scene_name: str, preds: InstancePredictions) -> Path:
+    """Writes `<out_dir>/<scene_name>.txt` and its masks `<out_dir>/pred_mask/<scene_name>_<k>.txt`.
+
+    Mask files of an earlier run with more instances are not removed: only those listed count.
+
+    Returns:
+      the path of `<scene_name>.txt`.
+    """
+    out_dir = Path(out_dir)
+    (out_dir / MASK_FOLDER).mkdir(parents=True, exist_ok=True)
+    lines = []
+    for k in range(preds.num_instances):
+        relative = f"{MASK_FOLDER}/{scene_name}_{k}.txt"
+        # One byte '0'/'1' then '\n' per vertex, built as a (V, 2) byte array: fast for 10^5 vertices.
+        rows = np.empty((preds.num_vertices, 2), np.uint8)
+        rows[:, 0] = preds.masks[k].astype(np.uint8) + ord("0")
+        rows[:, 1] = ord("\n")
+        (out_dir / relative).write_bytes(rows.tobytes())
+        # repr: the shortest text that reads back to the same float, so confidence ties and order survive.
+        lines.append(f"{relative} {int(preds.nyu40_ids[k])} {float(preds.confidences[k])!r}")
+    txt_path = out_dir / f"{scene_name}.txt"
+    txt_path.write_text("".join(line + "\n" for line in lines))
+    return txt_path
+
+
+def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = None) -> InstancePredictions:
+    """Reads a `<scene>.txt` prediction file and its mask files.
+
+    Args:
+      txt_path: the scene's prediction list; mask paths are relative to its folder (absolute ones are kept).
+      num_vertices: expected mask length (the mesh's vertex count); None: all masks must agree.
+
+    Raises:
+      DataError: naming the file and line of a malformed entry, a missing mask file, a mask whose length is
+        not `num_vertices` or whose values are not 0/1, or a mask file listed twice.
+    """
+    txt_path = Path(txt_path)
+    try:
+        text = txt_path.read_text()
+    except FileNotFoundError:
+        raise DataError(f"{txt_path}: prediction file not found") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise DataError(f"{txt_path}: cannot read the prediction file ({error})") from error
+    masks, ids, confidences, seen = [], [], [], {}
+    for number, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        where = f"{txt_path}:{number}"
+        fields = line.split()
+        if len(fields) != 3:
+            raise DataError(f"{where}: expected 'MASK_PATH NYU40_ID CONFIDENCE', got {line.strip()!r}")
+        relative, id_text, confidence_text = fields
+        try:
+            nyu40 = int(id_text)
+        except ValueError:
+            raise DataError(f"{where}: nyu40 id {id_text!r} is not an integer") from None
+        try:
+            confidence = float(confidence_text)
+        except ValueError:
+            raise DataError(f"{where}: confidence {confidence_text!r} is not a number") from None
+        if not math.isfinite(confidence):
+            raise DataError(f"{where}: confidence {confidence_text!r} is not finite")
+        mask_path = txt_path.parent / relative
+        if mask_path in seen:
+            raise DataError(f"{where}: mask {relative} is already listed on line {seen[mask_path]}")
+        seen[mask_path] = number
+        mask = read_mask_file(mask_path, where)
+        if num_vertices is None:
+            num_vertices = mask.shape[0]
+        if mask.shape[0] != num_vertices:
+            raise DataError(f"{mask_path} (listed at {where}): {mask.shape[0]} lines but the mesh has {num_vertices} "
+                            "vertices: was it predicted on another mesh?")
+        masks.append(mask)
+        ids.append(nyu40)
+        confidences.append(confidence)
+    if not masks:
+        return InstancePredictions.empty(num_vertices or 0)
+    return InstancePredictions(np.stack(masks), np.asarray(ids, np.int64), np.asarray(confidences, np.float64))
+
+
+def read_mask_file(path: Path, listed_at: str = "") -> np.ndarray:
+    """`(V,)` bool from a file of one `0`/`1` per line."""
+    where = f" (listed at {listed_at})" if listed_at else ""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DataError(f"{path}{where}: mask file not found") from None
+    except OSError as error:
+        raise DataError(f"{path}{where}: cannot read the mask ({error})") from error
+    # Fast path for the usual layout, b"0\n1\n...": every other byte a digit, the others newlines.
+    raw = np.frombuffer(data, np.uint8)
+    if raw.size % 2 == 0 and np.all(raw[1::2] == ord("\n")):
+        digits = raw[0::2]
+        if np.all((digits == ord("0")) | (digits == ord("1"))):
+            return digits == ord("1")
+    lines = data.decode("ascii", "replace").splitlines()
+    values = np.zeros(len(lines), bool)
+    for number, line in enumerate(lines, 1):
+        value = line.strip()
+        if value not in ("0", "1"):
+            raise DataError(f"{path}:{number}{where}: mask value {value!r} is not 0 or 1")
+        values[number - 1] = value == "1"
+    return values
+
+
+def export_ground_truth_as_predictions(gt: "SceneGroundTruth | np.ndarray") -> InstancePredictions:
+    """Each ground-truth instance of a benchmark class as a prediction of confidence 1.
+
+    Args:
+      gt: a `SceneGroundTruth`, or `(V,)` int benchmark ids (`nyu40 * 1000 + instance`).
+
+    Returns:
+      predictions in increasing benchmark-id order; small instances are included (the evaluator skips
+      predictions under its minimum size, as it skips such ground truth).
+    """
+    ids = np.asarray(gt.benchmark_ids() if hasattr(gt, "benchmark_ids") else gt, np.int64)
+    instance_ids = np.unique(ids)
+    instance_ids = instance_ids[np.isin(instance_ids // 1000, BENCHMARK_NYU40_IDS)]
+    masks = ids[None, :] == instance_ids[:, None]
+    return InstancePredictions(masks, instance_ids // 1000, np.ones(len(instance_ids)))
