@@ -1,0 +1,157 @@
+"""A frame's detections as fixed-shape arrays, and the per-pixel detection image.
+
+The detector front end gives a variable number of detections per frame (`types.FrameDetections`).
+The engine never sees a variable shape: `pack_detections` pads them on the host to a fixed capacity
+`N` with a validity mask, so every jitted function below compiles once per configuration.
+
+Per-pixel work runs on a stride-subsampled image (`Hs, Ws = ceil(H / stride), ceil(W / stride)`, the
+pixels `[::stride, ::stride]`), the same subsampling the geometry uses for `pixel_instances`.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fmfusion_jax.types import FrameDetections
+
+
+class DetectionBatch(NamedTuple):
+    """One frame's detections padded to a fixed capacity `N` (host arrays; jit converts them).
+
+    Attributes:
+      masks: `(N, H, W)` bool, full-resolution masks; rows past the real detections are all False.
+      label_scores: `(N, O)` float32, score of each open-set label (0 = label not measured).
+      valid: `(N,)` bool, which rows hold a real detection.
+    """
+
+    masks: np.ndarray
+    label_scores: np.ndarray
+    valid: np.ndarray
+
+
+def pack_detections(frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int,
+                    min_mask_pixels: int) -> DetectionBatch:
+    """Pads a frame's detections into a `DetectionBatch` of capacity `max_detections` (host side).
+
+    Dropped: masks with fewer than `min_mask_pixels` pixels (full resolution; the reference uses 1000
+    in its Python pipeline, 100 in C++) and detections with no score on any label of `open_labels`
+    (they carry no semantic measurement). When more than `max_detections` remain, a warning is issued
+    and those with the highest score (max over their labels; ties: earlier detection) are kept.
+    Kept detections stay in their original order.
+    """
+    open_labels = tuple(open_labels)
+    height, width = frame_detections.image_shape
+    masks = np.zeros((max_detections, height, width), bool)
+    scores = np.zeros((max_detections, len(open_labels)), np.float32)
+    valid = np.zeros((max_detections,), bool)
+    if frame_detections.num_detections == 0:
+        return DetectionBatch(masks, scores, valid)
+
+    all_scores = frame_detections.label_score_matrix(open_labels)
+    all_masks = np.asarray(frame_detections.masks, bool)
+    pixels = all_masks.reshape(all_masks.shape[0], -1).sum(axis=1)
+    best = all_scores.max(axis=1)
+    keep = np.flatnonzero((pixels >= min_mask_pixels) & (best > 0))
+    if keep.size > max_detections:
+        warnings.warn(
+            f"{frame_detections.frame_name}: {keep.size} detections, capacity {max_detections}; "
+            f"keeping the {max_detections} highest-scoring (raise detections.max_detections to keep all)",
+            RuntimeWarning, stacklevel=2)
+        order = np.argsort(-best[keep], kind="stable")[:max_detections]
+        keep = np.sort(keep[order])
+    n = keep.size
+    masks[:n] = all_masks[keep]
+    scores[:n] = all_scores[keep]
+    valid[:n] = True
+    return DetectionBatch(masks, scores, valid)
+
+
+def subsampled_shape(height: int, width: int, stride: int) -> tuple[int, int]:
+    """`(Hs, Ws)` of an `(H, W)` image sampled at `[::stride, ::stride]`."""
+    return math.ceil(height / stride), math.ceil(width / stride)
+
+
+@functools.partial(jax.jit, static_argnames=("stride",))
+def detection_pixel_image(masks: jax.Array, valid: jax.Array, stride: int) -> jax.Array:
+    """Per subsampled pixel, the index of the detection covering it, or -1.
+
+    Args:
+      masks: `(N, H, W)` bool.
+      valid: `(N,)` bool.
+      stride: pixel stride (static); pixels `[::stride, ::stride]` are used.
+
+    Returns:
+      `(Hs, Ws)` int32 detection index or -1.
+
+    Where masks overlap, the smallest mask (fewest subsampled pixels; ties: lower index) wins. SAM's
+    overlapping masks are mostly part/whole pairs (a pillow on a bed, a monitor on a desk): the small
+    mask is the more specific object and usually the one in front. Giving the overlap to the large mask
+    would leave the small object with no pixels, so it could never be associated or integrated, while
+    the large object loses only a small share of its area. A partition also makes the masks disjoint,
+    so association needs a single `segment_sum` over pixels.
+    """
+    n = masks.shape[0]
+    sub = masks[:, ::stride, ::stride] & valid[:, None, None]
+    area = jnp.sum(sub, axis=(1, 2), dtype=jnp.int32)
+    order = jnp.argsort(area, stable=True)  # smallest first, ties by index
+    rank_dtype = jnp.int16 if n < 2**15 else jnp.int32  # a narrow key: the per-pixel min is the cost
+    rank = jnp.zeros((n,), rank_dtype).at[order].set(jnp.arange(n, dtype=rank_dtype))
+    best = jnp.min(jnp.where(sub, rank[:, None, None], jnp.asarray(n, rank_dtype)), axis=0).astype(jnp.int32)
+    return jnp.where(best < n, order.astype(jnp.int32)[jnp.minimum(best, n - 1)], -1)
+
+
+def depth_bin_count(depth_max: float, bin_size: float) -> int:
+    """Number of depth-histogram bins used by `filter_detection_depth`."""
+    return max(1, math.ceil(depth_max / bin_size))
+
+
+@functools.partial(jax.jit, static_argnames=("n_max", "bin_size", "depth_max"))
+def filter_detection_depth(det_image: jax.Array, depth_s: jax.Array, n_max: int, lo: float = 0.1,
+                           hi: float = 0.9, *, bin_size: float = 0.01, depth_max: float = 4.0) -> jax.Array:
+    """Drops each detection's pixels whose depth is outside that detection's [lo, hi] percentiles.
+
+    Args:
+      det_image: `(Hs, Ws)` int32 detection index or -1 (`detection_pixel_image`).
+      depth_s: `(Hs, Ws)` float depth in metres at the same pixels (`depth[::stride, ::stride]`),
+        0 = no measurement.
+      n_max: number of detection rows `N` (static).
+      lo, hi: percentile fractions (traced: changing them does not recompile).
+      bin_size, depth_max: the depth histogram (static): `ceil(depth_max / bin_size)` bins from 0;
+        deeper pixels fall into the last bin.
+
+    Returns:
+      `(Hs, Ws)` int32: `det_image` with dropped pixels set to -1. Pixels without depth are dropped
+      too (they can be neither associated nor integrated).
+
+    Method (no sorting): one `segment_sum` builds a depth histogram per detection; its cumulative sum
+    locates the bins holding the order statistics of rank `floor(lo * (n - 1))` and
+    `ceil(hi * (n - 1))` of the detection's `n` depths; pixels in those bins or between them are kept.
+    Resolution: one bin (`bin_size`, 1 cm by default). Every pixel between the two order statistics is
+    kept (so everything inside NumPy's linearly interpolated percentiles is kept); the only
+    difference from an exact filter is that pixels sharing a bin with a threshold are kept as well.
+    """
+    num_bins = depth_bin_count(depth_max, bin_size)
+    has_depth = depth_s > 0
+    bins = jnp.clip(jnp.floor(depth_s / bin_size).astype(jnp.int32), 0, num_bins - 1)
+    use = (det_image >= 0) & has_depth
+    seg = jnp.where(use, det_image * num_bins + bins, n_max * num_bins)
+    hist = jax.ops.segment_sum(jnp.ones(seg.size, jnp.int32), seg.reshape(-1),
+                               num_segments=n_max * num_bins + 1)[:-1].reshape(n_max, num_bins)
+    cdf = jnp.cumsum(hist, axis=1)
+    count = cdf[:, -1]
+    last = jnp.maximum(count - 1, 0).astype(jnp.float32)
+    rank_lo = jnp.floor(jnp.asarray(lo, jnp.float32) * last).astype(jnp.int32)
+    rank_hi = jnp.ceil(jnp.asarray(hi, jnp.float32) * last).astype(jnp.int32)
+    # The bin holding the order statistic of rank r is the first bin whose cdf exceeds r.
+    bin_lo = jnp.sum(cdf <= rank_lo[:, None], axis=1, dtype=jnp.int32)
+    bin_hi = jnp.sum(cdf <= rank_hi[:, None], axis=1, dtype=jnp.int32)
+    det = jnp.clip(det_image, 0, n_max - 1)
+    keep = use & (bins >= bin_lo[det]) & (bins <= bin_hi[det])
+    return jnp.where(keep, det_image, -1)

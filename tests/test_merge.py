@@ -1,0 +1,251 @@
+"""Instance merging and table maintenance vs NumPy references, and their laws."""
+
+from __future__ import annotations
+
+import chex
+import jax
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fmfusion_jax.engine import label_fusion as LF
+from fmfusion_jax.engine import maintenance as MT
+from fmfusion_jax.engine import merge as M
+from fmfusion_jax.engine import reference_semantics as R
+
+K, C, O = 16, 20, 38
+CHECK = settings(max_examples=30, deadline=None)
+seeds = st.integers(0, 2**32 - 1)
+
+
+def random_instances(rng, k=K):
+    """Peaked class distributions over a few classes, voxel counts with ties, overlaps <= counts."""
+    dist = rng.dirichlet(np.full(C, 0.3), size=k)
+    dist[: k // 3] = dist[k // 3: 2 * (k // 3)]  # some pairs with the same semantics
+    dist = dist.astype(np.float32)
+    voxel_count = rng.integers(0, 6, k).astype(np.int32) * 100
+    overlap = np.minimum(rng.integers(0, 600, (k, k)), voxel_count[None, :]).astype(np.int32)
+    valid = rng.random(k) < 0.85
+    return dist, overlap, voxel_count, valid
+
+
+def random_rows(rng, k=K, mode="additive"):
+    valid = rng.random(k) < 0.85
+    if mode == "additive":
+        evidence = (rng.random((k, C)) * (rng.random((k, C)) < 0.4)).astype(np.float32)
+    else:
+        evidence = -rng.exponential(3.0, (k, C)).astype(np.float32)
+        evidence -= evidence.max(1, keepdims=True)
+    return MT.TableRows(
+        valid=valid, label_evidence=evidence, open_label_histogram=rng.random((k, O)).astype(np.float32),
+        observations=rng.integers(0, 20, k).astype(np.int32), missed=rng.integers(0, 6, k).astype(np.int32),
+        voxel_count=rng.integers(0, 2000, k).astype(np.int32), created_frame=rng.integers(0, 50, k).astype(np.int32),
+        last_seen_frame=rng.integers(50, 100, k).astype(np.int32))
+
+
+def random_pairs(rng, k=K, density=0.12):
+    pairs = rng.random((k, k)) < density
+    return pairs | pairs.T
+
+
+def partition(rep):
+    """The groups of a representative vector, as a set of frozensets (invalid rows left out)."""
+    groups: dict[int, set[int]] = {}
+    for i, r in enumerate(rep):
+        if r >= 0:
+            groups.setdefault(int(r), set()).add(i)
+    return {frozenset(g) for g in groups.values()}
+
+
+# ----------------------------------------------------------------------------- merge tests
+
+
+@CHECK
+@given(seeds)
+def test_similarity_and_pair_tests_match_reference(seed):
+    rng = np.random.default_rng(seed)
+    dist, overlap, voxel_count, valid = random_instances(rng)
+    sim = np.asarray(M.semantic_similarity(dist))
+    np.testing.assert_allclose(sim, R.semantic_similarity(dist), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(sim, sim.T, rtol=1e-6)
+    pairs = np.asarray(M.merge_pairs(sim, overlap, voxel_count, valid))
+    np.testing.assert_array_equal(pairs, R.merge_pairs(sim, overlap, voxel_count, valid))
+    assert (pairs == pairs.T).all() and not pairs.diagonal().any()
+    post = np.asarray(M.post_merge_pairs(sim, overlap, voxel_count, valid))
+    np.testing.assert_array_equal(post, R.post_merge_pairs(sim, overlap, voxel_count, valid))
+
+
+def test_similarity_scale():
+    uniform = np.full((2, C), 1.0 / C, np.float32)
+    np.testing.assert_allclose(np.asarray(M.semantic_similarity(uniform)), 1.0 / C, rtol=1e-6)
+    certain = np.eye(C, dtype=np.float32)[[3, 3, 4]]
+    np.testing.assert_allclose(np.asarray(M.semantic_similarity(certain)), [[1, 1, 0], [1, 1, 0], [0, 0, 1]])
+
+
+def test_merge_pairs_reads_overlap_of_the_smaller_inside_the_larger():
+    sim = np.ones((2, 2), np.float32)
+    voxel_count = np.array([1000, 100], np.int32)
+    overlap = np.array([[0, 41], [1000, 0]], np.int32)  # 41 of b's 100 voxels inside a (inflated)
+    valid = np.ones(2, bool)
+    assert np.asarray(M.merge_pairs(sim, overlap, voxel_count, valid))[0, 1]
+    overlap[0, 1] = 40  # exactly 0.4 is not above the threshold
+    assert not np.asarray(M.merge_pairs(sim, overlap, voxel_count, valid)).any()
+    overlap[0, 1] = 90
+    assert not np.asarray(M.merge_pairs(np.full((2, 2), 0.15, np.float32), overlap, voxel_count, valid)).any()
+
+
+@CHECK
+@given(seeds, st.sampled_from([0.05, 0.12, 0.3]))
+def test_merge_groups_are_connected_components(seed, density):
+    rng = np.random.default_rng(seed)
+    pairs = random_pairs(rng, density=density)
+    valid = rng.random(K) < 0.85
+    voxel_count = rng.integers(0, 5, K).astype(np.int32)  # many ties
+    rep = np.asarray(M.merge_groups(pairs, valid, voxel_count))
+    np.testing.assert_array_equal(rep, R.merge_groups(pairs, valid, voxel_count))
+    for group in partition(rep):
+        members = sorted(group)
+        assert rep[members[0]] == max(members, key=lambda m: (voxel_count[m], -m))  # the largest
+
+
+@pytest.mark.parametrize("k", [40])
+def test_merge_groups_converges_on_a_long_chain(k):
+    rng = np.random.default_rng(1)
+    order = rng.permutation(k)
+    pairs = np.zeros((k, k), bool)
+    pairs[order[:-1], order[1:]] = True  # a path through all instances: diameter k - 1
+    voxel_count = rng.permutation(k).astype(np.int32)
+    rep = np.asarray(M.merge_groups(pairs, np.ones(k, bool), voxel_count))
+    assert (rep == np.argmax(voxel_count)).all()
+
+
+@CHECK
+@given(seeds)
+def test_merging_does_not_depend_on_instance_order(seed):
+    rng = np.random.default_rng(seed)
+    pairs = random_pairs(rng)
+    valid = rng.random(K) < 0.85
+    voxel_count = rng.permutation(K).astype(np.int32) * 10  # distinct: the representative is unique
+    rep = np.asarray(M.merge_groups(pairs, valid, voxel_count))
+    perm = rng.permutation(K)  # new index i holds old instance perm[i]
+    rep_p = np.asarray(M.merge_groups(pairs[np.ix_(perm, perm)], valid[perm], voxel_count[perm]))
+    back = np.where(rep_p >= 0, perm[np.maximum(rep_p, 0)], -1)  # representatives in old indices
+    np.testing.assert_array_equal(back[np.argsort(perm)], rep)
+    # With ties the representative may change, never the partition.
+    ties = (voxel_count // 50).astype(np.int32)
+    part = partition(np.asarray(M.merge_groups(pairs, valid, ties)))
+    part_p = partition(np.asarray(M.merge_groups(pairs[np.ix_(perm, perm)], valid[perm], ties[perm])))
+    assert {frozenset(int(perm[i]) for i in g) for g in part_p} == part
+
+
+@CHECK
+@given(seeds, st.sampled_from(LF.MODES))
+def test_merge_instance_table_matches_reference(seed, mode):
+    rng = np.random.default_rng(seed)
+    rows = random_rows(rng, mode=mode)
+    rep = np.asarray(M.merge_groups(random_pairs(rng), rows.valid, rows.voxel_count))
+    got = M.merge_instance_table(rows, rep, mode)
+    want, want_id = R.merge_instance_table(rows._asdict(), rep, mode)
+    for name in MT.TableRows._fields:
+        np.testing.assert_allclose(np.asarray(getattr(got.rows, name)), want[name], rtol=1e-5, atol=1e-5,
+                                   err_msg=name)
+    np.testing.assert_array_equal(np.asarray(got.new_id), want_id)
+    new_valid = np.asarray(got.rows.valid)
+    assert (new_valid == (rows.valid & (rep == np.arange(K)))).all()
+    assert (np.asarray(got.new_id)[rows.valid] >= 0).all() and new_valid[np.asarray(got.new_id)[rows.valid]].all()
+
+
+@pytest.mark.parametrize("mode", LF.MODES)
+def test_merged_evidence_equals_pooled_measurements(mode):
+    """Merging two instances gives what one instance fed with both measurement streams would hold."""
+    rng = np.random.default_rng(7)
+    lik = rng.random((O, C)).astype(np.float32) * (rng.random((O, C)) < 0.4)
+    scores = np.zeros((8, O), np.float32)
+    for i in range(8):
+        scores[i, rng.choice(O, 2, replace=False)] = rng.uniform(0.3, 1.0, 2)
+    valid_det = np.ones(8, bool)
+    split = np.array([0, 0, 0, 1, 1, 0, 1, 1], np.int32)  # detections split between instances 0 and 1
+    zero = np.zeros((K, C), np.float32)
+    evidence = LF.fuse_labels(zero, split, scores, lik, valid_det, mode)
+    pooled = np.asarray(LF.fuse_labels(zero, np.zeros(8, np.int32), scores, lik, valid_det, mode))
+    rows = MT.TableRows(valid=np.arange(K) < 2, label_evidence=evidence,
+                        open_label_histogram=np.zeros((K, O), np.float32),
+                        observations=np.array([4, 4] + [0] * (K - 2), np.int32), missed=np.zeros(K, np.int32),
+                        voxel_count=np.array([900, 300] + [0] * (K - 2), np.int32),
+                        created_frame=np.zeros(K, np.int32), last_seen_frame=np.zeros(K, np.int32))
+    rep = np.asarray(M.merge_groups(np.ones((K, K), bool), rows.valid, rows.voxel_count))
+    merged = M.merge_instance_table(rows, rep, mode)
+    np.testing.assert_allclose(np.asarray(merged.rows.label_evidence)[0], pooled[0], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(LF.class_distribution(merged.rows.label_evidence, mode))[0],
+                               np.asarray(LF.class_distribution(pooled, mode))[0], rtol=1e-5, atol=1e-6)
+    assert np.asarray(merged.rows.valid).tolist()[:2] == [True, False]
+    assert np.asarray(merged.new_id).tolist()[:3] == [0, 0, -1]
+
+
+# ----------------------------------------------------------------------------- maintenance
+
+
+@CHECK
+@given(seeds)
+def test_missed_and_removal_match_reference(seed):
+    rng = np.random.default_rng(seed)
+    missed = rng.integers(0, 8, K).astype(np.int32)
+    voxel_count = rng.integers(0, 1000, K).astype(np.int32)
+    valid, in_view, matched = (rng.random((3, K)) < 0.6)
+    got = np.asarray(MT.update_missed(missed, valid, in_view, matched))
+    np.testing.assert_array_equal(got, R.update_missed(missed, valid, in_view, matched))
+    remove = np.asarray(MT.instances_to_remove(got, voxel_count, valid))
+    np.testing.assert_array_equal(remove, R.instances_to_remove(got, voxel_count, valid))
+    rows = random_rows(rng)._replace(valid=valid, missed=got, voxel_count=voxel_count)
+    out = MT.remove_instances(rows, remove)
+    assert (np.asarray(out.rows.valid) == (valid & ~remove)).all()
+    assert not np.asarray(out.rows.label_evidence)[remove].any()
+    assert (np.asarray(out.rows.created_frame)[remove] == -1).all()
+    np.testing.assert_array_equal(np.asarray(out.new_id), np.where(valid & ~remove, np.arange(K), -1))
+
+
+def test_in_view_matched_seen_and_reset():
+    inst_area = np.array([0, 199, 201, 500] + [0] * (K - 4), np.int32)  # subsampled pixels, stride 2
+    valid = np.array([1, 1, 1, 0] + [0] * (K - 4), bool)
+    np.testing.assert_array_equal(np.asarray(MT.instances_in_view(inst_area, valid, 2))[:4], [0, 0, 1, 0])
+    matched = np.asarray(MT.matched_instances(np.array([2, 2, -1, 5], np.int32), np.array([1, 1, 1, 0], bool), K))
+    np.testing.assert_array_equal(np.flatnonzero(matched), [2])
+    np.testing.assert_array_equal(np.asarray(MT.mark_seen(np.zeros(K, np.int32), matched, 7))[:3], [0, 0, 7])
+    rows = random_rows(np.random.default_rng(0))._replace(valid=np.zeros(K, bool))
+    created = np.arange(K) == 4
+    out = MT.reset_rows(rows, created, 9)
+    assert np.asarray(out.valid)[4] and np.asarray(out.valid).sum() == 1
+    assert not np.asarray(out.label_evidence)[4].any() and np.asarray(out.observations)[4] == 0
+    assert np.asarray(out.created_frame)[4] == 9 == np.asarray(out.last_seen_frame)[4]
+    np.testing.assert_array_equal(np.asarray(out.label_evidence)[~created], rows.label_evidence[~created])
+    assert all(a is b for a, b in zip(MT.TableRows.of(out), out))
+
+
+# ----------------------------------------------------------------------------- no recompilation
+
+
+def test_merge_step_compiles_once():
+    chex.clear_trace_counter()
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def merge_step(rows, overlap, sim_threshold):
+        dist = LF.class_distribution(rows.label_evidence, "additive")
+        pairs = M.merge_pairs(M.semantic_similarity(dist), overlap, rows.voxel_count, rows.valid, sim_threshold)
+        rep = M.merge_groups(pairs, rows.valid, rows.voxel_count)
+        return M.merge_instance_table(rows, rep, "additive")
+
+    def calls(seed):
+        rng = np.random.default_rng(seed)
+        rows = random_rows(rng)
+        overlap = rng.integers(0, 2000, (K, K)).astype(np.int32)
+        merge_step(rows, overlap, 0.1 + 0.05 * seed)
+        rep = M.merge_groups(random_pairs(rng), rows.valid, rows.voxel_count)
+        M.merge_instance_table(rows, rep, "additive")
+
+    calls(0)
+    before = M.merge_groups._cache_size(), M.merge_instance_table._cache_size()
+    for seed in range(1, 4):
+        calls(seed)
+    assert (M.merge_groups._cache_size(), M.merge_instance_table._cache_size()) == before
