@@ -1,0 +1,112 @@
+"""Small jittable geometry helpers shared by the TSDF and instance kernels (private).
+
+Point transforms are written out as scalar multiply-adds over coordinate arrays: on this CPU a
+`(N, 3) @ (3, 3)` matmul was several times slower than nine fused multiply-adds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import jax
+import jax.numpy as jnp
+
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.state import VoxelBlocks, local_voxel_index
+
+
+def camera_to_world(T, x, y, z):
+    """`T_world_camera` applied to camera-frame coordinate arrays `x, y, z` (any common shape)."""
+    return (
+        T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3],
+        T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3],
+        T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3],
+    )
+
+
+def world_to_camera(T, x, y, z):
+    """Inverse of `camera_to_world` for a rigid `T_world_camera`: `R^T (p - t)`."""
+    dx, dy, dz = x - T[0, 3], y - T[1, 3], z - T[2, 3]
+    return (
+        T[0, 0] * dx + T[1, 0] * dy + T[2, 0] * dz,
+        T[0, 1] * dx + T[1, 1] * dy + T[2, 1] * dz,
+        T[0, 2] * dx + T[1, 2] * dy + T[2, 2] * dz,
+    )
+
+
+def pixel_grid(config: MapConfig, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution pixel coordinates `(u, v)` (float32 `(Hs, Ws)`) of the stride-subsampled grid."""
+    v, u = np.meshgrid(
+        np.arange(0, config.image_height, stride, dtype=np.float32),
+        np.arange(0, config.image_width, stride, dtype=np.float32),
+        indexing="ij",
+    )
+    return u, v
+
+
+def subsampled_rays(intrinsics, config: MapConfig, stride: int):
+    """Normalised rays `(x/z, y/z)` of the subsampled pixel grid, each float32 `(Hs, Ws)`."""
+    u, v = pixel_grid(config, stride)
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    return (u - cx) / fx, (v - cy) / fy
+
+
+def valid_depth(d, config: MapConfig):
+    """bool mask of usable depth readings."""
+    return (d >= config.depth_min) & (d <= config.depth_max)
+
+
+def world_to_voxel(x, y, z, config: MapConfig):
+    """Integer global voxel coordinates of world points (floor)."""
+    o, vs = config.grid_origin, config.voxel_size
+    return (
+        jnp.floor((x - o[0]) / vs).astype(jnp.int32),
+        jnp.floor((y - o[1]) / vs).astype(jnp.int32),
+        jnp.floor((z - o[2]) / vs).astype(jnp.int32),
+    )
+
+
+def locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):
+    """Pool address of global voxels.
+
+    Returns `(slot, v, inside)`: `slot` int32 (-1 where the block is outside the index or not
+    allocated), `v` the voxel's index inside its block, `inside` whether the block is inside the index.
+    """
+    bs = config.block_size
+    bx, by, bz = gx // bs, gy // bs, gz // bs  # floor division, also for negatives
+    sx, sy, sz = config.grid_shape
+    inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
+    flat = jnp.where(inside, (bx * sy + by) * sz + bz, 0)
+    slot = jnp.where(inside, blocks.block_index.reshape(-1)[flat], -1)
+    v = local_voxel_index(gx - bx * bs, gy - by * bs, gz - bz * bs, bs)
+    return slot, v, inside
+
+
+def as_pose(T_world_camera) -> jax.Array:
+    return jnp.asarray(T_world_camera, jnp.float32)
+
+
+def as_intrinsics(intrinsics) -> jax.Array:
+    return jnp.asarray(intrinsics, jnp.float32)
+
+
+def fold_chunks(count, chunk: int, total: int, body, carry):
+    """Run `body(start, fresh, carry) -> carry` over fixed-size chunks covering rows `[0, count)`.
+
+    `count` may be traced (the loop runs `ceil(count / chunk)` times, so the cost follows the data,
+    not the capacity `total`); `chunk` and `total` are static. A chunk is the row range
+    `[start, start + chunk)` with `start` clamped so that it stays inside `total`; `fresh` (bool
+    `(chunk,)`) marks the rows of the range that belong to this chunk and are `< count`, so that rows
+    seen by an earlier (clamped) chunk are not processed twice.
+    """
+    chunk = max(1, min(int(chunk), int(total)))
+    count = jnp.minimum(jnp.asarray(count, jnp.int32), total)
+    num_chunks = (count + chunk - 1) // chunk
+    rows = jnp.arange(chunk, dtype=jnp.int32)
+
+    def step(i, carry):
+        begin = i * chunk
+        start = jnp.minimum(begin, total - chunk)
+        index = start + rows
+        return body(start, (index >= begin) & (index < count), carry)
+
+    return jax.lax.fori_loop(0, num_chunks, step, carry)

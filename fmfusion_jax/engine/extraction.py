@@ -1,0 +1,242 @@
+"""Host-side extraction from the voxel-block pool: mesh, surface points, instance point sets (NumPy).
+
+Nothing here is jitted: these run once per export on arrays copied to the host. The allocated blocks
+are assembled chunk by chunk into small dense volumes (`chunk_blocks`^3 blocks plus a one-voxel
+apron taken from the neighbouring blocks), so memory stays bounded for a whole room. Voxels whose
+weight is below `min_weight`, or whose block is not allocated, are invalid: a marching-cubes cube or
+a zero-crossing edge is used only if all its corners are valid, so no surface appears in unobserved
+space.
+"""
+
+from __future__ import annotations
+
+from typing import Iterator
+
+import numpy as np
+
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.state import MapState, VoxelBlocks, local_voxel_index
+
+
+def _host_blocks(state_or_blocks) -> dict[str, np.ndarray]:
+    blocks: VoxelBlocks = state_or_blocks.blocks if isinstance(state_or_blocks, MapState) else state_or_blocks
+    n = int(blocks.num_blocks)
+    return {
+        "coords": np.asarray(blocks.block_coords)[:n],
+        "tsdf": np.asarray(blocks.tsdf)[:n],
+        "weight": np.asarray(blocks.weight)[:n],
+        "color": np.asarray(blocks.color)[:n],
+        "instance_id": np.asarray(blocks.instance_id)[:n],
+        "instance_weight": np.asarray(blocks.instance_weight)[:n],
+    }
+
+
+def _row_major_permutation(block_size: int) -> np.ndarray:
+    """`perm` such that `block[..., perm].reshape(bs, bs, bs)` is the block in (x, y, z) raster order."""
+    g = np.stack(np.meshgrid(*(np.arange(block_size),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    return local_voxel_index(g[:, 0], g[:, 1], g[:, 2], block_size)
+
+
+def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float) -> Iterator[tuple]:
+    """Yield `(origin_voxel int[3], tsdf, valid, color)` dense volumes of `chunk_blocks * bs + 1` voxels
+    per axis: the chunk's blocks plus the first voxel layer of the neighbours on the + sides."""
+    bs = config.block_size
+    coords = host["coords"]
+    if len(coords) == 0:
+        return
+    perm = _row_major_permutation(bs)
+    tsdf = host["tsdf"][:, perm].reshape(-1, bs, bs, bs)
+    weight = host["weight"][:, perm].reshape(-1, bs, bs, bs)
+    color = host["color"][:, perm].reshape(-1, bs, bs, bs, 3)
+    # Each block feeds its own chunk, and (as the apron) the chunks just below it along each axis
+    # where it sits on the chunk's lower face.
+    block_ids, chunk_ids, rel = [], [], []
+    for d in np.ndindex(2, 2, 2):
+        d = np.asarray(d)
+        on_face = np.all((d == 0) | (coords % chunk_blocks == 0), axis=1)
+        chunk = coords // chunk_blocks - d
+        block_ids.append(np.nonzero(on_face)[0])
+        chunk_ids.append(chunk[on_face])
+        rel.append((coords - chunk * chunk_blocks)[on_face])
+    block_ids, chunk_ids, rel = (np.concatenate(x) for x in (block_ids, chunk_ids, rel))
+    order = np.lexsort(chunk_ids.T[::-1])
+    block_ids, chunk_ids, rel = block_ids[order], chunk_ids[order], rel[order]
+    starts = np.flatnonzero(np.any(np.diff(chunk_ids, axis=0) != 0, axis=1)) + 1
+    n = chunk_blocks * bs + 1
+    size = (chunk_blocks + 1) * bs
+    for group in np.split(np.arange(len(block_ids)), starts):
+        chunk = chunk_ids[group[0]]
+        if not np.any(np.all(rel[group] < chunk_blocks, axis=1)):
+            continue  # only apron blocks: this chunk holds no block of its own
+        vol_t = np.ones((size, size, size), np.float32)
+        vol_w = np.zeros((size, size, size), np.float32)
+        vol_c = np.zeros((size, size, size, 3), np.float32)
+        for b, r in zip(block_ids[group], rel[group]):
+            sl = tuple(slice(int(x) * bs, int(x) * bs + bs) for x in r)
+            vol_t[sl], vol_w[sl], vol_c[sl] = tsdf[b], weight[b], color[b]
+        valid = (vol_w >= min_weight)[:n, :n, :n]
+        yield chunk * chunk_blocks * bs, vol_t[:n, :n, :n], valid, vol_c[:n, :n, :n]
+
+
+def _voxel_to_world(g: np.ndarray, config: MapConfig) -> np.ndarray:
+    """World coordinates of (fractional) global voxel coordinates (voxel centres at integers)."""
+    return (np.asarray(config.grid_origin) + (g + 0.5) * config.voxel_size).astype(np.float32)
+
+
+def _sample_linear(volume: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Trilinear samples of `volume (X, Y, Z, ...)` at fractional voxel coordinates `(N, 3)`."""
+    lo = np.floor(points).astype(int)
+    lo = np.clip(lo, 0, np.asarray(volume.shape[:3]) - 1)
+    f = points - lo
+    hi = np.minimum(lo + 1, np.asarray(volume.shape[:3]) - 1)
+    out = 0.0
+    for corner in np.ndindex(2, 2, 2):
+        idx = [np.where(corner[a], hi[:, a], lo[:, a]) for a in range(3)]
+        wgt = np.prod([f[:, a] if corner[a] else 1.0 - f[:, a] for a in range(3)], axis=0)
+        out = out + volume[idx[0], idx[1], idx[2]] * wgt.reshape((-1,) + (1,) * (volume.ndim - 3))
+    return out
+
+
+def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks: int = 8):
+    """Marching-cubes mesh of the global TSDF's zero level set.
+
+    Args:
+      state: a `MapState` or `VoxelBlocks`.
+      config: the map config.
+      min_weight: voxels with a smaller integration weight are unobserved.
+      chunk_blocks: blocks per axis of the dense chunks the pool is assembled into.
+
+    Returns:
+      `(vertices float32 (N, 3) world metres, faces int32 (F, 3), colors uint8 (N, 3))`; faces are
+      oriented with normals pointing to free space (positive tsdf). Vertices shared by two chunks
+      are merged.
+    """
+    from skimage.measure import marching_cubes
+
+    host = _host_blocks(state)
+    verts, faces, colors = [], [], []
+    offset = 0
+    for origin, tsdf, valid, color in _chunks(host, config, chunk_blocks, min_weight):
+        # cube (i, j, k) -> (i+1, j+1, k+1) is usable iff its 8 corners are valid; skimage reads the
+        # mask at the cube's upper corner.
+        m = tsdf.shape[0] - 1  # cubes per axis
+        cube = valid[:-1, :-1, :-1].copy()
+        for d in list(np.ndindex(2, 2, 2))[1:]:
+            cube &= valid[d[0] : d[0] + m, d[1] : d[1] + m, d[2] : d[2] + m]
+        if not cube.any():
+            continue
+        mask = np.zeros_like(valid)
+        mask[1:, 1:, 1:] = cube
+        corners = np.zeros_like(valid)
+        for d in np.ndindex(2, 2, 2):
+            corners[d[0] : d[0] + cube.shape[0], d[1] : d[1] + cube.shape[1], d[2] : d[2] + cube.shape[2]] |= cube
+        values = tsdf[corners]
+        if not (values.min() < 0.0 < values.max()):
+            continue
+        volume = np.where(corners, tsdf, 1.0)
+        try:
+            v, f, _, _ = marching_cubes(
+                volume, level=0.0, mask=mask, gradient_direction="descent", allow_degenerate=False
+            )
+        except (RuntimeError, ValueError):  # no crossing inside the usable cubes
+            continue
+        if len(f) == 0:
+            continue
+        colors.append(_sample_linear(color, v))
+        verts.append(v + origin)
+        faces.append(f + offset)
+        offset += len(v)
+    if not verts:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.uint8)
+    g = np.concatenate(verts)
+    f = np.concatenate(faces)
+    c = np.concatenate(colors)
+    # merge the copies of vertices on chunk faces (identical coordinates: same values, same arithmetic)
+    key = np.round(g * 4096).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    f = inverse.reshape(-1)[f]
+    g, c = g[first], c[first]
+    return _voxel_to_world(g, config), f.astype(np.int32), np.clip(np.round(c), 0, 255).astype(np.uint8)
+
+
+def extract_surface_points(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks: int = 8):
+    """Zero crossings of the global TSDF along voxel edges (Open3D's extract_point_cloud equivalent).
+
+    Returns:
+      `(points float32 (N, 3) world metres, colors uint8 (N, 3))`: one point per edge between two
+      valid voxels whose tsdf changes sign, linearly interpolated; colour interpolated likewise.
+    """
+    host = _host_blocks(state)
+    points, colors = [], []
+    for origin, tsdf, valid, color in _chunks(host, config, chunk_blocks, min_weight):
+        n = tsdf.shape[0] - 1  # edges start inside the chunk, end inside it or in the apron
+        for axis in range(3):
+            lo = [slice(0, n)] * 3
+            hi = [slice(0, n)] * 3
+            hi[axis] = slice(1, n + 1)
+            t0, t1 = tsdf[tuple(lo)], tsdf[tuple(hi)]
+            ok = valid[tuple(lo)] & valid[tuple(hi)] & ((t0 < 0) != (t1 < 0))
+            idx = np.argwhere(ok)
+            if len(idx) == 0:
+                continue
+            a, b = t0[ok], t1[ok]
+            frac = a / (a - b)
+            p = idx.astype(np.float64)
+            p[:, axis] += frac
+            step = np.zeros(3, int)
+            step[axis] = 1
+            c0 = color[idx[:, 0], idx[:, 1], idx[:, 2]]
+            c1 = color[idx[:, 0] + step[0], idx[:, 1] + step[1], idx[:, 2] + step[2]]
+            points.append(p + origin)
+            colors.append(c0 * (1 - frac[:, None]) + c1 * frac[:, None])
+    if not points:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    return _voxel_to_world(np.concatenate(points), config), np.clip(np.round(np.concatenate(colors)), 0, 255).astype(
+        np.uint8
+    )
+
+
+def extract_instance_points(
+    state,
+    config: MapConfig,
+    min_weight: float = 1.0,
+    on_surface: bool = False,
+    surface_band: float | None = None,
+    min_tsdf_weight: float = 1.0,
+) -> dict[int, np.ndarray]:
+    """Voxel centres of each instance's voxels.
+
+    Args:
+      state: a `MapState` or `VoxelBlocks`.
+      config: the map config.
+      min_weight: minimum instance-slot weight for a voxel to belong to the instance.
+      on_surface: keep only voxels on the global surface: TSDF weight >= `min_tsdf_weight` and
+        `|tsdf| * sdf_trunc <= surface_band` (default one voxel).
+      surface_band: see `on_surface`, metres.
+      min_tsdf_weight: see `on_surface`.
+
+    Returns:
+      `{instance id: float32 (Ni, 3) world coordinates}` for every id with at least one voxel.
+    """
+    host = _host_blocks(state)
+    if len(host["coords"]) == 0:
+        return {}
+    from fmfusion_jax.engine.state import voxel_offsets
+
+    ids, weights = host["instance_id"], host["instance_weight"]
+    keep = (ids >= 0) & (weights >= min_weight)
+    if on_surface:
+        band = config.voxel_size if surface_band is None else surface_band
+        surface = (host["weight"] >= min_tsdf_weight) & (np.abs(host["tsdf"]) * config.sdf_trunc <= band)
+        keep &= surface[..., None]
+    block, voxel, _ = np.nonzero(keep)
+    inst = ids[keep]
+    g = host["coords"][block] * config.block_size + voxel_offsets(config.block_size)[voxel]
+    points = _voxel_to_world(g.astype(np.float64), config)
+    order = np.argsort(inst, kind="stable")
+    inst, points = inst[order], points[order]
+    unique, starts = np.unique(inst, return_index=True)
+    return {int(i): p for i, p in zip(unique, np.split(points, starts[1:]))}
+
+
+__all__ = ["extract_mesh", "extract_surface_points", "extract_instance_points"]

@@ -1,0 +1,173 @@
+"""The immutable map state: a voxel-block pool behind a dense block index, and the instance table.
+
+Every container is a NamedTuple of arrays (a pytree), so the state passes through `jax.jit`,
+`jax.vmap` and `jax.lax` control flow unchanged; every function of the engine takes a state and
+returns a new one. Shapes are fixed by `MapConfig` and never change at run time.
+
+Lattice and layout
+- Global voxel `g = (gx, gy, gz)` (integers) has its centre at `grid_origin + (g + 0.5) * voxel_size`;
+  a world point `p` lies in voxel `floor((p - grid_origin) / voxel_size)`.
+- Block `b = g // block_size` (floor division), local voxel `l = g - b * block_size` in
+  `[0, block_size)^3`. The dense `block_index[b]` holds the block's pool slot, or -1.
+- Inside a block the `V = block_size^3` voxels are stored in **2x2x2-cell order**: the 8 voxels of
+  each 2x2x2 cell are contiguous, so `(..., V)` reshapes for free to `(..., V // 8, 8)` cells (used by
+  the inflated overlap test, whose cells are the 2x coarse voxels). `local_voxel_index` and
+  `voxel_offsets` convert between local coordinates and that order.
+- Pool slot `B - 1` is a scratch slot: fixed-size slot lists are padded with it, it is never
+  allocated, and its contents are meaningless. Only slots `< num_blocks` hold blocks.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fmfusion_jax.engine.config import MapConfig
+
+
+class VoxelBlocks(NamedTuple):
+    """The voxel-block pool: global TSDF, colour and per-voxel instance slots.
+
+    Invariants: slots `[0, num_blocks)` are allocated and indexed by exactly one `block_index` entry;
+    in every voxel the non-negative instance ids are distinct, and an empty slot (id -1) has weight 0.
+    """
+
+    block_index: jax.Array  # int32[gx, gy, gz]: pool slot of each block of the scene bounds, -1 if none
+    block_coords: jax.Array  # int32[B, 3]: block coordinate of each slot (meaningful for slot < num_blocks)
+    num_blocks: jax.Array  # int32[]: allocated slots, always < B (slot B - 1 is the scratch slot)
+    tsdf: jax.Array  # float32[B, V]: truncated signed distance / sdf_trunc, in [-1, 1] (1 = unobserved/free)
+    weight: jax.Array  # float32[B, V]: TSDF integration weight (observations, capped at config.max_weight)
+    color: jax.Array  # float32[B, V, 3]: weighted mean RGB in [0, 255]
+    instance_id: jax.Array  # int32[B, V, S]: instance ids seen at the voxel, -1 = empty slot
+    instance_weight: jax.Array  # float32[B, V, S]: evidence per slot (pixel hits, see instance_volume)
+    dropped_blocks: jax.Array  # int32[]: blocks that needed a slot when the pool was full (cumulative)
+    out_of_bounds: jax.Array  # int32[]: sampled depth points outside the block index (cumulative)
+    touched_overflow: jax.Array  # int32[]: touched blocks beyond max_touched_blocks, not integrated (cumulative)
+
+
+class InstanceTable(NamedTuple):
+    """K rows of instance attributes; row k describes instance id k (ids index rows directly)."""
+
+    valid: jax.Array  # bool[K]: the row holds a live instance
+    label_evidence: jax.Array  # float32[K, C]: label-fusion state (owned by `engine.semantics`); zeros at init
+    open_label_histogram: jax.Array  # float32[K, O]: accumulated open-set label scores
+    observations: jax.Array  # int32[K]: detections associated with the instance
+    missed: jax.Array  # int32[K]: detection frames in which it was visible but not detected
+    voxel_count: jax.Array  # int32[K]: voxels holding the instance (refreshed from the voxels)
+    created_frame: jax.Array  # int32[K]: frame index of creation
+    last_seen_frame: jax.Array  # int32[K]: frame index of the last association
+    overflow: jax.Array  # int32[]: detections that found no free row (cumulative)
+
+
+class MapState(NamedTuple):
+    """The whole map."""
+
+    blocks: VoxelBlocks  # geometry and per-voxel instance slots
+    instances: InstanceTable  # per-instance attributes
+    frame_index: jax.Array  # int32[]: frames integrated so far
+
+
+# --------------------------------------------------------------------------------------------------
+# Voxel layout inside a block.
+
+
+def local_voxel_index(x, y, z, block_size: int):
+    """Index in `[0, V)` of local voxel `(x, y, z)` (each in `[0, block_size)`), 2x2x2-cell order.
+
+    Works elementwise on Python ints, NumPy or JAX integer arrays.
+    """
+    c = block_size // 2
+    cell = ((x // 2) * c + (y // 2)) * c + (z // 2)
+    return cell * 8 + (x % 2) * 4 + (y % 2) * 2 + (z % 2)
+
+
+@functools.lru_cache(maxsize=None)
+def _voxel_offsets_cached(block_size: int) -> np.ndarray:
+    grid = np.stack(np.meshgrid(*(np.arange(block_size),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    out = np.zeros((block_size**3, 3), np.int32)
+    out[local_voxel_index(grid[:, 0], grid[:, 1], grid[:, 2], block_size)] = grid
+    out.setflags(write=False)
+    return out
+
+
+def voxel_offsets(block_size: int) -> np.ndarray:
+    """int32[V, 3]: local coordinates `(x, y, z)` of each voxel index `v` of a block (read-only)."""
+    return _voxel_offsets_cached(int(block_size))
+
+
+# --------------------------------------------------------------------------------------------------
+# Construction.
+
+
+def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
+    """An empty pool: no block allocated, tsdf 1, weights 0, every instance slot empty."""
+    b, v, s = config.block_capacity, config.voxels_per_block, config.instance_slots
+
+    def zero():  # a distinct buffer per counter, so that the state can be donated to jit
+        return jnp.zeros((), jnp.int32)
+
+    return VoxelBlocks(
+        block_index=jnp.full(config.grid_shape, -1, jnp.int32),
+        block_coords=jnp.full((b, 3), -1, jnp.int32),
+        num_blocks=zero(),
+        tsdf=jnp.ones((b, v), jnp.float32),
+        weight=jnp.zeros((b, v), jnp.float32),
+        color=jnp.zeros((b, v, 3), jnp.float32),
+        instance_id=jnp.full((b, v, s), -1, jnp.int32),
+        instance_weight=jnp.zeros((b, v, s), jnp.float32),
+        dropped_blocks=zero(),
+        out_of_bounds=zero(),
+        touched_overflow=zero(),
+    )
+
+
+def init_instance_table(config: MapConfig) -> InstanceTable:
+    """An empty table. `label_evidence` starts at zeros: the label-fusion code gives a row its prior
+    (e.g. the uniform 1/C of additive fusion) when it creates the instance."""
+    k = config.instance_capacity
+
+    def zeros_k():  # distinct buffers (donation)
+        return jnp.zeros((k,), jnp.int32)
+
+    return InstanceTable(
+        valid=jnp.zeros((k,), bool),
+        label_evidence=jnp.zeros((k, config.num_classes), jnp.float32),
+        open_label_histogram=jnp.zeros((k, config.num_open_labels), jnp.float32),
+        observations=zeros_k(),
+        missed=zeros_k(),
+        voxel_count=zeros_k(),
+        created_frame=zeros_k(),
+        last_seen_frame=zeros_k(),
+        overflow=jnp.zeros((), jnp.int32),
+    )
+
+
+def init_map_state(config: MapConfig) -> MapState:
+    """An empty map for `config` (allocates about `config.memory_bytes()` bytes)."""
+    return MapState(
+        blocks=init_voxel_blocks(config),
+        instances=init_instance_table(config),
+        frame_index=jnp.zeros((), jnp.int32),
+    )
+
+
+def allocated_slots(blocks: VoxelBlocks) -> jax.Array:
+    """bool[B]: which pool slots hold an allocated block."""
+    return jnp.arange(blocks.tsdf.shape[0]) < blocks.num_blocks
+
+
+__all__ = [
+    "VoxelBlocks",
+    "InstanceTable",
+    "MapState",
+    "init_voxel_blocks",
+    "init_instance_table",
+    "init_map_state",
+    "allocated_slots",
+    "local_voxel_index",
+    "voxel_offsets",
+]

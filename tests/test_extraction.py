@@ -1,0 +1,134 @@
+"""Host-side extraction (`engine.extraction`): meshes, surface points and instance point sets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fmfusion_jax.engine import instance_volume as iv
+from fmfusion_jax.engine import reference as ref
+from fmfusion_jax.engine import tsdf
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.extraction import extract_instance_points, extract_mesh, extract_surface_points
+from fmfusion_jax.engine.state import MapState, init_map_state, init_voxel_blocks
+
+SPHERE_CONFIG = MapConfig(voxel_size=0.02, block_size=4, sdf_trunc=0.06, grid_origin=(-0.5, -0.5, -0.5),
+                          grid_shape=(13, 13, 13), block_capacity=4096, instance_capacity=4)
+CENTRE = np.array([0.013, 0.021, 0.007])
+RADIUS = 0.3
+
+
+def sphere_blocks(observed=lambda x, y, z: np.ones_like(x, bool)):
+    """A pool holding the truncated SDF of a sphere, in the voxels where `observed` is True."""
+    grid = ref.empty_dense(SPHERE_CONFIG)
+    x, y, z = ref.voxel_centres(SPHERE_CONFIG)
+    sdf = np.sqrt((x - CENTRE[0]) ** 2 + (y - CENTRE[1]) ** 2 + (z - CENTRE[2]) ** 2) - RADIUS
+    near = (np.abs(sdf) < SPHERE_CONFIG.sdf_trunc) & observed(x, y, z)
+    grid.tsdf = np.where(near, np.clip(sdf / SPHERE_CONFIG.sdf_trunc, -1, 1), 1.0)
+    grid.weight = near.astype(float)
+    grid.color[...] = np.stack([x, y, z], -1) * 100 + 120
+    grid.allocated = near
+    return ref.dense_to_blocks(grid, SPHERE_CONFIG)
+
+
+def edge_use_counts(faces: np.ndarray) -> np.ndarray:
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(edges, axis=0, return_counts=True)[1]
+
+
+@pytest.mark.parametrize("chunk_blocks", [2, 8])
+def test_sphere_mesh_is_accurate_closed_and_outward(chunk_blocks):
+    vertices, faces, colors = extract_mesh(sphere_blocks(), SPHERE_CONFIG, chunk_blocks=chunk_blocks)
+    assert vertices.dtype == np.float32 and faces.dtype == np.int32 and colors.dtype == np.uint8
+    assert len(faces) > 1000
+    error = np.abs(np.linalg.norm(vertices - CENTRE, axis=1) - RADIUS)
+    assert error.max() < 0.1 * SPHERE_CONFIG.voxel_size
+    assert np.all(edge_use_counts(faces) == 2), "chunk seams left the mesh open"
+    normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    assert np.all(np.sum(normals * (vertices[faces].mean(1) - CENTRE), axis=1) > 0)
+    expected = np.clip(np.round(vertices * 100 + 120), 0, 255)
+    assert np.abs(colors.astype(float) - expected).max() <= 1.0
+
+
+def canonical_triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Triangles as rows of 9 coordinates, each rotated to start at its smallest vertex, rows sorted."""
+    tri = vertices[faces].astype(np.float64)  # (F, 3, 3)
+    start = np.array([min(range(3), key=lambda i: tuple(t[i])) for t in tri])
+    tri = np.stack([np.roll(t, -s, axis=0) for t, s in zip(tri, start)]).reshape(len(tri), 9)
+    return tri[np.lexsort(np.round(tri, 4).T[::-1])]
+
+
+def test_mesh_does_not_depend_on_the_chunking():
+    blocks = sphere_blocks()
+    a = extract_mesh(blocks, SPHERE_CONFIG, chunk_blocks=3)
+    b = extract_mesh(blocks, SPHERE_CONFIG, chunk_blocks=8)
+    assert len(a[0]) == len(b[0]) and len(a[1]) == len(b[1])
+    np.testing.assert_allclose(canonical_triangles(*a[:2]), canonical_triangles(*b[:2]), atol=1e-5)
+
+
+def test_unobserved_space_makes_no_surface():
+    """Half a sphere observed: the mesh is an open cap on the true surface, nothing elsewhere."""
+    blocks = sphere_blocks(lambda x, y, z: z > CENTRE[2])
+    vertices, faces, _ = extract_mesh(blocks, SPHERE_CONFIG)
+    assert len(faces) > 100
+    assert np.abs(np.linalg.norm(vertices - CENTRE, axis=1) - RADIUS).max() < 0.1 * SPHERE_CONFIG.voxel_size
+    assert vertices[:, 2].min() > CENTRE[2]
+    assert np.any(edge_use_counts(faces) == 1)  # open boundary where observation stops
+    points, _ = extract_surface_points(blocks, SPHERE_CONFIG)
+    assert np.abs(np.linalg.norm(points - CENTRE, axis=1) - RADIUS).max() < 0.1 * SPHERE_CONFIG.voxel_size
+
+
+def test_surface_points_match_mesh_vertices_on_a_closed_surface():
+    blocks = sphere_blocks()
+    vertices, _, _ = extract_mesh(blocks, SPHERE_CONFIG)
+    points, colors = extract_surface_points(blocks, SPHERE_CONFIG)
+    from scipy.spatial import cKDTree
+
+    assert len(points) == len(vertices)
+    assert cKDTree(vertices).query(points)[0].max() < 1e-5
+    assert cKDTree(points).query(vertices)[0].max() < 1e-5
+    assert colors.shape == points.shape
+
+
+def test_empty_map_extracts_nothing():
+    state = init_map_state(SPHERE_CONFIG)
+    v, f, c = extract_mesh(state, SPHERE_CONFIG)
+    assert v.shape == (0, 3) and f.shape == (0, 3) and c.shape == (0, 3)
+    p, pc = extract_surface_points(state, SPHERE_CONFIG)
+    assert p.shape == (0, 3)
+    assert extract_instance_points(state, SPHERE_CONFIG) == {}
+
+
+def test_integrated_room_mesh_lies_on_the_room():
+    room = ref.BoxRoom(lo=(0.013, 0.021, 0.007), hi=(3.011, 2.517, 2.209),
+                       boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),), spheres=(((1.9, 1.3, 0.8), 0.3),))
+    h, w = 60, 80
+    k = ref.scannet_like_intrinsics(w, h)
+    config = MapConfig.for_bounds(room.lo, room.hi, voxel_size=0.04, block_size=4, sdf_trunc=0.1,
+                                  image_height=h, image_width=w, block_capacity=4096, max_touched_blocks=2048,
+                                  alloc_pixel_stride=1, instance_capacity=12)
+    blocks = init_voxel_blocks(config)
+    for T in ref.orbit_poses(room, 5, radius=0.8, height=1.3):
+        depth, color, labels = room.render(T, k, h, w)
+        T = T.astype(np.float32)
+        blocks = tsdf.integrate_tsdf(blocks, depth, color, T, k, config)
+        blocks = iv.integrate_instances(blocks, depth, T, k, labels[::2, ::2], config)
+    vertices, faces, colors = extract_mesh(blocks, config)
+    error = np.abs(room.signed_distance(vertices.astype(np.float64)))
+    assert len(faces) > 1000
+    assert np.quantile(error, 0.99) < config.voxel_size
+    assert error.max() < 3 * config.voxel_size  # only near corners and silhouettes
+
+    # instance points: every instance voxel lies on its labelled surface
+    state = MapState(blocks, init_map_state(config).instances, np.int32(5))
+    points = extract_instance_points(state, config)
+    assert set(points) <= set(range(12)) and len(points) >= 6
+    dense = ref.blocks_to_dense(blocks, config)
+    assert sum(len(p) for p in points.values()) == int((dense.instance_id >= 0).sum())
+    sphere = 6 + len(room.boxes)
+    d = np.linalg.norm(points[sphere] - np.asarray(room.spheres[0][0]), axis=1) - room.spheres[0][1]
+    assert np.quantile(np.abs(d), 0.95) < config.voxel_size
+    on_surface = extract_instance_points(state, config, on_surface=True)
+    assert 0 < sum(len(p) for p in on_surface.values()) <= sum(len(p) for p in points.values())
+    strong = extract_instance_points(state, config, min_weight=3.0)
+    assert sum(len(p) for p in strong.values()) < sum(len(p) for p in points.values())

@@ -1,0 +1,312 @@
+"""Per-voxel instance slots (`engine.instance_volume`) against the NumPy references."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from fmfusion_jax.engine import instance_volume as iv
+from fmfusion_jax.engine import reference as ref
+from fmfusion_jax.engine import tsdf
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.state import init_voxel_blocks, local_voxel_index
+
+H, W = 60, 80
+ROOM = ref.BoxRoom(lo=(0.013, 0.021, 0.007), hi=(3.011, 2.517, 2.209),
+                   boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),), spheres=(((1.9, 1.3, 0.8), 0.3),))
+K = ref.scannet_like_intrinsics(W, H)
+NUM_INSTANCES = 12
+CONFIG = MapConfig.for_bounds(
+    ROOM.lo, ROOM.hi, voxel_size=0.04, block_size=4, sdf_trunc=0.1, image_height=H, image_width=W,
+    block_capacity=4096, max_touched_blocks=2048, alloc_pixel_stride=1, pixel_stride=2,
+    instance_capacity=NUM_INSTANCES, pool_chunk_blocks=300, cell_chunk=1000,
+)
+POSES = ref.orbit_poses(ROOM, 5, radius=0.8, height=1.3)
+
+
+@functools.lru_cache(maxsize=None)
+def frame(i: int):
+    depth, color, labels = ROOM.render(POSES[i], K, H, W)
+    return depth, color, POSES[i].astype(np.float32), labels
+
+
+def noisy_labels(labels: np.ndarray, i: int) -> np.ndarray:
+    """Surface labels as instance ids, re-segmented differently every other frame (overlaps)."""
+    s = CONFIG.pixel_stride
+    lab = labels[::s, ::s]
+    lab = np.where(lab >= 0, (lab + (i % 2) * (lab % 3 == 0)) % 9, -1)
+    lab[: lab.shape[0] // 4] = -1  # some pixels without detection
+    return lab.astype(np.int32)
+
+
+@functools.lru_cache(maxsize=None)
+def integrated_map(n_frames: int = len(POSES)):
+    blocks = init_voxel_blocks(CONFIG)
+    for i in range(n_frames):
+        depth, color, T, labels = frame(i)
+        blocks = tsdf.integrate_tsdf(blocks, depth, color, T, K, CONFIG)
+        blocks = iv.integrate_instances(blocks, depth, T, K, noisy_labels(labels, i), CONFIG)
+    return blocks
+
+
+def check_slot_invariants(blocks) -> None:
+    ids = np.asarray(blocks.instance_id)
+    w = np.asarray(blocks.instance_weight)
+    assert np.all((ids >= 0) | (w == 0)), "an empty slot has a weight"
+    assert np.all((ids < 0) | (w > 0)), "a held slot has no weight"
+    for s in range(ids.shape[-1]):
+        for t in range(s):
+            assert not np.any((ids[..., s] >= 0) & (ids[..., s] == ids[..., t])), "an id twice in a voxel"
+    assert np.all(ids[int(blocks.num_blocks):] == -1), "ids outside the allocated blocks"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Integration and lookup.
+
+
+def test_integrate_and_lookup_match_reference():
+    blocks = init_voxel_blocks(CONFIG)
+    grid = None
+    for i in range(len(POSES)):
+        depth, color, T, labels = frame(i)
+        blocks = tsdf.integrate_tsdf(blocks, depth, color, T, K, CONFIG)
+        fresh = ref.blocks_to_dense(blocks, CONFIG)
+        if grid is not None:  # geometry from the kernel, instance slots from the reference
+            fresh.instance_id, fresh.instance_weight = grid.instance_id, grid.instance_weight
+        grid = fresh
+        looked_up = np.asarray(iv.pixel_instances(blocks, depth, T, K, CONFIG))
+        expected = ref.reference_pixel_instances(grid, depth, T.astype(np.float64), K, CONFIG)
+        assert looked_up.shape == CONFIG.subsampled_shape + (CONFIG.instance_slots,)
+        assert np.all(looked_up == expected, axis=-1).mean() > 0.99
+        lab = noisy_labels(labels, i)
+        blocks = iv.integrate_instances(blocks, depth, T, K, lab, CONFIG)
+        grid = ref.reference_integrate_instances(grid, depth, T.astype(np.float64), K, lab, CONFIG)
+        got = ref.blocks_to_dense(blocks, CONFIG)
+        m = got.allocated
+        # float32 vs float64 voxel assignment differs for a few points on voxel faces
+        assert np.all(got.instance_id[m] == grid.instance_id[m], axis=-1).mean() > 0.99
+        assert np.all(got.instance_weight[m] == grid.instance_weight[m], axis=-1).mean() > 0.99
+    check_slot_invariants(blocks)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), rounds=st.integers(1, 4), n_votes=st.integers(1, 300))
+def test_slot_rule_matches_reference_exactly(seed, rounds, n_votes):
+    """Random votes crowded on a few voxels: claims, conflicts, decays and evictions."""
+    rng = np.random.default_rng(seed)
+    blocks = integrated_map(1)
+    grid = ref.blocks_to_dense(blocks, CONFIG)
+    n_alloc = int(blocks.num_blocks)
+    coords = np.asarray(blocks.block_coords)[:n_alloc]
+    hot = rng.integers(0, n_alloc, 3)  # a few blocks, a few voxels: many conflicts
+    for _ in range(rounds):
+        slot = rng.choice(hot, 512)[:n_votes]
+        local = rng.integers(0, 2, (512, 3))[:n_votes]
+        inst = rng.integers(-1, 6, 512)[:n_votes]
+        slot = np.where(rng.random(n_votes) < 0.05, -1, slot)  # dropped votes
+        voxel = local_voxel_index(local[:, 0], local[:, 1], local[:, 2], CONFIG.block_size)
+        blocks = iv.apply_instance_hits(blocks, _pad(slot), _pad(voxel), _pad(inst), CONFIG)
+        g = coords[np.maximum(slot, 0)] * CONFIG.block_size + local
+        grid = ref.reference_apply_hits(grid, g, np.where(slot >= 0, inst, -1))
+        got = ref.blocks_to_dense(blocks, CONFIG)
+        assert np.array_equal(got.instance_id, grid.instance_id)
+        assert np.array_equal(got.instance_weight, grid.instance_weight)
+    check_slot_invariants(blocks)
+
+
+def _pad(x, n=512):
+    """Fixed-length vote arrays (one compilation for every example), padded with -1 (no vote)."""
+    out = np.full(n, -1, np.int32)
+    out[: len(x)] = x
+    return out
+
+
+def test_misra_gries_eviction():
+    """A strong slot survives a few contradicting votes; a weak one is evicted, then replaced."""
+    one = dataclasses.replace(CONFIG, instance_slots=1)
+    blocks = integrated_map(1)
+    blocks = blocks._replace(instance_id=jnp.full_like(blocks.instance_id[..., :1], -1),
+                             instance_weight=jnp.zeros_like(blocks.instance_weight[..., :1]))
+
+    def vote(b, inst, times):
+        return iv.apply_instance_hits(b, jnp.zeros(times, jnp.int32), jnp.zeros(times, jnp.int32),
+                                      jnp.full(times, inst, jnp.int32), one)
+
+    blocks = vote(blocks, 3, 5)  # 3 holds the voxel with weight 5
+    blocks = vote(blocks, 7, 2)  # 7 contradicts twice: 3 keeps it with weight 3
+    assert int(blocks.instance_id[0, 0, 0]) == 3 and float(blocks.instance_weight[0, 0, 0]) == 3
+    blocks = vote(blocks, 7, 3)  # voted down to 0: emptied
+    assert int(blocks.instance_id[0, 0, 0]) == -1 and float(blocks.instance_weight[0, 0, 0]) == 0
+    blocks = vote(blocks, 7, 1)  # the newcomer takes the free slot
+    assert int(blocks.instance_id[0, 0, 0]) == 7 and float(blocks.instance_weight[0, 0, 0]) == 1
+
+
+def test_votes_in_unallocated_blocks_are_dropped():
+    blocks = init_voxel_blocks(CONFIG)  # nothing allocated
+    depth, color, T, labels = frame(0)
+    out = iv.integrate_instances(blocks, depth, T, K, noisy_labels(labels, 0), CONFIG)
+    assert np.all(np.asarray(out.instance_id) == -1)
+
+
+def test_lookup_sees_what_was_integrated_from_the_same_view():
+    blocks = integrated_map(1)
+    depth, color, T, labels = frame(0)
+    lab = noisy_labels(labels, 0)
+    look = np.asarray(iv.pixel_instances(blocks, depth, T, K, CONFIG))
+    seen = lab >= 0
+    assert np.any(look == lab[..., None], axis=-1)[seen].mean() > 0.99
+
+
+# ---------------------------------------------------------------------------------------------------
+# Counts.
+
+
+def random_instance_field(seed: int, n_blocks: int = 40):
+    """A pool with random instance slots (distinct ids per voxel) in random allocated blocks."""
+    rng = np.random.default_rng(seed)
+    grid = ref.empty_dense(CONFIG)
+    bs = CONFIG.block_size
+    shape = np.asarray(CONFIG.grid_shape)
+    blocks = rng.choice(int(np.prod(shape)), n_blocks, replace=False)
+    for b in blocks:
+        c = np.array(np.unravel_index(b, shape)) * bs
+        grid.allocated[c[0] : c[0] + bs, c[1] : c[1] + bs, c[2] : c[2] + bs] = True
+    mask = grid.allocated & (rng.random(grid.allocated.shape) < 0.4)
+    first = rng.integers(0, NUM_INSTANCES, mask.shape)
+    second = (first + rng.integers(1, NUM_INSTANCES, mask.shape)) % NUM_INSTANCES
+    has_second = rng.random(mask.shape) < 0.3
+    grid.instance_id[..., 0] = np.where(mask, first, -1)
+    grid.instance_id[..., 1] = np.where(mask & has_second, second, -1)
+    grid.instance_weight = np.where(grid.instance_id >= 0, rng.integers(1, 5, grid.instance_id.shape), 0).astype(float)
+    grid.weight = np.where(grid.allocated, rng.integers(0, 4, mask.shape), 0).astype(float)
+    grid.tsdf = np.where(grid.allocated, rng.uniform(-1, 1, mask.shape).astype(np.float32), 1.0)
+    return grid
+
+
+@settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1))
+def test_overlap_and_voxel_counts_match_reference(seed):
+    grid = random_instance_field(seed)
+    blocks = ref.dense_to_blocks(grid, CONFIG)
+    # random fields put up to 16 distinct ids in a 2x2x2 cell: keep them all for an exact comparison
+    exact = dataclasses.replace(CONFIG, overlap_ids_per_cell=16)
+    for inflate in (False, True):
+        got = iv.instance_overlap_counts(blocks, exact, inflate)
+        assert int(got.dropped_cells) == 0
+        expected = ref.reference_overlap_counts(grid, NUM_INSTANCES, inflate)
+        np.testing.assert_array_equal(np.asarray(got.counts), expected)
+    # with the default 4 ids per cell the crowded cells are reported and only lose counts
+    capped = iv.instance_overlap_counts(blocks, CONFIG, True)
+    assert int(capped.dropped_cells) > 0
+    assert np.all(np.asarray(capped.counts) <= ref.reference_overlap_counts(grid, NUM_INSTANCES, True))
+    counts = iv.instance_voxel_counts(blocks, CONFIG)
+    expected = np.diag(ref.reference_overlap_counts(grid, NUM_INSTANCES, False))
+    np.testing.assert_array_equal(np.asarray(counts.counts), expected)
+    assert int(counts.dropped_cells) == 0
+
+
+def test_inflated_overlap_of_the_integrated_room():
+    blocks = integrated_map()
+    grid = ref.blocks_to_dense(blocks, CONFIG)
+    for inflate in (False, True):
+        got = iv.instance_overlap_counts(blocks, CONFIG, inflate)
+        expected = ref.reference_overlap_counts(grid, NUM_INSTANCES, inflate)
+        np.testing.assert_array_equal(np.asarray(got.counts), expected)
+    plain = np.asarray(iv.instance_overlap_counts(blocks, CONFIG, False).counts)
+    inflated = np.asarray(iv.instance_overlap_counts(blocks, CONFIG, True).counts)
+    assert np.all(inflated >= plain) and np.array_equal(np.diag(inflated), np.diag(plain))
+    assert (inflated > plain).any()
+
+
+def test_cell_capacity_drops_are_counted():
+    grid = random_instance_field(3)
+    small = dataclasses.replace(CONFIG, overlap_cell_capacity=100, cell_chunk=64)
+    blocks = ref.dense_to_blocks(grid, small)
+    full = iv.instance_voxel_counts(blocks, CONFIG)
+    part = iv.instance_voxel_counts(blocks, small)
+    assert int(part.dropped_cells) > 0 and int(full.dropped_cells) == 0
+    assert np.all(np.asarray(part.counts) <= np.asarray(full.counts))
+    assert np.asarray(part.counts).sum() < np.asarray(full.counts).sum()
+
+
+# ---------------------------------------------------------------------------------------------------
+# Pool-wide edits.
+
+
+def test_remap_merges_and_deletes():
+    grid = random_instance_field(5)
+    blocks = ref.dense_to_blocks(grid, CONFIG)
+    new_id = np.arange(NUM_INSTANCES)
+    new_id[1] = 0  # merge 1 into 0
+    new_id[4] = 2  # merge 4 into 2
+    new_id[7] = -1  # delete 7
+    out = iv.remap_instances(blocks, jnp.asarray(new_id, jnp.int32), CONFIG)
+    check_slot_invariants(out)
+    got = ref.blocks_to_dense(out, CONFIG)
+    # expected, voxel by voxel
+    ids = grid.instance_id
+    mapped = np.where(ids >= 0, new_id[np.maximum(ids, 0)], -1)
+    w = np.where(mapped >= 0, grid.instance_weight, 0)
+    dup = (mapped[..., 1] >= 0) & (mapped[..., 1] == mapped[..., 0])
+    w0 = w[..., 0] + np.where(dup, w[..., 1], 0)
+    np.testing.assert_array_equal(got.instance_id[..., 0], mapped[..., 0])
+    np.testing.assert_array_equal(got.instance_id[..., 1], np.where(dup, -1, mapped[..., 1]))
+    np.testing.assert_array_equal(got.instance_weight[..., 0], w0)
+    # total weight per surviving id is conserved
+    for k in range(NUM_INSTANCES):
+        before = sum(grid.instance_weight[ids == j].sum() for j in np.flatnonzero(new_id == k))
+        assert got.instance_weight[got.instance_id == k].sum() == before
+    counts = np.asarray(iv.instance_voxel_counts(out, CONFIG).counts)
+    assert counts[1] == counts[4] == counts[7] == 0
+
+
+def test_fuse_instance_geometry_keeps_surface_voxels_only():
+    grid = random_instance_field(9)
+    blocks = ref.dense_to_blocks(grid, CONFIG)
+    out = iv.fuse_instance_geometry(blocks, CONFIG, 2.0, 0.05)
+    got = ref.blocks_to_dense(out, CONFIG)
+    keep = (grid.weight >= 2.0) & (np.abs(grid.tsdf) * CONFIG.sdf_trunc <= 0.05)
+    np.testing.assert_array_equal(got.instance_id, np.where(keep[..., None], grid.instance_id, -1))
+    np.testing.assert_array_equal(got.instance_weight, np.where(keep[..., None], grid.instance_weight, 0))
+    np.testing.assert_array_equal(got.tsdf, grid.tsdf)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Tracing.
+
+
+def test_no_recompilation_and_vmap():
+    counted_int = jax.jit(chex.assert_max_traces(iv._integrate_instances, n=1), static_argnames="config")
+    counted_look = jax.jit(chex.assert_max_traces(iv._pixel_instances, n=1), static_argnames="config")
+    blocks = integrated_map(1)
+    for i in range(3):
+        depth, color, T, labels = frame(i)
+        blocks = tsdf.integrate_tsdf(blocks, depth, color, T, K, CONFIG)
+        counted_look(blocks, jnp.asarray(depth), jnp.asarray(T), jnp.asarray(K), CONFIG)
+        labels_i = jnp.asarray(noisy_labels(labels, i))
+        blocks = counted_int(blocks, jnp.asarray(depth), jnp.asarray(T), jnp.asarray(K), labels_i, CONFIG)
+
+    depth0, _, T0, labels0 = frame(0)
+    depth1, _, T1, labels1 = frame(1)
+    start = integrated_map(2)
+    singles = [iv.integrate_instances(start, d, T, K, noisy_labels(l, i), CONFIG)
+               for i, (d, T, l) in enumerate(((depth0, T0, labels0), (depth1, T1, labels1)))]
+    batch = jax.tree.map(lambda x: jnp.stack([x, x]), start)
+    batched = jax.vmap(lambda b, d, T, l: iv.integrate_instances(b, d, T, K, l, CONFIG))(
+        batch, jnp.stack([depth0, depth1]), jnp.stack([T0, T1]),
+        jnp.stack([noisy_labels(labels0, 0), noisy_labels(labels1, 1)]),
+    )
+    for i, single in enumerate(singles):
+        np.testing.assert_array_equal(np.asarray(single.instance_id), np.asarray(batched.instance_id[i]))
+        np.testing.assert_array_equal(np.asarray(single.instance_weight), np.asarray(batched.instance_weight[i]))
+    counts = jax.vmap(lambda b: iv.instance_overlap_counts(b, CONFIG, True).counts)(batched)
+    for i, single in enumerate(singles):
+        expected = iv.instance_overlap_counts(single, CONFIG, True).counts
+        np.testing.assert_array_equal(np.asarray(counts[i]), np.asarray(expected))
