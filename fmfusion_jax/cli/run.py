@@ -1,0 +1,50 @@
+"""`fmfusion run`: fuse a scene's frames and detections into an instance map and write its outputs."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from fmfusion_jax.errors import UserError
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "run", help="fuse a scene and its detections into an instance map",
+        description="Fuses an RGB-D scene (ScanNet or SceneNN layout) and its open-set detections (authors' "
+                    "file format) into a map of 3D instances, then writes the map: instances.json, PLY clouds "
+                    "(semantic.ply, instances.ply, one per instance), mesh.ply, the ScanNet benchmark "
+                    "prediction files (when the scene has its _vh_clean_2.ply mesh), the config used and "
+                    "run.json with timings. With ground truth, it also scores the map (report.json).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("scene", type=Path, help="scene folder")
+    parser.add_argument("--detections", type=Path, required=True,
+                        help="folder of frame-XXXXXX_label.json + _mask.png/.npy files")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument("--config", default="scannet",
+                        help="config file, or a packaged one: scannet, scannet-subsampled, scenenn")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config value, e.g. --set detections.every=1 (repeatable)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fmfusion_jax.config import load_config
+    from fmfusion_jax.io.detections import DetectionFolder
+    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.runner import run_and_export
+
+    if not args.scene.is_dir():
+        raise UserError(f"scene folder {args.scene} does not exist")
+    if not args.detections.is_dir():
+        raise UserError(f"detections folder {args.detections} does not exist (make one with `fmfusion simulate`)")
+    config = load_config(args.config, args.overrides)
+    scene = open_scene(args.scene, layout=config.dataset.layout, stride=config.dataset.frame_stride,
+                       depth_max=config.dataset.depth_max, depth_scale=config.dataset.depth_scale,
+                       max_frames=config.dataset.max_frames)
+    folder = DetectionFolder(args.detections, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
+    summary = run_and_export(scene, lambda frame: folder.get(frame.name), config, args.out,
+                             progress=not args.no_progress)
+    print(summary)
+    return 0

@@ -1,0 +1,249 @@
+"""The Python loop: the one place where readers, detectors and the jitted engine meet.
+
+    scene frames ──► frame_inputs ──► engine.step.integrate_frame / fuse_detections ──► refine / fuse_geometry
+    detections (files, ONNX front end, simulator) ──► pack_detections ─┘
+
+Everything here is host-side orchestration: schedules (detection every Nth frame, refinement, geometry
+fusion), capacity warnings, progress and timings. The math lives in `fmfusion_jax.engine`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Callable, Iterable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.engine import extraction, step
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.detections import pack_detections
+from fmfusion_jax.engine.state import MapState, init_map_state
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.instances import MapInstance, postprocess_instances
+from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
+from fmfusion_jax.types import FrameDetections, RGBDFrame
+
+log = logging.getLogger(__name__)
+
+#: Gives the detections of a frame, or None when the frame has none (not a detection frame, no file).
+DetectionSource = Callable[[RGBDFrame], "FrameDetections | None"]
+
+
+def build_map_config(config: PipelineConfig, bounds_min, bounds_max, height: int, width: int) -> MapConfig:
+    """The engine's static sizes for a scene with these world bounds and image size."""
+    return MapConfig.for_bounds(
+        bounds_min, bounds_max, margin=config.tsdf.bounds_margin,
+        voxel_size=config.tsdf.voxel_size, block_size=config.tsdf.block_size, sdf_trunc=config.tsdf.sdf_trunc,
+        depth_max=config.dataset.depth_max, max_weight=config.tsdf.max_weight,
+        block_capacity=config.tsdf.block_capacity, max_touched_blocks=config.tsdf.max_touched_blocks,
+        image_height=height, image_width=width, pixel_stride=config.association.pixel_stride,
+        instance_capacity=config.instances.capacity, instance_slots=config.instances.voxel_slots,
+    )
+
+
+def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
+    lo, hi = config.detections.depth_percentiles
+    return step.FusionConfig(
+        association_metric=config.association.metric, association_threshold=config.association.threshold,
+        min_projected_pixels=float(config.association.min_projected_pixels), depth_low=lo, depth_high=hi,
+        label_mode=config.label_fusion.mode, merge_similarity=config.refinement.merge_similarity,
+        merge_overlap=config.refinement.merge_overlap, remove_missed=config.refinement.remove_missed,
+        remove_min_voxels=config.refinement.remove_min_voxels, post_merge_iou=config.export.post_merge_iou,
+        post_merge_similarity=config.export.post_merge_similarity,
+    )
+
+
+def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:
+    """A frame as engine arrays; wrong image sizes and non-finite poses are errors naming the frame."""
+    expected = (map_config.image_height, map_config.image_width)
+    if frame.depth.shape != expected or frame.color.shape[:2] != expected:
+        raise UserError(f"{frame.name}: depth {frame.depth.shape} / colour {frame.color.shape[:2]} differ from "
+                        f"the sequence's image size {expected}")
+    if not np.all(np.isfinite(frame.T_world_camera)):
+        raise UserError(f"{frame.name}: pose is not finite")
+    k = frame.intrinsics
+    return step.FrameInputs(
+        depth=jnp.asarray(frame.depth, jnp.float32), color=jnp.asarray(frame.color, jnp.uint8),
+        T_world_camera=jnp.asarray(frame.T_world_camera, jnp.float32),
+        intrinsics=jnp.asarray([k.fx, k.fy, k.cx, k.cy], jnp.float32),
+        frame_index=jnp.asarray(frame.index, jnp.int32))
+
+
+@dataclasses.dataclass
+class StageTimer:
+    """Wall time per named stage (milliseconds per call), with the first (compiling) call kept apart."""
+
+    first_ms: dict[str, float] = dataclasses.field(default_factory=dict)
+    samples_ms: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+
+    def run(self, name: str, fn, *args):
+        start = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        elapsed = (time.perf_counter() - start) * 1e3
+        if name not in self.first_ms:
+            self.first_ms[name] = elapsed
+        else:
+            self.samples_ms.setdefault(name, []).append(elapsed)
+        return out
+
+    def median_ms(self, name: str) -> float:
+        samples = self.samples_ms.get(name) or [self.first_ms.get(name, float("nan"))]
+        return float(np.median(samples))
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        return {name: {"median_ms": self.median_ms(name), "first_call_ms": first,
+                       "calls": 1 + len(self.samples_ms.get(name, []))}
+                for name, first in self.first_ms.items()}
+
+
+@dataclasses.dataclass
+class CapacityMonitor:
+    """Warns once per counter when a fixed capacity overflows, naming the figure to raise."""
+
+    reported: set[str] = dataclasses.field(default_factory=set)
+
+    def check(self, state: MapState, map_config: MapConfig) -> None:
+        blocks, table = state.blocks, state.instances
+        counters = {
+            "dropped_blocks": (int(blocks.dropped_blocks),
+                               f"the voxel block pool is full ({map_config.block_capacity} blocks): raise "
+                               "tsdf.block_capacity; parts of the scene are not mapped"),
+            "touched_overflow": (int(blocks.touched_overflow),
+                                 f"a frame touched more than {map_config.max_touched_blocks} blocks: raise "
+                                 "tsdf.max_touched_blocks; those blocks were skipped for that frame"),
+            "out_of_bounds": (int(blocks.out_of_bounds),
+                              "depth points fell outside the scene bounds estimated from the poses: raise "
+                              "tsdf.bounds_margin"),
+            "table_overflow": (int(table.overflow),
+                               f"the instance table is full ({map_config.instance_capacity} instances): raise "
+                               "instances.capacity; new detections were dropped"),
+        }
+        for name, (value, message) in counters.items():
+            if value > 0 and name not in self.reported:
+                self.reported.add(name)
+                log.warning("capacity: %s (count so far: %d)", message, value)
+
+
+@dataclasses.dataclass
+class FusionResult:
+    """A fused map with what is needed to interpret and export it."""
+
+    state: MapState
+    map_config: MapConfig
+    fusion_config: step.FusionConfig
+    config: PipelineConfig
+    timings: StageTimer
+    frames_integrated: int
+    detection_frames: int
+    counters: dict[str, int]
+
+
+class MapBuilder:
+    """Incremental fusion of one sequence: `add_frame` per frame, then `result()`.
+
+    Holds the schedules (detections every `detections.every` frames, refinement, geometry fusion) and
+    the capacity warnings; the state itself is an immutable pytree replaced on every step.
+    """
+
+    def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None,
+                 likelihood: np.ndarray | None = None):
+        self.config = config
+        self.map_config = map_config
+        self.fusion_config = build_fusion_config(config)
+        self.label_sets = label_sets or load_label_sets()
+        if likelihood is None:
+            likelihood = load_likelihood(config.label_fusion.likelihood)
+        self.likelihood = jnp.asarray(likelihood, jnp.float32)
+        self.state = init_map_state(map_config)
+        self.timer = StageTimer()
+        self.monitor = CapacityMonitor()
+        self.frames_integrated = 0
+        self.detection_frames = 0
+        self.counters = {"created": 0, "matched": 0, "merged": 0, "removed": 0, "detections": 0}
+
+    def add_frame(self, frame: RGBDFrame, detections: FrameDetections | None) -> None:
+        """Integrates a frame; fuses its detections when given (the caller applies the schedule)."""
+        inputs = frame_inputs(frame, self.map_config)
+        if detections is None:
+            self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.map_config)
+        else:
+            if detections.image_shape != (self.map_config.image_height, self.map_config.image_width):
+                raise UserError(f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are "
+                                f"{(self.map_config.image_height, self.map_config.image_width)}")
+            batch = pack_detections(detections, self.label_sets.open_labels, self.config.detections.max_detections,
+                                    self.config.detections.min_mask_pixels)
+            self.state, stats = self.timer.run("fusion", step.fuse_detections, self.state, inputs, batch,
+                                               self.likelihood, self.map_config, self.fusion_config)
+            self.detection_frames += 1
+            for name in ("created", "matched", "detections"):
+                self.counters[name] += int(getattr(stats, name))
+            log.info("%s: %d detections, %d matched, %d new instances, %d in view", frame.name,
+                     int(stats.detections), int(stats.matched), int(stats.created), int(stats.in_view))
+            refinement = self.config.refinement
+            if refinement.enabled and self.detection_frames % refinement.merge_every == 0:
+                self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.map_config,
+                                                          self.fusion_config)
+                self._count_refinement(frame.name, refine_stats)
+        self.frames_integrated += 1
+        refinement = self.config.refinement
+        if refinement.enabled and self.frames_integrated % refinement.geometry_fusion_every == 0:
+            self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.map_config,
+                                        self.fusion_config)
+        self.monitor.check(self.state, self.map_config)
+
+    def _count_refinement(self, where: str, stats: step.RefineStats) -> None:
+        removed, merged = int(stats.removed), int(stats.merged)
+        self.counters["removed"] += removed
+        self.counters["merged"] += merged
+        if removed or merged:
+            log.info("%s: refinement removed %d and merged %d instances", where, removed, merged)
+
+    def result(self) -> FusionResult:
+        """Finalizes (geometry fusion and post-merge when refinement is on) and returns the map."""
+        if self.config.refinement.enabled:
+            self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.map_config,
+                                               self.fusion_config)
+            self._count_refinement("final", stats)
+        return FusionResult(self.state, self.map_config, self.fusion_config, self.config, self.timer,
+                            self.frames_integrated, self.detection_frames, dict(self.counters))
+
+
+def is_detection_frame(position: int, config: PipelineConfig) -> bool:
+    """Detections are fused on every `detections.every`-th frame read (0, N, 2N, ...)."""
+    return position % config.detections.every == 0
+
+
+def fuse_sequence(frames: Iterable[RGBDFrame], detection_source: DetectionSource, builder: MapBuilder,
+                  progress: Callable[[int], None] | None = None) -> FusionResult:
+    """Runs the loop over `frames` and returns the finalized map."""
+    for position, frame in enumerate(frames):
+        detections = detection_source(frame) if is_detection_frame(position, builder.config) else None
+        builder.add_frame(frame, detections)
+        if progress:
+            progress(1)
+    return builder.result()
+
+
+def extract_map_instances(result: FusionResult, label_sets: LabelSets | None = None,
+                          postprocess: bool = True) -> list[MapInstance]:
+    """The map's instances as host-side objects, post-processed as the reference does before export."""
+    label_sets = label_sets or load_label_sets()
+    state = jax.device_get(result.state)
+    distribution = np.asarray(step.class_distribution(result.state, result.fusion_config))
+    points = extraction.extract_instance_points(state, result.map_config, min_weight=result.config.export.min_weight)
+    table = state.instances
+    instances = [
+        MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[k], np.float32),
+                    observations=int(table.observations[k]),
+                    open_label_histogram=np.asarray(table.open_label_histogram[k]))
+        for k in np.flatnonzero(np.asarray(table.valid)) if k in points
+    ]
+    if postprocess:
+        instances = postprocess_instances(instances, label_sets, result.config.export.min_points,
+                                          result.config.export.shower_curtain_radius)
+    return instances
