@@ -15,7 +15,7 @@ import sys
 from fmfusion_jax.errors import UserError
 
 #: Subcommand modules, in the order `--help` lists them.
-SUBCOMMANDS = ("info", "eval", "run")
+SUBCOMMANDS = ("info", "detect", "eval", "run")
 
 
 def build_parser() -> argparse.ArgumentParser:

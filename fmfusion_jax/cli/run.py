@@ -18,8 +18,14 @@ def register(subparsers) -> None:
                     "run.json with timings. With ground truth, it also scores the map (report.json).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("scene", type=Path, help="scene folder")
-    parser.add_argument("--detections", type=Path, required=True,
-                        help="folder of frame-XXXXXX_label.json + _mask.png/.npy files")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--detections", type=Path,
+                        help="folder of precomputed detections (frame-XXXXXX_label.json + _mask.png/.npy)")
+    source.add_argument("--models", type=Path,
+                        help="run the foundation models online instead: folder of ONNX exports "
+                             "(see docs/detectors.md)")
+    parser.add_argument("--providers", default="cpu", choices=("cpu", "cuda", "auto"),
+                        help="onnxruntime execution providers for --models")
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
     parser.add_argument("--config", default="scannet",
                         help="config file, or a packaged one: scannet, scannet-subsampled, scenenn")
@@ -37,14 +43,20 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.scene.is_dir():
         raise UserError(f"scene folder {args.scene} does not exist")
-    if not args.detections.is_dir():
+    if args.detections is not None and not args.detections.is_dir():
         raise UserError(f"detections folder {args.detections} does not exist (make one with `fmfusion simulate`)")
     config = load_config(args.config, args.overrides)
     scene = open_scene(args.scene, layout=config.dataset.layout, stride=config.dataset.frame_stride,
                        depth_max=config.dataset.depth_max, depth_scale=config.dataset.depth_scale,
                        max_frames=config.dataset.max_frames)
-    folder = DetectionFolder(args.detections, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
-    summary = run_and_export(scene, lambda frame: folder.get(frame.name), config, args.out,
-                             progress=not args.no_progress)
+    if args.models is not None:
+        from detectors import FoundationModels
+
+        models = FoundationModels.from_folder(args.models, providers=args.providers)
+        source = models.detect  # called on detection frames only, so the prompt window counts those
+    else:
+        folder = DetectionFolder(args.detections, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
+        source = lambda frame: folder.get(frame.name)  # noqa: E731
+    summary = run_and_export(scene, source, config, args.out, progress=not args.no_progress)
     print(summary)
     return 0
