@@ -107,8 +107,16 @@ class CapacityMonitor:
 
     reported: set[str] = dataclasses.field(default_factory=set)
 
-    def check(self, state: MapState, map_config: MapConfig) -> None:
+    #: Share of the depth samples that may fall outside the bounds before a warning (depth outliers
+    #: far beyond the room are normal; a real bounds problem loses far more than this).
+    out_of_bounds_tolerance: float = 1e-3
+
+    def check(self, state: MapState, map_config: MapConfig, frames_integrated: int) -> None:
         blocks, table = state.blocks, state.instances
+        stride = map_config.alloc_pixel_stride
+        samples = frames_integrated * map_config.alloc_depth_samples * (
+            -(-map_config.image_height // stride)) * (-(-map_config.image_width // stride))
+        outside = int(blocks.out_of_bounds)
         counters = {
             "dropped_blocks": (int(blocks.dropped_blocks),
                                f"the voxel block pool is full ({map_config.block_capacity} blocks): raise "
@@ -116,9 +124,9 @@ class CapacityMonitor:
             "touched_overflow": (int(blocks.touched_overflow),
                                  f"a frame touched more than {map_config.max_touched_blocks} blocks: raise "
                                  "tsdf.max_touched_blocks; those blocks were skipped for that frame"),
-            "out_of_bounds": (int(blocks.out_of_bounds),
-                              "depth points fell outside the scene bounds estimated from the poses: raise "
-                              "tsdf.bounds_margin"),
+            "out_of_bounds": (outside if outside > self.out_of_bounds_tolerance * samples else 0,
+                              f"{outside} of {samples} depth samples fell outside the scene bounds estimated "
+                              "from the poses and depth: raise tsdf.bounds_margin"),
             "table_overflow": (int(table.overflow),
                                f"the instance table is full ({map_config.instance_capacity} instances): raise "
                                "instances.capacity; new detections were dropped"),
@@ -194,7 +202,7 @@ class MapBuilder:
         if refinement.enabled and self.frames_integrated % refinement.geometry_fusion_every == 0:
             self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.map_config,
                                         self.fusion_config)
-        self.monitor.check(self.state, self.map_config)
+        self.monitor.check(self.state, self.map_config, self.frames_integrated)
 
     def _count_refinement(self, where: str, stats: step.RefineStats) -> None:
         removed, merged = int(stats.removed), int(stats.merged)
