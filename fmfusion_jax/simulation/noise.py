@@ -1,0 +1,270 @@
+"""The noise model of simulated foundation-model detections, and the mask perturbations it uses.
+
+`NoiseModel` holds one parameter per failure mode of the RAM -> GroundingDINO -> SAM front end
+described in the FM-Fusion paper (false label measurements, missed tags, inconsistent masks across
+viewpoints, missed and false detections). Setting every failure-mode parameter to zero (the `clean`
+preset) gives detections whose masks are exactly the ground-truth instance masks, each labelled with its
+class's most likely open-set label. `docs/simulated-detections.md` explains each parameter and its
+default.
+
+The mask functions here work on `(H, W)` bool masks and touch only a padded crop around the mask, so
+their cost is proportional to the object's size, not the image's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+
+from fmfusion_jax.errors import UserError
+
+PRESETS = ("clean", "default", "hard")
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseModel:
+    """Failure-mode parameters of the simulated detector (probabilities are per frame and per object).
+
+    Labels (GroundingDINO's open-set label measurements):
+      label_confusion: probability that a detection's main label is drawn from its true class's column
+        of the statistical likelihood (normalized); otherwise it is the column's most likely label.
+      label_persistence: probability that an object reuses its own fixed label draw (one per seed and
+        instance) instead of a fresh one, so that some mislabels repeat across views as they do for real.
+      extra_label_prob: probability of each label beyond the first (geometric, up to `max_labels`).
+      max_labels: most labels one detection carries.
+      score_mean, score_std: main-label score ~ N(mean, std), kept in [box_threshold, 0.95]; further
+        labels score a random 50-95% of it and are dropped below `text_threshold`.
+    Tagger (RAM) and prompt:
+      missed_tag_prob: probability that the tagger misses a label present in the image in one frame;
+        a detection none of whose labels reaches the prompt is relabelled or dropped.
+      prompt_augmentation: add the labels detected in the previous `augmentation_window` frames to the
+        prompt (except `LabelSets.prompt_augmentation_excluded`), as the paper does; off for ablation B.
+      augmentation_window: frames of history for prompt augmentation.
+      relabel_prob: probability that a detection whose labels all left the prompt takes a label that is
+        in the prompt (weighted by the likelihood column: a false label measurement) instead of vanishing.
+      raw_extra_tags: tags outside the labels of interest added to `raw_tags` (filtered out of `tags`).
+    Masks (SAM):
+      partial_prob: probability that only a part of the object is segmented (a wavy cut keeps 35-85%).
+      split_prob: probability that the object comes as two detections (cut into two parts).
+      merge_prob: probability per pair of adjacent visible objects that they come as one mask.
+      border_offset_px: std of a per-mask erosion (<0) / dilation (>0) of the border, pixels.
+      border_jitter_px: amplitude of a smooth random wobble of the border, pixels.
+    Detections:
+      miss_prob: probability that a visible object is not detected at all.
+      small_object_miss_prob: extra miss probability at `min_mask_pixels`, falling linearly to 0 at
+        `small_object_pixels`.
+      small_object_pixels: size above which objects get no extra miss probability.
+      min_mask_pixels: masks smaller than this are never output (objects seen smaller are dropped).
+      false_positive_rate: mean number (Poisson) of false detections per frame: an unannotated or
+        non-target object, or a blob on the background, labelled with a random prompt label, low score.
+    Detector thresholds (respected by every output):
+      box_threshold: least main score of a detection (GroundingDINO box threshold).
+      text_threshold: least score of any label of a detection.
+      max_box_fraction: masks whose box covers more than this share of the image width and height
+        are dropped, as the reference front end drops such boxes.
+    seed: base of every random stream; frame `i` uses `default_rng([seed, i])`.
+    """
+
+    seed: int = 0
+    # labels
+    label_confusion: float = 1.0
+    label_persistence: float = 0.3
+    extra_label_prob: float = 0.5
+    max_labels: int = 3
+    score_mean: float = 0.47
+    score_std: float = 0.07
+    # tagger and prompt
+    missed_tag_prob: float = 0.2
+    prompt_augmentation: bool = True
+    augmentation_window: int = 5
+    relabel_prob: float = 0.5
+    raw_extra_tags: int = 3
+    # masks
+    partial_prob: float = 0.1
+    split_prob: float = 0.08
+    merge_prob: float = 0.05
+    border_offset_px: float = 1.5
+    border_jitter_px: float = 2.0
+    # detections
+    miss_prob: float = 0.05
+    small_object_miss_prob: float = 0.3
+    small_object_pixels: int = 4000
+    min_mask_pixels: int = 400
+    false_positive_rate: float = 0.3
+    # detector thresholds
+    box_threshold: float = 0.35
+    text_threshold: float = 0.25
+    max_box_fraction: float = 0.95
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            value, default = getattr(self, field.name), field.default
+            if isinstance(default, bool):
+                ok = isinstance(value, bool)
+            elif isinstance(default, int):
+                ok = isinstance(value, int) and not isinstance(value, bool)
+            else:
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not ok:
+                raise UserError(f"noise parameter {field.name}={value!r} must be a {type(default).__name__}")
+        for name in ("label_confusion", "label_persistence", "extra_label_prob", "missed_tag_prob",
+                     "relabel_prob", "partial_prob", "split_prob", "merge_prob", "miss_prob",
+                     "small_object_miss_prob"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise UserError(f"noise parameter {name}={value} must be a probability in [0, 1]")
+        if self.partial_prob + self.split_prob > 1.0:
+            raise UserError(f"partial_prob + split_prob = {self.partial_prob + self.split_prob} must be <= 1")
+        for name in ("score_std", "border_offset_px", "border_jitter_px", "false_positive_rate"):
+            if getattr(self, name) < 0:
+                raise UserError(f"noise parameter {name}={getattr(self, name)} must be >= 0")
+        if self.max_labels < 1:
+            raise UserError(f"max_labels={self.max_labels} must be >= 1")
+        if self.min_mask_pixels < 1:
+            raise UserError(f"min_mask_pixels={self.min_mask_pixels} must be >= 1")
+        if self.augmentation_window < 0 or self.raw_extra_tags < 0:
+            raise UserError("augmentation_window and raw_extra_tags must be >= 0")
+        if not 0.0 < self.text_threshold <= self.box_threshold < 1.0:
+            raise UserError(f"need 0 < text_threshold ({self.text_threshold}) <= box_threshold "
+                            f"({self.box_threshold}) < 1")
+
+    def frame_rng(self, frame_index: int) -> np.random.Generator:
+        """The generator of frame `frame_index`: reproducible on its own, whatever frames came before."""
+        return np.random.default_rng([int(self.seed), int(frame_index)])
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes: Any) -> "NoiseModel":
+        """A copy with some parameters changed; unknown names are a `UserError` naming the valid ones."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - names)
+        if unknown:
+            raise UserError(f"unknown noise parameter(s) {unknown}; valid: {sorted(names)}")
+        return dataclasses.replace(self, **changes)
+
+    @staticmethod
+    def preset(name: str, **changes: Any) -> "NoiseModel":
+        """`clean` (ground truth, best labels), `default` (the documented defaults) or `hard`."""
+        if name == "default":
+            base = NoiseModel()
+        elif name == "clean":
+            base = NoiseModel(
+                label_confusion=0.0, label_persistence=0.0, extra_label_prob=0.0, score_std=0.0,
+                missed_tag_prob=0.0, relabel_prob=0.0, raw_extra_tags=0, partial_prob=0.0, split_prob=0.0,
+                merge_prob=0.0, border_offset_px=0.0, border_jitter_px=0.0, miss_prob=0.0,
+                small_object_miss_prob=0.0, min_mask_pixels=100, false_positive_rate=0.0,
+                max_box_fraction=1.0)
+        elif name == "hard":
+            base = NoiseModel(
+                label_persistence=0.5, extra_label_prob=0.6, score_std=0.09, missed_tag_prob=0.35,
+                relabel_prob=0.6, partial_prob=0.2, split_prob=0.15, merge_prob=0.1, border_offset_px=3.0,
+                border_jitter_px=4.0, miss_prob=0.1, small_object_miss_prob=0.5, small_object_pixels=6000,
+                min_mask_pixels=600, false_positive_rate=0.8)
+        else:
+            raise UserError(f"unknown noise preset {name!r}; choose one of {', '.join(PRESETS)}")
+        return base.replace(**changes) if changes else base
+
+
+# ---------------------------------------------------------------------------------------------------
+# Mask perturbations
+
+
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """`(v0, v1, u0, u1)` half-open row/column range of the mask's pixels, or None if empty."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def mask_box(mask: np.ndarray) -> np.ndarray:
+    """`(4,)` float32 pixel box `[u0, v0, u1, v1]` enclosing the mask (pixel `u` spans `[u, u+1)`)."""
+    bbox = mask_bbox(mask)
+    if bbox is None:
+        return np.zeros(4, np.float32)
+    v0, v1, u0, u1 = bbox
+    return np.array([u0, v0, u1, v1], np.float32)
+
+
+def _padded_crop(shape: tuple[int, int], bbox: tuple[int, int, int, int], pad: int) -> tuple[slice, slice]:
+    v0, v1, u0, u1 = bbox
+    return (slice(max(v0 - pad, 0), min(v1 + pad, shape[0])), slice(max(u0 - pad, 0), min(u1 + pad, shape[1])))
+
+
+def smooth_field(shape: tuple[int, int], rng: np.random.Generator, cell: float = 16.0) -> np.ndarray:
+    """`shape` float32 smooth random field of about unit amplitude, correlated over ~`cell` pixels."""
+    h, w = shape
+    gh, gw = max(int(math.ceil(h / cell)) + 1, 2), max(int(math.ceil(w / cell)) + 1, 2)
+    coarse = rng.standard_normal((gh, gw)).astype(np.float32)
+    # Bilinear interpolation halves the variance between grid points; 1.4 brings it back near 1.
+    return 1.4 * cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def perturb_border(mask: np.ndarray, rng: np.random.Generator, offset_std: float, jitter_px: float,
+                   cell: float = 16.0) -> np.ndarray:
+    """The mask with its border moved: a global offset ~ N(0, offset_std) px plus a smooth wobble.
+
+    The border is moved by thresholding the signed distance to it, so the result stays one smooth
+    region (like a SAM mask) rather than getting salt-and-pepper noise. Both zero: the mask itself.
+    """
+    if offset_std <= 0 and jitter_px <= 0:
+        return mask.copy()
+    bbox = mask_bbox(mask)
+    if bbox is None:
+        return mask.copy()
+    offset = float(rng.normal(0.0, offset_std)) if offset_std > 0 else 0.0
+    pad = int(math.ceil(abs(offset) + 2.5 * jitter_px)) + 2
+    rows, cols = _padded_crop(mask.shape, bbox, pad)
+    crop = mask[rows, cols].astype(np.uint8)
+    inside = cv2.distanceTransform(crop, cv2.DIST_L2, 3)
+    outside = cv2.distanceTransform(1 - crop, cv2.DIST_L2, 3)
+    signed = inside - outside          # >= 1 inside, <= -1 outside
+    level = signed + offset
+    if jitter_px > 0:
+        level += jitter_px * smooth_field(crop.shape, rng, cell)
+    out = np.zeros_like(mask)
+    out[rows, cols] = level > 0
+    return out
+
+
+def cut_mask(mask: np.ndarray, rng: np.random.Generator, fraction: float,
+             waviness: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+    """Cuts the mask along a random wavy line into a part holding `fraction` of its pixels and the rest.
+
+    The line has a uniformly random direction (so either side can be the kept part) and a sinusoidal
+    wobble of amplitude up to `waviness` times the object's size, like the part boundaries SAM picks.
+    """
+    v, u = np.nonzero(mask)
+    if v.size < 2:
+        return mask.copy(), np.zeros_like(mask)
+    x, y = u - u.mean(), v - v.mean()
+    extent = math.sqrt(v.size)
+    theta = rng.uniform(0.0, 2.0 * math.pi)
+    along = x * math.cos(theta) + y * math.sin(theta)
+    across = -x * math.sin(theta) + y * math.cos(theta)
+    amplitude = rng.uniform(0.0, waviness) * extent
+    wavelength = rng.uniform(0.5, 1.5) * extent
+    along = along + amplitude * np.sin(2.0 * math.pi * across / wavelength + rng.uniform(0.0, 2.0 * math.pi))
+    threshold = np.quantile(along, fraction)
+    keep = along <= threshold
+    first, second = np.zeros_like(mask), np.zeros_like(mask)
+    first[v[keep], u[keep]] = True
+    second[v[~keep], u[~keep]] = True
+    return first, second
+
+
+def random_blob(shape: tuple[int, int], center: tuple[int, int], rng: np.random.Generator,
+                min_radius: float = 15.0, max_radius: float = 70.0) -> np.ndarray:
+    """An ellipse of random size and orientation centred at pixel `(u, v)`, clipped to the image."""
+    a = rng.uniform(min_radius, max_radius)
+    b = a * rng.uniform(0.4, 1.0)
+    angle = rng.uniform(0.0, 180.0)
+    canvas = np.zeros(shape, np.uint8)
+    cv2.ellipse(canvas, (int(center[0]), int(center[1])), (int(round(a)), int(round(b))), angle, 0, 360, 1, -1)
+    return canvas.astype(bool)
