@@ -15,7 +15,7 @@ import sys
 from fmfusion_jax.errors import UserError
 
 #: Subcommand modules, in the order `--help` lists them.
-SUBCOMMANDS = ("info", "simulate", "detect", "run", "eval")
+SUBCOMMANDS = ("info", "synth", "simulate", "detect", "run", "eval")
 
 
 def build_parser() -> argparse.ArgumentParser:
