@@ -159,7 +159,9 @@ class MapBuilder:
     """
 
     def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None,
-                 likelihood: np.ndarray | None = None):
+                 likelihood: np.ndarray | None = None, state: MapState | None = None):
+        """`state`: start from this map (e.g. `runner.load_map`) instead of an empty one; it must have
+        been made with the same `map_config`. Its buffers are donated to the first step."""
         self.config = config
         self.map_config = map_config
         self.fusion_config = build_fusion_config(config)
@@ -167,7 +169,7 @@ class MapBuilder:
         if likelihood is None:
             likelihood = load_likelihood(config.label_fusion.likelihood)
         self.likelihood = jnp.asarray(likelihood, jnp.float32)
-        self.state = init_map_state(map_config)
+        self.state = init_map_state(map_config) if state is None else state
         self.timer = StageTimer()
         self.monitor = CapacityMonitor()
         self.frames_integrated = 0

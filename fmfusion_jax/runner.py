@@ -10,9 +10,8 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
-
 from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.errors import UserError
 from fmfusion_jax.io import map_outputs
 from fmfusion_jax.io.scene import Scene
 from fmfusion_jax.labels import load_label_sets
@@ -29,15 +28,15 @@ def fuse_scene(scene: Scene, detection_source: DetectionSource, config: Pipeline
     map_config = build_map_config(config, bounds_min, bounds_max, scene.intrinsics.height, scene.intrinsics.width)
     log.info("map: %s", map_config.describe())
     builder = MapBuilder(config, map_config)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(scene), desc=f"fusing {scene.name}", unit="frame", dynamic_ncols=True)
-    try:
-        return fuse_sequence(scene.frames(), detection_source, builder, progress=bar.update if bar else None)
-    finally:
-        if bar:
-            bar.close()
+    if not progress:
+        return fuse_sequence(scene.frames(), detection_source, builder)
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    # Log lines (with -v) go above the bar instead of into it.
+    with logging_redirect_tqdm(), tqdm(total=len(scene), desc=f"fusing {scene.name}", unit="frame",
+                                       dynamic_ncols=True) as bar:
+        return fuse_sequence(scene.frames(), detection_source, builder, progress=bar.update)
 
 
 def ground_truth_mesh_path(scene: Scene) -> Path | None:
@@ -45,43 +44,149 @@ def ground_truth_mesh_path(scene: Scene) -> Path | None:
     return path if path.is_file() else None
 
 
-def write_outputs(result: FusionResult, scene: Scene, out_dir: Path) -> dict:
-    """Writes every output of a run into `out_dir`; returns the run summary (also saved as run.json)."""
+def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state: bool = True) -> dict:
+    """Writes every output of a run into `out_dir`; returns the run summary (also saved as run.json).
+
+    Outputs: config.yaml, instances.json, semantic.ply, instances.ply, instances/*.ply, mesh.ply,
+    map_state.npz (the map, for `load_map`; unless `save_state` is False), overview.png, run.json, and
+    with ground truth the benchmark prediction files and report.json.
+    """
     from fmfusion_jax.engine import extraction
 
     label_sets = load_label_sets()
     out_dir.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = round(now - clock, 3)
+        clock = now
+
     (out_dir / "config.yaml").write_text(result.config.to_yaml())
     instances = extract_map_instances(result, label_sets)
+    lap("extract_instances")
     map_outputs.write_instances_json(out_dir / "instances.json", instances, label_sets)
     map_outputs.write_instance_clouds(out_dir, instances, label_sets)
+    lap("write_instances")
     vertices, faces, colors = extraction.extract_mesh(result.state, result.map_config)
     map_outputs.write_mesh(out_dir / "mesh.ply", vertices, faces, colors)
+    lap("mesh")
+    if save_state:
+        save_map(out_dir / MAP_STATE_FILE, result)
+        lap("map_state")
 
     summary = {
         "scene": scene.name, "frames": result.frames_integrated, "detection_frames": result.detection_frames,
         "instances": len(instances), "counters": result.counters, "timings_ms": result.timings.summary(),
-        "map": result.map_config.describe(),
+        "map": result.map_config.describe(), "capacity_used": capacity_used(result),
     }
-    gt_mesh = ground_truth_mesh_path(scene)
-    if gt_mesh is not None:
-        summary["benchmark"] = _export_and_score(instances, scene, result, out_dir, label_sets)
+    gt = _load_ground_truth(scene)
+    if isinstance(gt, str):
+        summary["benchmark"] = {"error": gt}
+        gt = None
+    elif gt is not None:
+        summary["benchmark"] = _export_and_score(instances, gt, scene, result, out_dir, label_sets)
+        lap("benchmark")
+    _write_overview(out_dir / "overview.png", scene.name, instances, (vertices, faces, colors), gt, result,
+                    summary.get("benchmark", {}), label_sets)
+    lap("overview")
+    summary["export_seconds"] = timings
     (out_dir / "run.json").write_text(json.dumps(summary, indent=1, default=float))
+    log.info("outputs of %s written into %s (seconds: %s)", scene.name, out_dir, timings)
     return summary
 
 
-def _export_and_score(instances, scene: Scene, result: FusionResult, out_dir: Path, label_sets) -> dict:
-    """Benchmark prediction files over the scene's mesh vertices, and the score when GT is complete."""
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.errors import DataError
+def capacity_used(result: FusionResult) -> dict[str, int]:
+    """How full the fixed capacities got (to size tsdf.block_capacity and instances.capacity)."""
+    blocks, table = result.state.blocks, result.state.instances
+    return {"blocks": int(blocks.num_blocks), "block_capacity": result.map_config.block_capacity,
+            "dropped_blocks": int(blocks.dropped_blocks), "touched_overflow": int(blocks.touched_overflow),
+            "instances_live": int(table.valid.sum()), "instance_capacity": result.map_config.instance_capacity,
+            "table_overflow": int(table.overflow)}
 
+
+#: File name of the saved map in a run's output folder.
+MAP_STATE_FILE = "map_state.npz"
+
+
+def save_map(path: str | Path, result: FusionResult) -> Path:
+    """Saves a fused map (state, MapConfig, PipelineConfig, how far fusion got) to an `.npz` file."""
+    from fmfusion_jax.io.state_file import write_map_file
+
+    progress = {"frames_integrated": result.frames_integrated, "detection_frames": result.detection_frames,
+                "counters": dict(result.counters)}
+    return write_map_file(path, result.state, result.map_config, result.config, progress)
+
+
+def load_map(path: str | Path):
+    """`(MapState, MapConfig, PipelineConfig)` of a map saved by `save_map` (`map_state.npz` of a run).
+
+    The state is exactly the saved one (device arrays); to continue fusing it, pass it to
+    `MapBuilder(config, map_config, state=state)` (or use `resume_builder`, which also restores the
+    schedules' frame counts). A wrong or damaged file is a DataError (a UserError) naming it.
+    """
+    from fmfusion_jax.io.state_file import read_map_file
+
+    saved = read_map_file(path)
+    return saved.state, saved.map_config, saved.config
+
+
+def resume_builder(path: str | Path) -> MapBuilder:
+    """A `MapBuilder` that continues the map saved at `path`, with its counts of frames and detection
+    frames (which drive the refinement schedules) and counters restored.
+
+    A run's `map_state.npz` holds the finalized map (after the final geometry fusion and post-merge);
+    `save_map` of a `FusionResult` built from a builder's current state saves it mid-sequence instead.
+    """
+    from fmfusion_jax.io.state_file import read_map_file
+
+    saved = read_map_file(path)
+    builder = MapBuilder(saved.config, saved.map_config, state=saved.state)
+    builder.frames_integrated = int(saved.progress.get("frames_integrated", 0))
+    builder.detection_frames = int(saved.progress.get("detection_frames", 0))
+    builder.counters.update({k: int(v) for k, v in saved.progress.get("counters", {}).items()})
+    return builder
+
+
+def _load_ground_truth(scene: Scene):
+    """The scene's ground truth; None without a GT mesh; the error text when GT files are incomplete."""
+    from fmfusion_jax.errors import DataError
+    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+
+    if ground_truth_mesh_path(scene) is None:
+        return None
     try:
-        gt = load_scannet_ground_truth(scene.path)
+        return load_scannet_ground_truth(scene.path)
     except DataError as error:
         log.warning("no benchmark export: %s", error)
-        return {"error": str(error)}
+        return str(error)
+
+
+def _write_overview(path: Path, scene_name: str, instances, mesh, gt, result: FusionResult, benchmark: dict,
+                    label_sets) -> None:
+    vertices, faces, colors = mesh
+    panels = [map_outputs.map_overview_panel(instances, label_sets, vertices, colors, faces,
+                                             result.map_config.voxel_size)]
+    if gt is not None:
+        panels.append(map_outputs.ground_truth_overview_panel(gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids,
+                                                              gt.instance_ids, label_sets))
+    title = f"{scene_name}: {result.frames_integrated} frames"
+    if "mAP" in benchmark:
+        title += (f"  |  AP {benchmark['mAP']:.3f}   AP50 {benchmark['mAP50']:.3f}   "
+                  f"AP25 {benchmark['mAP25']:.3f}")
+    try:
+        map_outputs.write_overview(path, panels, label_sets, title)
+    except OSError as error:
+        log.warning("no overview: %s", error)
+
+
+def _export_and_score(instances, gt, scene: Scene, result: FusionResult, out_dir: Path, label_sets) -> dict:
+    """Benchmark prediction files over the scene's mesh vertices, and the score against its GT."""
+    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+    from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
+
     predictions = map_outputs.benchmark_predictions(instances, label_sets, gt.vertices,
                                                     result.config.export.transfer_radius)
     txt = write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
@@ -92,20 +197,52 @@ def _export_and_score(instances, scene: Scene, result: FusionResult, out_dir: Pa
             "table": score.to_table()}
 
 
+def prepare_output_dir(out_dir: str | Path) -> Path:
+    """Creates the output folder up front (before minutes of fusion); a path that cannot be one is a
+    UserError."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"--out {out_dir} is a file, not a folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UserError(f"cannot create the output folder {out_dir}: {error.strerror or error}") from None
+    return out_dir
+
+
 def run_and_export(scene: Scene, detection_source: DetectionSource, config: PipelineConfig, out_dir: Path,
                    progress: bool = True) -> str:
     """`fmfusion run`: fuse, write, and return a short human-readable summary."""
     start = time.perf_counter()
+    out_dir = prepare_output_dir(out_dir)
     result = fuse_scene(scene, detection_source, config, progress=progress)
-    summary = write_outputs(result, scene, Path(out_dir))
-    fusion = result.timings.summary().get("fusion", {})
-    lines = [f"{scene.name}: {summary['frames']} frames, {summary['detection_frames']} with detections, "
+    try:
+        summary = write_outputs(result, scene, out_dir)
+    except OSError as error:
+        raise UserError(f"cannot write the outputs into {out_dir}: {error}") from None
+    return summarize_run(summary, result, time.perf_counter() - start, out_dir)
+
+
+def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: Path) -> str:
+    """The lines `fmfusion run` / `fmfusion demo` print at the end: AP table, counts, timings, outputs."""
+    lines = [f"{summary['scene']}: {summary['frames']} frames, {summary['detection_frames']} with detections, "
              f"{summary['instances']} instances "
              f"(created {result.counters['created']}, merged {result.counters['merged']}, "
-             f"removed {result.counters['removed']}) in {time.perf_counter() - start:.1f} s",
-             f"fusion step: median {fusion.get('median_ms', np.nan):.1f} ms/frame "
-             f"(first call incl. compile {fusion.get('first_call_ms', np.nan) / 1e3:.1f} s)",
-             f"outputs in {out_dir}"]
-    if "table" in summary.get("benchmark", {}):
-        lines.insert(0, summary["benchmark"]["table"])
+             f"removed {result.counters['removed']}) in {seconds:.1f} s"]
+    timings = result.timings.summary()
+    stage = "fusion" if "fusion" in timings else "tsdf"
+    if stage in timings:
+        frames_per_s = summary["frames"] / max(seconds, 1e-9)
+        lines.append(f"{'fusion' if stage == 'fusion' else 'integration'} step: median "
+                     f"{timings[stage]['median_ms']:.1f} ms/frame (first call incl. compile "
+                     f"{timings[stage]['first_call_ms'] / 1e3:.1f} s); {frames_per_s:.1f} frames/s overall")
+    if result.detection_frames == 0:
+        lines.append("warning: no frame had detections, so the map has no instances: check the detections folder")
+    benchmark = summary.get("benchmark", {})
+    if "table" in benchmark:
+        lines.insert(0, benchmark["table"])
+    elif "error" in benchmark:
+        lines.append(f"not scored: {benchmark['error']}")
+    lines.append(f"outputs in {out_dir}: overview.png, instances.json, semantic.ply, instances.ply, mesh.ply, "
+                 f"{MAP_STATE_FILE}, run.json" + (", report.json" if "table" in benchmark else ""))
     return "\n".join(lines)

@@ -15,7 +15,7 @@ import sys
 from fmfusion_jax.errors import UserError
 
 #: Subcommand modules, in the order `--help` lists them.
-SUBCOMMANDS = ("info", "synth", "simulate", "detect", "run", "eval")
+SUBCOMMANDS = ("demo", "info", "synth", "simulate", "detect", "run", "eval")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if args.verbose < 2:  # JAX's own INFO lines (backend probing) are noise unless debugging
+        logging.getLogger("jax").setLevel(logging.WARNING)
     try:
         return int(args.func(args) or 0)
     except UserError as error:

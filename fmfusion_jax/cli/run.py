@@ -39,13 +39,14 @@ def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.runner import run_and_export
+    from fmfusion_jax.runner import prepare_output_dir, run_and_export
 
     if not args.scene.is_dir():
         raise UserError(f"scene folder {args.scene} does not exist")
     if args.detections is not None and not args.detections.is_dir():
         raise UserError(f"detections folder {args.detections} does not exist (make one with `fmfusion simulate`)")
     config = load_config(args.config, args.overrides)
+    prepare_output_dir(args.out)  # a bad --out fails now, not after the fusion
     scene = open_scene(args.scene, layout=config.dataset.layout, stride=config.dataset.frame_stride,
                        depth_max=config.dataset.depth_max, depth_scale=config.dataset.depth_scale,
                        max_frames=config.dataset.max_frames)
@@ -56,6 +57,13 @@ def run(args: argparse.Namespace) -> int:
         source = models.detect  # called on detection frames only, so the prompt window counts those
     else:
         folder = DetectionFolder(args.detections, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
+        if not len(folder):
+            raise UserError(f"{args.detections} holds no detection files (frame-XXXXXX_label.json + mask); "
+                            "make them with `fmfusion simulate` or `fmfusion detect`")
+        missing = [name for name in scene.frame_names if name not in folder]
+        if len(missing) == len(scene.frame_names):
+            raise UserError(f"no detection file in {args.detections} matches a frame of {scene.name} "
+                            f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})")
         source = lambda frame: folder.get(frame.name)  # noqa: E731
     summary = run_and_export(scene, source, config, args.out, progress=not args.no_progress)
     print(summary)

@@ -1,0 +1,155 @@
+"""A `MapState` as a flat dict of NumPy arrays and back, exactly (pure conversions, no files).
+
+The voxel-block pool is mostly empty: only slots `[0, num_blocks)` hold blocks and the last slot is the
+scratch slot; every other slot stays at its initial value (tsdf 1, weights 0, instance ids -1, ...),
+because every engine pass writes allocated slots only. `state_to_arrays` therefore keeps, of each pool
+array, the allocated rows and the scratch row; `state_from_arrays` pads the rest back with the initial
+values. The invariant is checked when saving: a pool array whose unallocated rows are not at their
+initial values is saved whole (and loaded whole), so the round trip is exact either way.
+
+Keys are the pytree paths, e.g. ``blocks.tsdf``, ``instances.valid``, ``frame_index``; a pool array saved
+in part has ``blocks.tsdf`` (the allocated rows) and ``blocks.tsdf@scratch`` (the scratch row, `(1, ...)`).
+`fmfusion_jax.io.state_file` writes these dicts to `.npz` files with the configs as metadata.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks, init_map_state
+
+#: Arrays of the pool whose leading axis is the pool slot (saved as allocated rows + scratch row).
+POOL_FIELDS = ("block_coords", "tsdf", "weight", "color", "instance_id", "instance_weight")
+
+#: Suffix of the key holding the scratch row of a pool array saved in part.
+SCRATCH_SUFFIX = "@scratch"
+
+
+def _keys() -> list[str]:
+    return ([f"blocks.{name}" for name in VoxelBlocks._fields] + [f"instances.{name}" for name in InstanceTable._fields]
+            + ["frame_index"])
+
+
+def _leaf(state: MapState, key: str):
+    parts = key.split(".")
+    value = state
+    for part in parts:
+        value = getattr(value, part)
+    return value
+
+
+def _layout_of(state: MapState) -> MapConfig:
+    """A config with the state's layout (block size, slots, table sizes): enough for the initial rows."""
+    blocks, table = state.blocks, state.instances
+    voxels, slots = blocks.instance_id.shape[1:]
+    block_size = round(voxels ** (1 / 3))
+    return MapConfig(block_size=block_size, instance_slots=int(slots), block_capacity=int(blocks.tsdf.shape[0]),
+                     instance_capacity=int(table.valid.shape[0]), num_classes=int(table.label_evidence.shape[1]),
+                     num_open_labels=int(table.open_label_histogram.shape[1]))
+
+
+@functools.lru_cache(maxsize=16)
+def _initial_rows(config: MapConfig) -> dict[str, np.ndarray]:
+    """The initial value of one pool row of each pool array (from a two-slot pool of the same layout)."""
+    tiny = init_map_state(dataclasses.replace(config, block_capacity=2, grid_shape=(1, 1, 1), instance_capacity=1))
+    rows = {name: np.asarray(getattr(tiny.blocks, name))[0] for name in POOL_FIELDS}
+    for row in rows.values():
+        row.setflags(write=False)
+    return rows
+
+
+def state_to_arrays(state: MapState, map_config: MapConfig | None = None,
+                    check_unallocated: bool = True) -> dict[str, np.ndarray]:
+    """The state as host arrays: the pool's allocated rows and scratch row, every other array whole.
+
+    Args:
+      state: the map (device or host arrays).
+      map_config: its config (optional: the layout is also read off the array shapes).
+      check_unallocated: verify that the unallocated pool rows are at their initial values; a pool array
+        for which this fails is saved whole (off: trust the invariant and save the allocated rows).
+
+    Returns:
+      `{key: np.ndarray}` (see the module docstring for the keys).
+    """
+    map_config = map_config or _layout_of(state)
+    n = int(state.blocks.num_blocks)
+    capacity = map_config.block_capacity
+    if not 0 <= n < capacity:
+        raise ValueError(f"num_blocks {n} outside [0, {capacity - 1})")
+    initial = _initial_rows(map_config)
+    arrays: dict[str, np.ndarray] = {}
+    for key in _keys():
+        value = np.asarray(jax.device_get(_leaf(state, key)))
+        name = key.split(".")[-1]
+        if key.startswith("blocks.") and name in POOL_FIELDS:
+            if value.shape[0] != capacity:
+                raise ValueError(f"{key} has {value.shape[0]} slots, the config says {capacity}")
+            unallocated = value[n:capacity - 1]
+            if check_unallocated and not np.array_equal(unallocated, np.broadcast_to(initial[name], unallocated.shape)):
+                arrays[key] = value.copy()  # the invariant does not hold here: keep every slot
+                continue
+            arrays[key] = value[:n].copy()
+            arrays[key + SCRATCH_SUFFIX] = value[capacity - 1:].copy()
+        else:
+            arrays[key] = value.copy()
+    return arrays
+
+
+def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, device: bool = True) -> MapState:
+    """The `MapState` of `state_to_arrays(state, map_config)`: pool rows padded back with initial values.
+
+    Shapes and dtypes are checked against `init_map_state(map_config)`; a mismatch (a file written for
+    another config or another version of the engine) is a ValueError naming the array.
+
+    Args:
+      arrays: as returned by `state_to_arrays` (or read by `fmfusion_jax.io.state_file.read_state_file`).
+      map_config: the config the state was saved with.
+      device: return JAX arrays (True) or NumPy arrays (False).
+    """
+    expected = jax.eval_shape(lambda: init_map_state(map_config))
+    capacity = map_config.block_capacity
+    initial = _initial_rows(map_config)
+    known = set(_keys())
+    unknown = sorted(k for k in arrays if k.removesuffix(SCRATCH_SUFFIX) not in known)
+    if unknown:
+        raise ValueError(f"unknown map state arrays {unknown}")
+    n = int(np.asarray(arrays["blocks.num_blocks"])) if "blocks.num_blocks" in arrays else -1
+    if not 0 <= n < capacity:
+        raise ValueError(f"blocks.num_blocks {n} outside [0, {capacity - 1}) (pool of {capacity} slots)")
+    leaves: dict[str, np.ndarray] = {}
+    for key in _keys():
+        spec = _leaf(expected, key)
+        if key not in arrays:
+            raise ValueError(f"map state array {key} is missing")
+        value = np.asarray(arrays[key])
+        name = key.split(".")[-1]
+        if key.startswith("blocks.") and name in POOL_FIELDS and key + SCRATCH_SUFFIX in arrays:
+            scratch = np.asarray(arrays[key + SCRATCH_SUFFIX])
+            if value.shape[0] != n or scratch.shape[0] != 1:
+                raise ValueError(f"{key}: {value.shape[0]} allocated rows and {scratch.shape[0]} scratch rows, "
+                                 f"expected {n} and 1")
+            full = np.empty(spec.shape, spec.dtype)
+            full[:] = initial[name]
+            full[:n] = value
+            full[capacity - 1:] = scratch
+            value = full
+        if value.shape != spec.shape or value.dtype != spec.dtype:
+            raise ValueError(f"map state array {key} is {value.dtype}{list(value.shape)}, the config needs "
+                             f"{spec.dtype}{list(spec.shape)}")
+        leaves[key] = value
+    convert = jnp.asarray if device else (lambda x: x)
+
+    def group(cls, prefix):
+        return cls(**{name: convert(leaves[f"{prefix}.{name}"]) for name in cls._fields})
+
+    return MapState(blocks=group(VoxelBlocks, "blocks"), instances=group(InstanceTable, "instances"),
+                    frame_index=convert(leaves["frame_index"]))
+
+
+__all__ = ["state_to_arrays", "state_from_arrays", "POOL_FIELDS", "SCRATCH_SUFFIX"]
