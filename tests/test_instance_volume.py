@@ -310,3 +310,130 @@ def test_no_recompilation_and_vmap():
     for i, single in enumerate(singles):
         expected = iv.instance_overlap_counts(single, CONFIG, True).counts
         np.testing.assert_array_equal(np.asarray(counts[i]), np.asarray(expected))
+
+
+# ---------------------------------------------------------------------------------------------------
+# The one-pass census, the renaming that derives counts, and their helpers (used by `step.refine`).
+
+
+def reference_remap(grid, new_id):
+    """NumPy: ids renamed voxel by voxel, deleted slots emptied, a duplicate folded into the first slot."""
+    ids = grid.instance_id
+    mapped = np.where(ids >= 0, new_id[np.maximum(ids, 0)], -1)
+    w = np.where(mapped >= 0, grid.instance_weight, 0)
+    out = dataclasses.replace(grid, instance_id=mapped.copy(), instance_weight=w.copy())
+    for s in range(1, ids.shape[-1]):
+        for t in range(s):
+            dup = (out.instance_id[..., s] >= 0) & (out.instance_id[..., s] == out.instance_id[..., t])
+            out.instance_weight[..., t] += np.where(dup, out.instance_weight[..., s], 0)
+            out.instance_weight[..., s] = np.where(dup, 0, out.instance_weight[..., s])
+            out.instance_id[..., s] = np.where(dup, -1, out.instance_id[..., s])
+    return out
+
+
+_census = jax.jit(iv._census, static_argnames=("config", "overlap", "list_cells"))  # overlap: a mode name
+_census_flag = jax.jit(iv._census, static_argnames=("config", "list_cells"))  # overlap: a traced bool
+_remap_cells = jax.jit(iv._remap_cells, static_argnames=("config",))
+
+
+def run_census(blocks, config, overlap=None, keep=None, list_cells=False):
+    if overlap is None or isinstance(overlap, str):
+        return _census(blocks, config, overlap, keep, list_cells)
+    return _census_flag(blocks, config, overlap, keep, list_cells)
+
+
+def test_prefix_sum_and_compaction():
+    rng = np.random.default_rng(0)
+    for n in (1, 16, 17, 4097):
+        x = rng.integers(0, 3, n).astype(np.int32)
+        np.testing.assert_array_equal(np.asarray(iv._inclusive_cumsum(jnp.asarray(x))), np.cumsum(x))
+        flags = rng.random(n) < 0.4
+        values = (np.arange(n) * 7).astype(np.int32)
+        for start, size in ((0, n), (3, n + 5), (2, max(1, n // 3))):
+            out, found = iv._compact(jnp.full((size,), -1, jnp.int32), jnp.int32(start), jnp.asarray(flags),
+                                     jnp.asarray(values))
+            expected = np.full(size + n + start, -1)
+            expected[start:start + flags.sum()] = values[flags]
+            np.testing.assert_array_equal(np.asarray(out), expected[:size])
+            assert int(found) == start + flags.sum()
+
+
+@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1))
+def test_census_without_removed_ids_matches_the_reference_after_removal(seed):
+    """`_census(..., keep)` counts as if the ids outside `keep` had been deleted from the voxels first."""
+    grid = random_instance_field(seed)
+    blocks = ref.dense_to_blocks(grid, CONFIG)
+    keep = np.random.default_rng(seed).random(NUM_INSTANCES) < 0.7
+    removed = reference_remap(grid, np.where(keep, np.arange(NUM_INSTANCES), -1))
+    exact = dataclasses.replace(CONFIG, overlap_ids_per_cell=16)
+    for overlap, inflate in (("inflated", True), ("plain", False), (jnp.bool_(False), True), (jnp.bool_(True), False)):
+        census = run_census(blocks, exact, overlap, jnp.asarray(keep))
+        np.testing.assert_array_equal(np.asarray(census.overlap),
+                                      ref.reference_overlap_counts(removed, NUM_INSTANCES, inflate))
+        np.testing.assert_array_equal(np.asarray(census.counts),
+                                      np.diag(ref.reference_overlap_counts(removed, NUM_INSTANCES, False)))
+        assert int(census.overfull) == 0 and int(census.dropped_cells) == 0
+    # with 4 ids per cell the crowded cells keep their 4 largest ids among the kept ones, as a count of
+    # the pool after the removal does
+    after = ref.dense_to_blocks(removed, CONFIG)
+    for overlap in ("inflated", jnp.bool_(False)):
+        census = run_census(blocks, CONFIG, overlap, jnp.asarray(keep))
+        expected = iv.instance_overlap_counts(after, CONFIG, True)
+        np.testing.assert_array_equal(np.asarray(census.overlap), np.asarray(expected.counts))
+        assert int(census.overfull + census.dropped_cells) == int(expected.dropped_cells) > 0
+
+
+@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1))
+def test_renaming_derives_the_new_counts_from_the_census(seed):
+    """`_remap_cells` renames like the NumPy reference, with and without the census' list of cells, and its
+    `gained` turns the counts before the renaming into the counts after it."""
+    rng = np.random.default_rng(seed)
+    grid = random_instance_field(seed)
+    blocks = ref.dense_to_blocks(grid, CONFIG)
+    new_id = np.arange(NUM_INSTANCES)
+    a, b, c, d, e = rng.choice(NUM_INSTANCES, 5, replace=False)
+    new_id[b] = a  # merge b and c into a
+    new_id[c] = a
+    new_id[e] = d  # merge e into d
+    new_id[rng.integers(0, NUM_INSTANCES)] = -1  # delete one (unless it is a representative: then both)
+    new_id = np.where(new_id >= 0, new_id, -1)
+    new_id = np.where((new_id >= 0) & (new_id[np.maximum(new_id, 0)] < 0), -1, new_id)
+    expected = reference_remap(grid, new_id)
+    expected_counts = np.diag(ref.reference_overlap_counts(expected, NUM_INSTANCES, False))
+    changed = new_id != np.arange(NUM_INSTANCES)
+    for capacity in (CONFIG.cell_list_capacity, 10):  # the census' list, or too many cells: found again
+        config = dataclasses.replace(CONFIG, cell_list_capacity=capacity)
+        census = run_census(blocks, config, "inflated", list_cells=True)
+        listed = (census.cells, census.tags, census.occupied, census.occupied <= config.cell_list_capacity)
+        assert bool(listed[-1]) == (capacity > 10)
+        out, gained = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), config, active=jnp.bool_(True),
+                                   listed=listed)
+        check_slot_invariants(out)
+        got = ref.blocks_to_dense(out, CONFIG)
+        np.testing.assert_array_equal(got.instance_id, expected.instance_id)
+        np.testing.assert_array_equal(got.instance_weight, expected.instance_weight)
+        counts = np.where(changed, 0, np.asarray(census.counts)) + np.asarray(gained)
+        np.testing.assert_array_equal(counts, expected_counts)
+    # inactive: nothing happens
+    out, gained = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), CONFIG, active=jnp.bool_(False))
+    np.testing.assert_array_equal(np.asarray(out.instance_id), np.asarray(blocks.instance_id))
+    assert not np.asarray(gained).any()
+
+
+def test_cell_tags_flag_every_cell_holding_a_wanted_id():
+    grid = random_instance_field(4)
+    blocks = ref.dense_to_blocks(grid, CONFIG)
+    result = run_census(blocks, CONFIG, list_cells=True)
+    n = int(result.occupied)
+    cells, tags = np.asarray(result.cells[:n]), result.tags[:n]
+    rows = np.asarray(iv._cell_rows(blocks.instance_id))[cells]
+    assert (rows >= 0).any(axis=1).all() and len(np.unique(cells)) == n
+    for wanted_ids in ([0], [3, 7], [NUM_INSTANCES - 1]):
+        wanted = np.isin(np.arange(NUM_INSTANCES), wanted_ids)
+        flagged = np.asarray(iv._tag_holds(tags, jnp.asarray(wanted)))
+        holds = np.isin(rows, wanted_ids).any(axis=1)
+        assert flagged[holds].all()  # never misses a cell
+        distinct = np.array([len(set(r[r >= 0])) for r in rows])
+        np.testing.assert_array_equal(flagged[distinct <= 2], holds[distinct <= 2])  # exact for simple cells

@@ -53,11 +53,13 @@ def merge_pairs(similarity: jax.Array, overlap: jax.Array, voxel_count: jax.Arra
     with `overlap[a, b]` the number of b's voxels inside a's inflated volume (the geometry's
     `instance_overlap_counts`); a `b` without voxels never merges.
     """
-    a_first = _larger_first(voxel_count)
-    ov = jnp.where(a_first, overlap, overlap.T).astype(jnp.float32)  # overlap[a, b] at (i, j) and (j, i)
-    vb = jnp.where(a_first, voxel_count[None, :], voxel_count[:, None]).astype(jnp.float32)
-    ratio = jnp.where(vb > 0, ov / jnp.where(vb > 0, vb, 1.0), 0.0)
-    return _pair_mask(valid) & (similarity > sim_threshold) & (ratio > overlap_ratio)
+    # The test read from (i, j) with i the larger, then mirrored: a transpose of the boolean result is
+    # cheaper than one of the int32 overlaps (strided reads of 4 MB at K = 1024). Exactly one of (i, j)
+    # and (j, i) has its row as the larger instance, so `directed | directed.T` is the test of each pair.
+    vb = voxel_count.astype(jnp.float32)[None, :]
+    ratio = jnp.where(vb > 0, overlap.astype(jnp.float32) / jnp.where(vb > 0, vb, 1.0), 0.0)
+    directed = _larger_first(voxel_count) & (ratio > overlap_ratio)
+    return _pair_mask(valid) & (similarity > sim_threshold) & (directed | directed.T)
 
 
 @jax.jit

@@ -9,7 +9,9 @@ The Python loop (`fmfusion_jax.pipeline`) calls, per frame:
 - `finalize`: before export, geometry fusion and the post-processing 3D-IoU merge.
 
 Each is traced once per `(MapConfig, FusionConfig)`; every shape comes from the configs, so a run never
-recompiles. The state argument is donated: its buffers are reused for the result (without donation every
+recompiles. `refine` and `finalize` are thin wrappers of one jitted `_merge_step` (their thresholds are
+traced values), and `finalize` reuses the compiled `fuse_geometry`: nothing is compiled at the end of a
+run. The state argument is donated: its buffers are reused for the result (without donation every
 call would copy the whole voxel pool), so a state passed in must not be used again. All are vmappable
 over a batch of independent maps (see `batched`).
 """
@@ -22,13 +24,14 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from fmfusion_jax.engine import association, detections, label_fusion, maintenance, merge
+from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.instance_volume import (
-    fuse_instance_geometry, instance_overlap_counts, instance_voxel_counts, integrate_instances,
-    pixel_instances, remap_instances)
+    fuse_instance_geometry, instance_voxel_counts, integrate_instances, pixel_instances)
 from fmfusion_jax.engine.state import MapState
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
@@ -158,40 +161,110 @@ def _refresh_voxel_counts(state: MapState, config: MapConfig) -> MapState:
     return state._replace(instances=state.instances._replace(voxel_count=counts))
 
 
-def _apply_new_ids(state: MapState, rows: maintenance.TableRows, new_id: jax.Array, config: MapConfig) -> MapState:
-    state = state._replace(blocks=remap_instances(state.blocks, new_id),
-                           instances=state.instances._replace(**rows._asdict()))
-    return _refresh_voxel_counts(state, config)
+def _apply_new_ids(blocks, census, new_id: jax.Array, config: MapConfig):
+    """Renames the instance ids in the voxels (`remap_instances`) and returns `(blocks, voxel counts)`.
+
+    `census` is the pool's census before the renaming (its counts are complete when `dropped_cells` is
+    0). The pass costs nothing when no id held by a voxel changes (its loops run zero times), half of
+    the refinements on scene0000_00; otherwise it rewrites only the cells holding a changed id, and
+    derives the new counts from the old ones: changed ids drop to 0, and a representative gains the
+    voxels of its merged instances that it did not hold. With an incomplete census (cell capacity
+    exceeded) the counts are recounted instead, as the old recount did.
+    """
+    k = new_id.shape[0]
+    counts = census.counts
+    changed = new_id != jnp.arange(k, dtype=new_id.dtype)
+    can_drop = config.cell_capacity < blocks.instance_id.shape[0] * blocks.instance_id.shape[1] // 8  # static
+    complete = (census.dropped_cells == 0) if can_drop else jnp.asarray(True)
+    needed = jnp.any(changed & (counts > 0)) | ~complete
+    listed = None
+    if census.cells.shape[0]:  # the census' list of the occupied cells, unless there were too many
+        listed = (census.cells, census.tags, census.occupied, (census.occupied <= config.cell_list_capacity) & complete)
+    blocks, gained = iv._remap_cells(blocks, new_id, config, active=needed, listed=listed)  # no-op unless needed
+    updated = jnp.where(changed, 0, counts) + gained
+    if can_drop:
+        updated = jax.lax.cond(complete, lambda: updated, lambda: iv._census(blocks, config).counts)
+    return blocks, updated
 
 
-@functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
+class _MergeParams(NamedTuple):
+    """Traced parameters of `_merge_step`, so that `refine` and `finalize` share one compiled step."""
+
+    final: jax.Array  # bool[]: the final merge (plain overlap, 3D IoU, no removal) instead of the online one
+    remove_missed: jax.Array  # int32[]
+    remove_min_voxels: jax.Array  # int32[]
+    similarity: jax.Array  # float32[]: semantic similarity threshold
+    overlap: jax.Array  # float32[]: overlap ratio (online) or 3D IoU (final) threshold
+
+
+@functools.partial(jax.jit, static_argnames=("config", "label_mode"), donate_argnames=("state",))
+def _merge_step(state: MapState, params: _MergeParams, config: MapConfig,
+                label_mode: str) -> tuple[MapState, RefineStats]:
+    """Removal and merge (online, or the final post-processing merge), see `refine` and `finalize`.
+
+    One pass over the voxels gives the voxel counts and the overlaps; the removal and the merge are then
+    decided on the table and applied to the voxels together, in one renaming that only runs when an id
+    held by a voxel changes. This decides exactly as removing (rename and recount), then counting the
+    overlaps and merging (rename and recount) would:
+    - the removal renames no kept id, so the kept ids' counts are unchanged and the removed ids' are 0;
+    - the overlaps after the removal are those of the census except in the removed ids' rows and
+      columns (which the pair tests ignore: the rows are invalid) and in (inflated) cells with more than
+      `overlap_ids_per_cell` distinct ids, where a removed id may have been among the largest: when a
+      removed id held voxels and such cells exist, the overlaps are recounted with the removed ids
+      masked out (a second pass, in removal frames only);
+    - the voxel counts after the merge follow from those before (see `_apply_new_ids`).
+    """
+    blocks = state.blocks
+    final = jnp.asarray(params.final, bool)
+    # plain overlaps for the final merge, inflated online; the occupied cells listed for the renaming
+    census = iv._census(blocks, config, final, list_cells=True)
+    counts = census.counts
+    rows = maintenance.TableRows.of(state.instances)
+    remove = maintenance.instances_to_remove(rows.missed, counts, rows.valid, params.remove_missed,
+                                             params.remove_min_voxels) & ~final
+    rows = maintenance.remove_instances(rows._replace(voxel_count=counts), remove).rows
+    keep = rows.valid  # the ids that stay in the voxels (the renaming deletes every other id)
+    rows = rows._replace(voxel_count=jnp.where(keep, counts, 0))
+
+    def recount():
+        again = iv._census(blocks, config, final, keep)
+        return again.overlap, again.overfull
+
+    def as_counted():  # the removed ids' rows and columns are left in: the pair tests mask invalid rows
+        return census.overlap, census.overfull
+
+    redo = jnp.any((counts > 0) & ~keep) & (census.overfull > 0)
+    overlap, overfull = jax.lax.cond(redo, recount, as_counted)
+
+    similarity = merge.semantic_similarity(label_fusion.class_distribution(rows.label_evidence, label_mode))
+    test = (similarity, overlap, rows.voxel_count, rows.valid, params.similarity, params.overlap)
+    pairs = jax.lax.cond(final, merge.post_merge_pairs, merge.merge_pairs, *test)
+    representative = merge.merge_groups(pairs, rows.valid, rows.voxel_count)
+    merged = merge.merge_instance_table(rows, representative, label_mode)
+    # merged.new_id is -1 for the removed rows too: one renaming applies the removal and the merge
+    blocks, voxel_count = _apply_new_ids(blocks, census, merged.new_id, config)
+    table = state.instances._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict())
+    stats = RefineStats(removed=jnp.sum(remove).astype(jnp.int32),
+                        merged=(jnp.sum(rows.valid) - jnp.sum(table.valid)).astype(jnp.int32),
+                        dropped_cells=census.dropped_cells + overfull)
+    return state._replace(blocks=blocks, instances=table), stats
+
+
 def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[MapState, RefineStats]:
     """Online refinement: remove repeatedly missed small instances, then merge over-segmentation.
 
     Merge test for all pairs at once (paper, Sec. IV-A): semantic similarity of the normalized
     distributions above `merge_similarity`, and more than `merge_overlap` of the smaller instance's
-    voxels inside the larger one's inflated volume.
-    """
-    state = _refresh_voxel_counts(state, config)
-    rows = maintenance.TableRows.of(state.instances)
-    remove = maintenance.instances_to_remove(rows.missed, rows.voxel_count, rows.valid, fusion.remove_missed,
-                                             fusion.remove_min_voxels)
-    removal = maintenance.remove_instances(rows, remove)
-    state = _apply_new_ids(state, removal.rows, removal.new_id, config)
+    voxels inside the larger one's inflated volume. The state is donated.
 
-    rows = maintenance.TableRows.of(state.instances)
-    overlap = instance_overlap_counts(state.blocks, config, inflate=True)
-    similarity = merge.semantic_similarity(_distribution(state, fusion))
-    pairs = merge.merge_pairs(similarity, overlap.counts, rows.voxel_count, rows.valid, fusion.merge_similarity,
-                              fusion.merge_overlap)
-    representative = merge.merge_groups(pairs, rows.valid, rows.voxel_count)
-    merged = merge.merge_instance_table(rows, representative, fusion.label_mode)
-    n_before = jnp.sum(rows.valid)
-    state = _apply_new_ids(state, merged.rows, merged.new_id, config)
-    stats = RefineStats(removed=jnp.sum(remove).astype(jnp.int32),
-                        merged=(n_before - jnp.sum(state.instances.valid)).astype(jnp.int32),
-                        dropped_cells=overlap.dropped_cells)
-    return state, stats
+    One jitted step (`_merge_step`, shared with `finalize`, whose thresholds are traced values): a
+    pass over the voxels for the counts and overlaps, the decisions on the table, and a renaming of
+    the voxels only when an instance is removed or merged.
+    """
+    params = _MergeParams(final=np.bool_(False), remove_missed=np.int32(fusion.remove_missed),
+                          remove_min_voxels=np.int32(fusion.remove_min_voxels),
+                          similarity=np.float32(fusion.merge_similarity), overlap=np.float32(fusion.merge_overlap))
+    return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
@@ -201,23 +274,18 @@ def fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> M
     return _refresh_voxel_counts(state._replace(blocks=blocks), config)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
 def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[MapState, RefineStats]:
-    """Before export: geometry fusion, then the post-processing merge (3D IoU and similarity)."""
+    """Before export: geometry fusion, then the post-processing merge (3D IoU and similarity).
+
+    Runs the compiled `fuse_geometry` and `_merge_step` of the online loop (nothing new to compile at
+    the end of a run); the merge step here uses the plain overlaps, the 3D IoU test and no removal.
+    The state is donated.
+    """
     state = fuse_geometry(state, config, fusion)
-    rows = maintenance.TableRows.of(state.instances)
-    overlap = instance_overlap_counts(state.blocks, config, inflate=False)
-    similarity = merge.semantic_similarity(_distribution(state, fusion))
-    pairs = merge.post_merge_pairs(similarity, overlap.counts, rows.voxel_count, rows.valid,
-                                   fusion.post_merge_similarity, fusion.post_merge_iou)
-    representative = merge.merge_groups(pairs, rows.valid, rows.voxel_count)
-    merged = merge.merge_instance_table(rows, representative, fusion.label_mode)
-    n_before = jnp.sum(rows.valid)
-    state = _apply_new_ids(state, merged.rows, merged.new_id, config)
-    stats = RefineStats(removed=jnp.zeros((), jnp.int32),
-                        merged=(n_before - jnp.sum(state.instances.valid)).astype(jnp.int32),
-                        dropped_cells=overlap.dropped_cells)
-    return state, stats
+    params = _MergeParams(final=np.bool_(True), remove_missed=np.int32(np.iinfo(np.int32).max),
+                          remove_min_voxels=np.int32(0), similarity=np.float32(fusion.post_merge_similarity),
+                          overlap=np.float32(fusion.post_merge_iou))
+    return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
 
 
 def class_distribution(state: MapState, fusion: FusionConfig) -> jax.Array:
