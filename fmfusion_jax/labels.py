@@ -96,20 +96,6 @@ def read_likelihood_csv(path: str | Path, label_sets: LabelSets | None = None) -
     return matrix
 
 
-def write_likelihood_csv(path: str | Path, matrix: np.ndarray, label_sets: LabelSets | None = None,
-                         comment: str = "") -> None:
-    """Writes a likelihood matrix in the format `read_likelihood_csv` reads."""
-    label_sets = label_sets or load_label_sets()
-    matrix = np.asarray(matrix, np.float64)
-    if matrix.shape != (label_sets.num_open, label_sets.num_classes):
-        raise ValueError(f"likelihood shape {matrix.shape}, expected {(label_sets.num_open, label_sets.num_classes)}")
-    out = [f"# {line}" for line in comment.splitlines()]
-    out.append("open_label," + ",".join(label_sets.class_names))
-    for name, row in zip(label_sets.open_labels, matrix):
-        out.append(name + "," + ",".join(repr(float(x)) for x in row))
-    Path(path).write_text("\n".join(out) + "\n")
-
-
 def load_likelihood(name: str = "statistical") -> np.ndarray:
     """The packaged likelihood `"statistical"` or `"manual"`, or a CSV file path."""
     if name in ("statistical", "manual"):

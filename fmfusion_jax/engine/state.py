@@ -155,11 +155,6 @@ def init_map_state(config: MapConfig) -> MapState:
     )
 
 
-def allocated_slots(blocks: VoxelBlocks) -> jax.Array:
-    """bool[B]: which pool slots hold an allocated block."""
-    return jnp.arange(blocks.tsdf.shape[0]) < blocks.num_blocks
-
-
 __all__ = [
     "VoxelBlocks",
     "InstanceTable",
@@ -167,7 +162,6 @@ __all__ = [
     "init_voxel_blocks",
     "init_instance_table",
     "init_map_state",
-    "allocated_slots",
     "local_voxel_index",
     "voxel_offsets",
 ]

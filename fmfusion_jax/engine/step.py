@@ -81,10 +81,6 @@ class RefineStats(NamedTuple):
     dropped_cells: jax.Array  # int32[]: occupied cells left out of the overlap counts (capacity)
 
 
-def _distribution(state: MapState, fusion: FusionConfig) -> jax.Array:
-    return label_fusion.class_distribution(state.instances.label_evidence, fusion.label_mode)
-
-
 @functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
 def integrate_frame(state: MapState, frame: FrameInputs, config: MapConfig) -> MapState:
     """Integrates one frame into the global TSDF (no detections)."""
@@ -290,7 +286,7 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
 
 def class_distribution(state: MapState, fusion: FusionConfig) -> jax.Array:
     """float32[K, C] normalized class distribution of every row (meaningful where `valid`)."""
-    return _distribution(state, fusion)
+    return label_fusion.class_distribution(state.instances.label_evidence, fusion.label_mode)
 
 
 def batched(step, **static):
