@@ -171,6 +171,8 @@ class MapBuilder:
         self.likelihood = jnp.asarray(likelihood, jnp.float32)
         self.state = init_map_state(map_config) if state is None else state
         self.timer = StageTimer()
+        #: the detection-frame step; `fmfusion_jax.bench` swaps in its stage-by-stage twin to time the stages
+        self.fuse_detections = step.fuse_detections
         self.monitor = CapacityMonitor()
         self.frames_integrated = 0
         self.detection_frames = 0
@@ -187,7 +189,7 @@ class MapBuilder:
                                 f"{(self.map_config.image_height, self.map_config.image_width)}")
             batch = pack_detections(detections, self.label_sets.open_labels, self.config.detections.max_detections,
                                     self.config.detections.min_mask_pixels)
-            self.state, stats = self.timer.run("fusion", step.fuse_detections, self.state, inputs, batch,
+            self.state, stats = self.timer.run("fusion", self.fuse_detections, self.state, inputs, batch,
                                                self.likelihood, self.map_config, self.fusion_config)
             self.detection_frames += 1
             for name in ("created", "matched", "detections"):

@@ -32,7 +32,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.instance_volume import (
     fuse_instance_geometry, instance_voxel_counts, integrate_instances, pixel_instances)
-from fmfusion_jax.engine.state import MapState
+from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
 
@@ -94,6 +94,9 @@ def fuse_detections(state: MapState, frame: FrameInputs, batch: DetectionBatch, 
                     config: MapConfig, fusion: FusionConfig) -> tuple[MapState, FrameStats]:
     """One detection frame: TSDF, projection, association, instance integration and label fusion.
 
+    The composition of the stage functions below (which `fmfusion_jax.bench` also jits one by one to
+    time them); one jit, so XLA fuses across the stages.
+
     Args:
       state: the map.
       frame: the frame's depth, colour and pose.
@@ -101,55 +104,103 @@ def fuse_detections(state: MapState, frame: FrameInputs, batch: DetectionBatch, 
       likelihood: float32[O, C] label likelihood (a traced argument, so it can be differentiated or swapped).
     """
     state = integrate_frame(state, frame, config)
-    table = state.instances
-    n_max, k, stride = batch.valid.shape[0], config.instance_capacity, config.pixel_stride
+    det_image = detection_image(frame, batch, config, fusion)
+    seen = project_instances(state.blocks, frame, config)
+    matches = associate(det_image, seen, batch.valid, state.instances.valid, config, fusion)
+    table, update = fuse_table(state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config,
+                               fusion)
+    blocks = integrate_instance_votes(state.blocks, frame, det_image, matches.assignment.instance_for_detection,
+                                      config)
+    return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
 
-    # Detections as one per-pixel image, with each mask's depth outliers removed (mask borders that
-    # bleed onto the background would otherwise smear instances along the rays).
+
+# --------------------------------------------------------------------------------------------------
+# The stages of `fuse_detections` (pure, unjitted: traced inside it, or jitted alone by the benchmark).
+
+def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig, fusion: FusionConfig) -> jax.Array:
+    """int32[Hs, Ws]: the detection each subsampled pixel belongs to (-1 none), each mask's depth outliers
+    removed (mask borders that bleed onto the background would otherwise smear instances along the rays)."""
+    stride = config.pixel_stride
     det_image = detections.detection_pixel_image(batch.masks, batch.valid, stride)
-    depth_s = frame.depth[::stride, ::stride]
-    det_image = detections.filter_detection_depth(det_image, depth_s, n_max, fusion.depth_low, fusion.depth_high,
-                                                  depth_max=config.depth_max)
+    return detections.filter_detection_depth(det_image, frame.depth[::stride, ::stride], batch.valid.shape[0],
+                                             fusion.depth_low, fusion.depth_high, depth_max=config.depth_max)
 
-    # Projection of the existing instances (what each pixel's surface voxel holds) and association.
-    seen = pixel_instances(state.blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
-    counts = association.association_scores(det_image, seen, n_max, k)
-    valid_det = batch.valid & (counts.det_area > 0)  # a mask may lose all its pixels to the depth filter
+
+def project_instances(blocks: VoxelBlocks, frame: FrameInputs, config: MapConfig) -> jax.Array:
+    """int32[Hs, Ws, S]: the existing instances at the surface each subsampled pixel sees (-1 padded)."""
+    return pixel_instances(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
+
+
+class Matches(NamedTuple):
+    """The association of a frame's `N` detections with the `K` table rows."""
+
+    counts: association.AssociationCounts  # pixel counts: intersection [N, K], det_area [N], inst_area [K]
+    valid_det: jax.Array  # bool[N]: valid detections that kept pixels after the depth filter
+    assignment: association.Assignment  # row of each detection (matched or new), the new valid rows
+
+
+def associate(det_image: jax.Array, seen: jax.Array, det_valid: jax.Array, inst_valid: jax.Array,
+              config: MapConfig, fusion: FusionConfig) -> Matches:
+    """Projection-overlap association of the detections (`det_valid bool[N]`) with the live rows
+    (`inst_valid bool[K]`), and new rows for the unmatched ones."""
+    counts = association.association_scores(det_image, seen, det_valid.shape[0], config.instance_capacity)
+    valid_det = det_valid & (counts.det_area > 0)  # a mask may lose all its pixels to the depth filter
     scores = association.association_score_matrix(counts.intersection, counts.det_area, counts.inst_area,
                                                    fusion.association_metric)
-    matched = association.match_detections(scores, valid_det, table.valid, fusion.association_threshold)
-    assignment = association.assign_detections(matched, valid_det, table.valid)
-    inst_for_det = assignment.instance_for_detection
+    matched = association.match_detections(scores, valid_det, inst_valid, fusion.association_threshold)
+    return Matches(counts, valid_det, association.assign_detections(matched, valid_det, inst_valid))
 
-    # Instance table: new rows, label fusion, statistics, missed counts.
+
+class TableUpdate(NamedTuple):
+    """What `fuse_table` did, for the frame's statistics."""
+
+    fused: jax.Array  # bool[N]: detections fused into a row
+    in_view: jax.Array  # bool[K]: live rows (before this frame) in view
+
+
+def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array, likelihood: jax.Array,
+               frame_index: jax.Array, config: MapConfig,
+               fusion: FusionConfig) -> tuple[InstanceTable, TableUpdate]:
+    """The instance table after the frame: new rows, label fusion (`label_scores float32[N, O]`),
+    label statistics and missed counts."""
+    assignment, k = matches.assignment, config.instance_capacity
+    inst_for_det = assignment.instance_for_detection
     rows = maintenance.TableRows.of(table)
-    rows = maintenance.reset_rows(rows._replace(valid=assignment.new_valid), assignment.created, frame.frame_index)
-    fused_ok = valid_det & (inst_for_det >= 0)
-    evidence = label_fusion.fuse_labels(rows.label_evidence, inst_for_det, batch.label_scores, likelihood,
+    rows = maintenance.reset_rows(rows._replace(valid=assignment.new_valid), assignment.created, frame_index)
+    fused_ok = matches.valid_det & (inst_for_det >= 0)
+    evidence = label_fusion.fuse_labels(rows.label_evidence, inst_for_det, label_scores, likelihood,
                                         fused_ok, fusion.label_mode)
     histogram, observations = label_fusion.update_label_statistics(
-        rows.open_label_histogram, rows.observations, inst_for_det, batch.label_scores, fused_ok)
+        rows.open_label_histogram, rows.observations, inst_for_det, label_scores, fused_ok)
     was_matched = maintenance.matched_instances(inst_for_det, fused_ok, k)
-    in_view = maintenance.instances_in_view(counts.inst_area, table.valid, stride, fusion.min_projected_pixels)
+    in_view = maintenance.instances_in_view(matches.counts.inst_area, table.valid, config.pixel_stride,
+                                            fusion.min_projected_pixels)
     rows = rows._replace(
         label_evidence=evidence, open_label_histogram=histogram, observations=observations,
         missed=maintenance.update_missed(rows.missed, table.valid, in_view, was_matched),
-        last_seen_frame=maintenance.mark_seen(rows.last_seen_frame, was_matched, frame.frame_index))
+        last_seen_frame=maintenance.mark_seen(rows.last_seen_frame, was_matched, frame_index))
     table = table._replace(**rows._asdict(), overflow=table.overflow + assignment.overflow)
+    return table, TableUpdate(fused_ok, in_view)
 
-    # Instance volumes: every detection pixel votes for its instance in the voxel it sees.
-    pixel_instance = association.instance_pixel_image(det_image, inst_for_det)
-    blocks = integrate_instances(state.blocks, frame.depth, frame.T_world_camera, frame.intrinsics,
-                                 pixel_instance, config)
 
-    stats = FrameStats(
-        detections=jnp.sum(fused_ok).astype(jnp.int32),
-        matched=jnp.sum(fused_ok & ~assignment.is_new).astype(jnp.int32),
+def integrate_instance_votes(blocks: VoxelBlocks, frame: FrameInputs, det_image: jax.Array,
+                             instance_for_detection: jax.Array, config: MapConfig) -> VoxelBlocks:
+    """Instance volumes: every detection pixel votes for its row (`instance_for_detection int32[N]`) in the
+    voxel it sees."""
+    pixel_instance = association.instance_pixel_image(det_image, instance_for_detection)
+    return integrate_instances(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, pixel_instance, config)
+
+
+def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:
+    """The frame's counts (the loop logs them)."""
+    assignment = matches.assignment
+    return FrameStats(
+        detections=jnp.sum(update.fused).astype(jnp.int32),
+        matched=jnp.sum(update.fused & ~assignment.is_new).astype(jnp.int32),
         created=jnp.sum(assignment.is_new).astype(jnp.int32),
         table_overflow=assignment.overflow.astype(jnp.int32),
-        in_view=jnp.sum(in_view).astype(jnp.int32),
+        in_view=jnp.sum(update.in_view).astype(jnp.int32),
     )
-    return state._replace(blocks=blocks, instances=table), stats
 
 
 def _refresh_voxel_counts(state: MapState, config: MapConfig) -> MapState:

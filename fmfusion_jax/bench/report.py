@@ -1,0 +1,314 @@
+"""The benchmark's figures out of the workers' per-frame times, and the Markdown report (like the paper's
+Table IV: time per stage, then base + per-object cost).
+
+Conventions: every figure is a median over frames of milliseconds per frame (per call for the stages
+that do not run every frame), over frames 1.. (frame 0 warms up), leaving out the calls that compiled.
+Ours and the Open3D peer are compared on the same frames: the peer's prefix (`--peer-frames`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from fmfusion_jax.bench.stages import FUSION_STAGES
+
+#: The peer's stages of a detection frame (keys of `Open3DInstancePipeline.add_frame`'s result).
+PEER_FUSION_STAGES = ("tsdf", "projection", "association", "label_fusion", "integration")
+
+#: Rows of the stage table: (label, our pass ("staged" or "fused"), our keys, the peer's keys);
+#: keys None = every stage of the frame. Several keys: their sum per frame.
+STAGE_ROWS = (
+    ("global TSDF", "staged", ("tsdf",), ("tsdf",)),
+    ("detection image + depth filter", "staged", ("detections",), ()),
+    ("projection", "staged", ("projection",), ("projection",)),
+    ("association", "staged", ("association",), ("association",)),
+    ("label fusion", "staged", ("label_fusion",), ("label_fusion",)),
+    ("instance integration", "staged", ("integration",), ("integration",)),
+    ("merge (removal + online merge)", "fused", ("refine",), ("merge",)),
+    ("geometry fusion (per call)", "fused", ("geometry_fusion",), ("geometry_fusion",)),
+    ("sum of the stages above, jitted apart", "staged", FUSION_STAGES, PEER_FUSION_STAGES),
+    ("**fusion step** (`fuse_detections`, one jit)", "fused", ("fusion",), PEER_FUSION_STAGES),
+    ("**whole frame** (fusion step + merge + geometry fusion)", "fused", None, None),
+)
+
+#: Our timed functions, by timer name (`compile_ms` keys of the ours worker).
+COMPILED_NAMES = {
+    "fusion": "fuse_detections", "tsdf": "integrate_frame (non-detection frames)", "refine": "refine (_merge_step)",
+    "geometry_fusion": "fuse_geometry", "stage:tsdf": "integrate_frame", "stage:detections": "detection_image",
+    "stage:projection": "project_instances", "stage:association": "associate", "stage:label_fusion": "fuse_table",
+    "stage:integration": "integrate_instance_votes",
+}
+
+
+def frame_sums(frames: Sequence[dict], compiled: Sequence[dict] | None, keys: Sequence[str] | None,
+               start: int = 1, stop: int | None = None) -> list[float]:
+    """Per frame of `frames[start:stop]`: the sum of the `keys` stages that ran (None: all), ms.
+
+    A frame is left out when none of the stages ran, or when one of them compiled in it.
+    """
+    sums = []
+    stop = len(frames) if stop is None else min(stop, len(frames))
+    for i in range(start, stop):
+        times, compiling = frames[i], (compiled[i] if compiled else {})
+        names = list(times) if keys is None else [k for k in keys if k in times]
+        if not names or any(k in compiling for k in (compiling if keys is None else keys)):
+            continue
+        sums.append(float(sum(times[k] for k in names)))
+    return sums
+
+
+def median(values: Sequence[float]) -> float:
+    return float(np.median(values)) if len(values) else math.nan
+
+
+def fit_line(x: Sequence[float], y: Sequence[float]) -> tuple[float, float]:
+    """Least-squares `y = base + slope * x`: `(base, slope)`; NaNs with fewer than two distinct x."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    keep = np.isfinite(x) & np.isfinite(y)
+    x, y = x[keep], y[keep]
+    if len(np.unique(x)) < 2:
+        return math.nan, math.nan
+    design = np.stack([np.ones_like(x), x], axis=1)
+    (base, slope), *_ = np.linalg.lstsq(design, y, rcond=None)
+    return float(base), float(slope)
+
+
+def _pass(ours: dict, name: str) -> tuple[list, list]:
+    if name == "staged":
+        return ours.get("stage_frames", []), ours.get("stage_compiled", [])
+    return ours.get("frames", []), ours.get("compiled", [])
+
+
+def _usable(result: dict | None) -> bool:
+    return bool(result) and "frames" in result and not result.get("unavailable") and not result.get("error")
+
+
+def why_missing(result: dict | None, default: str = "not run") -> str:
+    if not result:
+        return default
+    return result.get("unavailable") or result.get("error") or default
+
+
+def stage_table(ours: dict, peer: dict | None) -> dict:
+    """Rows `{label, ours_all, ours, peer, ratio}` (ms; ratio = peer / ours on the peer's frames) and the
+    frame windows they cover."""
+    n = len(ours.get("frames", []))
+    p = len(peer["frames"]) if _usable(peer) else 0
+    rows = []
+    for label, pass_name, keys, peer_keys in STAGE_ROWS:
+        frames, compiled = _pass(ours, pass_name)
+        row = {"label": label, "ours_all": median(frame_sums(frames, compiled, keys)),
+               "ours": math.nan, "peer": math.nan, "ratio": math.nan}
+        if p:
+            row["ours"] = median(frame_sums(frames, compiled, keys, stop=p))
+            if peer_keys is None or peer_keys:
+                row["peer"] = median(frame_sums(peer["frames"], None, peer_keys, stop=p))
+            row["ratio"] = row["peer"] / row["ours"] if row["ours"] > 0 else math.nan
+        rows.append(row)
+    return {"rows": rows, "frames": n, "peer_frames": p}
+
+
+def whole_frame_ms(result: dict, stop: int | None = None) -> float:
+    """Median ms per frame of everything the pipeline did in a frame (ours: the fused pass)."""
+    return median(frame_sums(result["frames"], result.get("compiled"), None, stop=stop))
+
+
+def per_object_costs(generated: Sequence[dict]) -> dict:
+    """Per generated scene the load (detections per frame, live instances) and the whole-frame ms, and the
+    least-squares lines `ms = base + per_object * load` for us and the peer."""
+    points = []
+    for entry in generated:
+        scene, ours, peer = entry["scene"], entry.get("ours"), entry.get("peer")
+        if not _usable(ours):
+            continue
+        point = {"scene": scene["name"], "objects": scene.get("objects"), "room_size": scene.get("room_size"),
+                 "frames": len(ours["frames"]),
+                 "detections": float(np.mean(ours["detections_in"][1:] or [math.nan])),
+                 "live_instances": float(np.mean(ours["live_instances"][1:] or [math.nan])),
+                 "fusion_ms": median(frame_sums(ours["frames"], ours["compiled"], ("fusion",))),
+                 "whole_ms": whole_frame_ms(ours)}
+        if _usable(peer):
+            point.update(peer_frames=len(peer["frames"]), peer_whole_ms=whole_frame_ms(peer),
+                         peer_detections=float(np.mean(peer["detections_in"][1:] or [math.nan])),
+                         peer_live_instances=float(np.mean(peer["live_instances"][1:] or [math.nan])))
+        points.append(point)
+
+    def fit(load: str, ms: str) -> dict:
+        have = [q for q in points if ms in q]
+        base, slope = fit_line([q[load] for q in have], [q[ms] for q in have])
+        return {"base_ms": base, "per_object_ms": slope, "points": len(have)}
+
+    fits = {"ours_vs_detections": fit("detections", "whole_ms"), "ours_vs_instances": fit("live_instances", "whole_ms"),
+            "ours_fusion_vs_detections": fit("detections", "fusion_ms"),
+            "peer_vs_detections": fit("peer_detections", "peer_whole_ms"),
+            "peer_vs_instances": fit("peer_live_instances", "peer_whole_ms")}
+    return {"points": points, "fits": fits}
+
+
+def summarize(runs: Sequence[dict], primary: str) -> dict:
+    """The report's figures out of the runs (`{"scene": BenchScene json, "ours", "peer", "vbg"}` each)."""
+    by_name = {run["scene"]["name"]: run for run in runs}
+    main = by_name[primary]
+    ours, peer, vbg = main.get("ours"), main.get("peer"), main.get("vbg")
+    summary: dict = {"primary": primary, "device": (ours or {}).get("device")}
+    if _usable(ours):
+        summary["stages"] = stage_table(ours, peer)
+        summary["compile_ms"] = {COMPILED_NAMES.get(k, k): v for k, v in ours.get("compile_ms", {}).items()}
+        tsdf = median(frame_sums(ours["stage_frames"], ours["stage_compiled"], ("tsdf",)))
+        summary["vbg"] = {"ours_ms": tsdf, "vbg_ms": math.nan, "ratio": math.nan,
+                          "note": why_missing(vbg)}
+        if _usable(vbg):
+            vbg_ms = median(frame_sums(vbg["frames"], None, ("tsdf",)))
+            summary["vbg"].update(vbg_ms=vbg_ms, ratio=tsdf / vbg_ms if vbg_ms > 0 else math.nan, note="")
+    summary["memory"] = {name: {k: result.get(k) for k in ("peak_rss_mb", "baseline_rss_mb", "device_memory_mb",
+                                                           "map_state_mb") if result.get(k) is not None}
+                         for name, result in (("ours", ours), ("peer", peer), ("vbg", vbg)) if _usable(result)}
+    summary["per_object"] = per_object_costs([run for run in runs if run["scene"]["kind"] == "generated"])
+    summary["targets"] = targets(summary, main)
+    return summary
+
+
+def targets(summary: dict, main: dict) -> list[dict]:
+    """The issue's targets, each with its figure and whether it is met (None: not measurable in this run)."""
+    rows = []
+    stages = summary.get("stages")
+    whole = next((r for r in stages["rows"] if r["label"].startswith("**whole")), None) if stages else None
+    ok = whole is not None and math.isfinite(whole["ratio"])
+    rows.append({"target": "whole fusion step >= 10x faster than the Open3D per-instance pipeline",
+                 "figure": f"{whole['ratio']:.1f}x (on {stages['peer_frames']} frames)" if ok else
+                 f"n/a ({why_missing(main.get('peer'))})", "met": (whole["ratio"] >= 10) if ok else None})
+    vbg = summary.get("vbg", {})
+    ok = math.isfinite(vbg.get("ratio", math.nan))
+    rows.append({"target": "global TSDF <= 1.5x Open3D VoxelBlockGrid",
+                 "figure": f"{vbg['ratio']:.2f}x ({vbg['ours_ms']:.1f} vs {vbg['vbg_ms']:.1f} ms)" if ok else
+                 f"n/a ({vbg.get('note') or 'not run'})", "met": (vbg["ratio"] <= 1.5) if ok else None})
+    fit = summary["per_object"]["fits"]["ours_vs_detections"]
+    ok = math.isfinite(fit["per_object_ms"])
+    rows.append({"target": "marginal cost per additional object < 1 ms per frame",
+                 "figure": f"{fit['per_object_ms']:.2f} ms per detection per frame" if ok else
+                 "n/a (needs two generated scenes)", "met": (fit["per_object_ms"] < 1.0) if ok else None})
+    ours = main.get("ours") or {}
+    real = main["scene"]["kind"] == "real"
+    rows.append({"target": "peak memory for a whole ScanNet room at 1.5 cm < 4 GB",
+                 "figure": (f"{ours['peak_rss_mb'] / 1024:.2f} GiB peak RSS ({main['scene']['frames']} frames of "
+                            f"{main['scene']['name']})") if _usable(ours) and real else "n/a (no real scene run)",
+                 "met": (ours["peak_rss_mb"] < 4096) if _usable(ours) and real else None})
+    device = summary.get("device") or {}
+    gpu = device.get("platform") in ("gpu", "cuda", "rocm")
+    fusion = next((r for r in stages["rows"] if r["label"].startswith("**fusion")), None) if stages else None
+    rows.append({"target": "GPU: whole fusion step < 5 ms per frame",
+                 "figure": (f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on "
+                            f"{device.get('device_kind')}") if gpu and whole else "n/a (no GPU in this run)",
+                 "met": (whole["ours_all"] < 5.0) if gpu and whole else None})
+    return rows
+
+
+def _ms(value: float) -> str:
+    return "—" if not math.isfinite(value) else f"{value:.2f}" if value < 10 else f"{value:.1f}"
+
+
+def _ratio(value: float) -> str:
+    return "—" if not math.isfinite(value) else f"{value:.1f}x" if value >= 1 else f"{value:.2f}x"
+
+
+def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
+    """bench.md: device, the stage table, compile times, memory, VoxelBlockGrid, per-object cost, targets."""
+    device = summary.get("device") or {}
+    by_name = {run["scene"]["name"]: run for run in runs}
+    main = by_name[summary["primary"]]
+    scene = main["scene"]
+    lines = ["# fmfusion bench", "",
+             f"Command: `{command}`  ",
+             f"Device: {device.get('device_kind', '?')} ({device.get('platform', '?')}), "
+             f"{device.get('cpus', '?')} CPUs, "
+             f"jax {device.get('jax', '?')}; Open3D {_peer_version(runs) or 'not run'}.  ",
+             "Figures: median ms per frame over frames 1.. (frame 0 warms up; calls that compiled left out).", ""]
+    stages = summary.get("stages")
+    lines += [f"## Time per stage: {scene['name']} ({scene['kind']}, {scene['frames']} frames)", ""]
+    if stages is None:
+        lines += [f"Our pipeline did not run: {why_missing(main.get('ours'))}", ""]
+    else:
+        p = stages["peer_frames"]
+        peer_note = (f"compared on frames 1-{p - 1} (the frames the peer ran)" if p else
+                     f"not run: {why_missing(main.get('peer'))}")
+        lines += [f"Ours vs the Open3D per-instance reference pipeline (global ScalableTSDFVolume + one volume per "
+                  f"instance), {peer_note}. Stage rows time each stage jitted apart; the fusion step is the same "
+                  "stages in one jit.", "",
+                  f"| stage | ours, ms ({f'frames 1-{p - 1}' if p else 'the peer frames'}) | Open3D peer, ms | "
+                  "peer / ours | "
+                  f"ours, ms (all {stages['frames']} frames) |",
+                  "|---|---:|---:|---:|---:|"]
+        for row in stages["rows"]:
+            lines.append(f"| {row['label']} | {_ms(row['ours'])} | {_ms(row['peer'])} | {_ratio(row['ratio'])} | "
+                         f"{_ms(row['ours_all'])} |")
+        ours = main["ours"]
+        lines += ["", f"Geometry fusion runs every {ours.get('geometry_fusion_every')} frames. Map: {ours.get('map')}; "
+                  f"{ours.get('blocks_used')} of {ours.get('block_capacity')} blocks used; counters "
+                  f"{ours.get('counters')}.", ""]
+        if ours.get("staged_mismatch"):
+            lines += [f"**Warning**: {ours['staged_mismatch']}.", ""]
+        lines += ["Compile time (first call minus the median call):", "",
+                  "| jitted function | compile, s |", "|---|---:|"]
+        lines += [f"| {name} | {ms / 1e3:.2f} |" for name, ms in summary["compile_ms"].items()]
+        lines.append("")
+        vbg = summary["vbg"]
+        lines += ["## Global TSDF vs Open3D VoxelBlockGrid", "",
+                  f"Same frames: our `integrate_frame` {_ms(vbg['ours_ms'])} ms, VoxelBlockGrid "
+                  f"{_ms(vbg['vbg_ms'])} ms: ours / VBG = {_ratio(vbg['ratio'])}"
+                  + (f" ({vbg['note']})" if vbg.get("note") else "") + ".", ""]
+    lines += ["## Peak memory", "", "| pipeline | peak RSS, MiB | RSS before fusing, MiB | map state, MiB | "
+              "device peak, MiB |", "|---|---:|---:|---:|---:|"]
+    for name, memory in summary["memory"].items():
+        lines.append(f"| {name} | {_mb(memory.get('peak_rss_mb'))} | {_mb(memory.get('baseline_rss_mb'))} | "
+                     f"{_mb(memory.get('map_state_mb'))} | {_mb(memory.get('device_memory_mb'))} |")
+    lines += ["", "Each pipeline runs in a process of its own; ours is measured after its fused pass.", ""]
+    lines += _per_object_lines(summary["per_object"])
+    lines += ["## Targets", "", "| target | figure | met |", "|---|---|---|"]
+    lines += [f"| {t['target']} | {t['figure']} | {'—' if t['met'] is None else 'yes' if t['met'] else '**no**'} |"
+              for t in summary["targets"]]
+    return "\n".join(lines) + "\n"
+
+
+def _per_object_lines(per_object: dict) -> list[str]:
+    points = per_object["points"]
+    lines = ["## Cost per object (generated rooms)", ""]
+    if not points:
+        return lines + ["No generated scene was run.", ""]
+    lines += ["| scene | objects | room, m | frames | detections / frame | live instances | ours fusion step, ms | "
+              "ours whole frame, ms | peer frames | peer whole frame, ms | peer live instances |",
+              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for q in points:
+        room = "x".join(f"{x:.1f}" for x in q["room_size"]) if q.get("room_size") else "?"
+        lines.append(f"| {q['scene']} | {q['objects']} | {room} | {q['frames']} | {q['detections']:.1f} | "
+                     f"{q['live_instances']:.1f} | {_ms(q['fusion_ms'])} | {_ms(q['whole_ms'])} | "
+                     f"{q.get('peer_frames', '—')} | {_ms(q.get('peer_whole_ms', math.nan))} | "
+                     f"{q.get('peer_live_instances', math.nan):.1f} |")
+    names = {"ours_vs_detections": "ours, whole frame vs detections per frame",
+             "ours_fusion_vs_detections": "ours, fusion step vs detections per frame",
+             "ours_vs_instances": "ours, whole frame vs live instances",
+             "peer_vs_detections": "Open3D peer, whole frame vs detections per frame",
+             "peer_vs_instances": "Open3D peer, whole frame vs live instances"}
+    lines += ["", "Least-squares lines ms per frame = base + per object x load (Table IV's base + per object):", "",
+              "| fit | base, ms | per object, ms | scenes |", "|---|---:|---:|---:|"]
+    for key, fit in per_object["fits"].items():
+        lines.append(f"| {names[key]} | {_ms(fit['base_ms'])} | {_signed(fit['per_object_ms'])} | {fit['points']} |")
+    return lines + [""]
+
+
+def _signed(value: float) -> str:
+    return "—" if not math.isfinite(value) else f"{value:+.3f}"
+
+
+def _mb(value) -> str:
+    return "—" if value is None or not math.isfinite(value) else f"{value:.0f}"
+
+
+def _peer_version(runs: Sequence[dict]) -> str | None:
+    for run in runs:
+        for name in ("peer", "vbg"):
+            if (run.get(name) or {}).get("open3d"):
+                return run[name]["open3d"]
+    return None

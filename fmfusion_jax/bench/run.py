@@ -1,0 +1,138 @@
+"""`fmfusion bench`: prepares the scenes, runs every pipeline on them in its own process, writes the report.
+
+    scenes (real + generated, cached) ──► a worker process per (pipeline, scene) ──► report ──► bench.md/.json
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+from fmfusion_jax.bench import report
+from fmfusion_jax.bench.scenes import BenchScene, prepare_generated_scene, prepare_real_scene
+from fmfusion_jax.errors import UserError
+
+DEFAULT_OUT = Path("outputs/bench")
+#: The sizes of `--quick`: a smoke test in well under a minute.
+QUICK_SIZES = {"frames": 6, "objects": (2, 8), "generated_frames": 6, "width": 160, "height": 120, "peer_frames": 6}
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchOptions:
+    """What to run (the `fmfusion bench` options; see `cli/bench.py` for their meaning)."""
+
+    out: Path = DEFAULT_OUT
+    cache: Path | None = None  # scenes and detections made once; default OUT/cache
+    scene: Path | None = None  # the real scene, or None
+    frames: int | None = 100  # frames of the real scene (None: all)
+    objects: tuple[int, ...] = (4, 8, 16, 32)  # generated rooms' object counts
+    generated_frames: int = 40
+    width: int = 640  # generated frames
+    height: int = 480
+    peer: bool = True
+    peer_frames: int | None = 30  # the Open3D per-instance pipeline runs on this prefix (None: all)
+    seed: int = 0
+    progress: bool = True
+
+
+def run_bench(options: BenchOptions, command: str = "fmfusion bench",
+              say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True)) -> dict:
+    """Runs the benchmark; writes `bench.md` and `bench.json` into `options.out`; returns the summary."""
+    from fmfusion_jax.bench.worker import peer_unavailable_reason
+    from fmfusion_jax.runner import prepare_output_dir
+
+    out = prepare_output_dir(options.out)
+    cache = options.cache or out / "cache"
+    work = out / "runs"
+    work.mkdir(parents=True, exist_ok=True)
+    peer_reason = "--no-peer" if not options.peer else peer_unavailable_reason()
+    if peer_reason and options.peer:
+        say(f"Open3D peer unavailable: {peer_reason}; measuring ours only")
+
+    scenes = _prepare_scenes(options, cache, say)
+    if not scenes:
+        raise UserError("nothing to benchmark: no real scene and no generated object count")
+    primary = scenes[0] if scenes[0].kind == "real" else max(scenes, key=lambda s: s.objects or 0)
+    runs = []
+    for scene in scenes:
+        run: dict = {"scene": scene.to_json()}
+        run["ours"] = _child("ours", scene, None, options, work, say)
+        if peer_reason:
+            run["peer"] = {"unavailable": peer_reason}
+        else:
+            run["peer"] = _child("peer", scene, options.peer_frames, options, work, say)
+            if scene is primary:
+                run["vbg"] = _child("vbg", scene, None, options, work, say)
+        if scene is primary and "vbg" not in run:
+            run["vbg"] = {"unavailable": peer_reason}
+        runs.append(run)
+
+    summary = report.summarize(runs, primary.name)
+    summary["command"] = command
+    (out / "bench.json").write_text(json.dumps({"summary": summary, "runs": runs,
+                                                "options": _jsonable(dataclasses.asdict(options))},
+                                               default=float) + "\n")
+    markdown = report.render_markdown(summary, runs, command)
+    (out / "bench.md").write_text(markdown)
+    summary["markdown"] = markdown
+    return summary
+
+
+def _prepare_scenes(options: BenchOptions, cache: Path, say) -> list[BenchScene]:
+    scenes = []
+    if options.scene is not None:
+        say(f"preparing {options.scene} ({options.frames or 'all'} frames; detections simulated once into {cache})")
+        scenes.append(prepare_real_scene(options.scene, cache, options.frames, options.seed, options.progress))
+    for objects in options.objects:
+        say(f"preparing a generated room with {objects} objects (made once into {cache})")
+        scenes.append(prepare_generated_scene(cache, objects, options.generated_frames, options.width,
+                                              options.height, options.seed, options.progress))
+    return scenes
+
+
+def _child(pipeline: str, scene: BenchScene, frames: int | None, options: BenchOptions, work: Path, say) -> dict:
+    """Runs one pipeline on one scene in a fresh Python process (`bench.worker`); its result, or
+    `{"error": ...}` when it failed (its messages went to stderr)."""
+    stem = f"{pipeline}-{scene.name}"
+    spec_path, result_path = work / f"{stem}.spec.json", work / f"{stem}.result.json"
+    spec_path.write_text(json.dumps({"pipeline": pipeline, "scene": scene.to_json(), "frames": frames,
+                                     "progress": options.progress}))
+    result_path.unlink(missing_ok=True)
+    names = {"ours": "ours", "peer": "Open3D per-instance peer", "vbg": "Open3D VoxelBlockGrid"}
+    say(f"running {names[pipeline]} on {scene.name} ({frames or scene.frames} frames)")
+    start = time.perf_counter()
+    completed = subprocess.run([sys.executable, "-m", "fmfusion_jax.bench.worker", str(spec_path), str(result_path)],
+                               check=False)
+    seconds = time.perf_counter() - start
+    if completed.returncode != 0 or not result_path.is_file():
+        say(f"  {names[pipeline]} failed (exit {completed.returncode}) after {seconds:.0f} s")
+        return {"error": f"worker exited with {completed.returncode} (command: {shlex.join(completed.args)})"}
+    result = json.loads(result_path.read_text())
+    result["wall_s"] = seconds
+    if result.get("unavailable"):
+        say(f"  {names[pipeline]} unavailable: {result['unavailable']}")
+    else:
+        say(f"  done in {seconds:.0f} s")
+    return result
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return str(value) if isinstance(value, Path) else value
+
+
+def quick_options(**given) -> BenchOptions:
+    """`--quick` sizes, overridden by what is given explicitly."""
+    return BenchOptions(**{**QUICK_SIZES, **given})
+
+
+__all__ = ["BenchOptions", "run_bench", "quick_options", "DEFAULT_OUT"]

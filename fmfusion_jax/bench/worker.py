@@ -1,0 +1,234 @@
+"""One pipeline on one scene, in a process of its own (so that peak memory is that pipeline's alone).
+
+    python -m fmfusion_jax.bench.worker SPEC.json RESULT.json
+
+SPEC: `{"pipeline": "ours" | "peer" | "vbg", "scene": BenchScene.to_json(), "frames": N | null,
+"progress": bool}`. RESULT: per-frame stage times in milliseconds and the counts and memory figures
+the report needs (see each `run_*`). A pipeline that cannot run (Open3D missing) writes
+`{"unavailable": reason}`.
+
+- `ours`: the engine as `fmfusion run` drives it (`pipeline.MapBuilder`: its schedules, its timer around
+  each jitted step), twice over the same frames: first with the fused `fuse_detections` (the figures
+  that count, and the peak memory), then with its stages jitted one by one (`bench.stages`) to see
+  where the time goes. Both passes make the same map.
+- `peer`: the Open3D reference pipeline (a global ScalableTSDFVolume and one volume per instance).
+- `vbg`: Open3D's VoxelBlockGrid integration alone.
+Times exclude reading images and detection files, for every pipeline.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+from fmfusion_jax.bench.scenes import BenchScene
+
+#: Module of the Open3D peer pipelines (an optional dependency: `open3d-cpu`).
+PEER_MODULE = "fmfusion_jax.bench.open3d_peer"
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MiB (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def cpu_count() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def peer_unavailable_reason() -> str | None:
+    """Why the Open3D peer cannot run here, or None."""
+    import importlib
+
+    try:
+        peer = importlib.import_module(PEER_MODULE)
+    except ImportError as error:
+        return f"the Open3D peer module is missing ({error})"
+    return peer.open3d_unavailable_reason()
+
+
+def _open(scene: BenchScene, frames: int | None):
+    """(config, opened scene, detection folder) for the first `frames` frames of the scene."""
+    from fmfusion_jax.config import load_config
+    from fmfusion_jax.io.detections import DetectionFolder
+    from fmfusion_jax.io.scene import open_scene
+
+    config = load_config(str(scene.config_path))
+    dataset = config.dataset
+    limit = min(x for x in (frames, scene.frames, dataset.max_frames) if x)
+    opened = open_scene(scene.scene_dir, layout=dataset.layout, stride=dataset.frame_stride,
+                        depth_max=dataset.depth_max, depth_scale=dataset.depth_scale, max_frames=limit)
+    folder = DetectionFolder(scene.detections_dir, image_shape=(opened.intrinsics.height, opened.intrinsics.width))
+    return config, opened, folder
+
+
+def _frames_with_detections(opened, folder, config, progress: bool, desc: str):
+    """Yields `(frame, detections or None)` on the fusion's schedule, with a progress bar on stderr."""
+    from tqdm import tqdm
+
+    from fmfusion_jax.pipeline import is_detection_frame
+
+    for position, frame in enumerate(tqdm(opened.frames(), total=len(opened), desc=desc, unit="frame",
+                                          disable=not progress, dynamic_ncols=True, leave=False)):
+        yield frame, (folder.get(frame.name) if is_detection_frame(position, config) else None)
+
+
+def device_description() -> dict:
+    import jax
+
+    device = jax.devices()[0]
+    return {"platform": device.platform, "device_kind": device.device_kind, "jax": jax.__version__,
+            "cpus": cpu_count()}
+
+
+def _device_memory_mb() -> float | None:
+    """Peak bytes the accelerator allocator reports (GPU), MiB; None where the backend reports none (CPU)."""
+    import jax
+
+    try:
+        stats = jax.devices()[0].memory_stats() or {}
+    except Exception:  # noqa: BLE001 - backends without memory statistics raise various errors
+        return None
+    peak = stats.get("peak_bytes_in_use")
+    return None if peak is None else peak / 2**20
+
+
+def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
+    """Our engine: the fused pass (`frames`: stage name -> ms per frame, from `MapBuilder`'s timer: `fusion`,
+    `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`)."""
+    from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+    from fmfusion_jax.pipeline import MapBuilder, build_map_config
+
+    config, opened, folder = _open(scene, frames)
+    baseline_mb = peak_rss_mb()
+    bounds_min, bounds_max = opened.bounds()
+    map_config = build_map_config(config, bounds_min, bounds_max, opened.intrinsics.height, opened.intrinsics.width)
+    device = device_description()
+    print(f"ours on {scene.name}: {len(opened)} frames, device {device['device_kind']} ({device['platform']}), "
+          f"{device['cpus']} CPUs; map {map_config.describe()}", file=sys.stderr, flush=True)
+
+    def fuse(staged: bool) -> tuple[MapBuilder, FrameTimer, dict]:
+        builder, timer = MapBuilder(config, map_config), FrameTimer()
+        builder.timer = timer
+        if staged:
+            builder.fuse_detections = staged_fuse_detections(timer)
+        counts = {"detections_in": [], "live_instances": []}
+        for frame, detections in _frames_with_detections(opened, folder, config, progress,
+                                                         f"ours {'staged' if staged else 'fused'} {scene.name}"):
+            timer.start_frame()
+            builder.add_frame(frame, detections)
+            counts["detections_in"].append(0 if detections is None else detections.num_detections)
+            counts["live_instances"].append(int(builder.state.instances.valid.sum()))
+        return builder, timer, counts
+
+    start = time.perf_counter()
+    builder, timer, counts = fuse(staged=False)
+    result = {
+        "pipeline": "ours", "device": device, "map": map_config.describe(),
+        "map_state_mb": map_config.memory_bytes() / 2**20, "frames": timer.frames, "compiled": timer.compiled,
+        "compile_ms": _compile_ms(timer), "counters": dict(builder.counters), **counts,
+        "blocks_used": int(builder.state.blocks.num_blocks), "block_capacity": map_config.block_capacity,
+        "peak_rss_mb": peak_rss_mb(), "baseline_rss_mb": baseline_mb, "device_memory_mb": _device_memory_mb(),
+        "geometry_fusion_every": config.refinement.geometry_fusion_every, "seconds_fused": time.perf_counter() - start,
+    }
+    fused_digest = state_digest(builder.state)
+    del builder  # frees the map before the second pass
+    staged_builder, staged_timer, _ = fuse(staged=True)
+    if state_digest(staged_builder.state) != fused_digest:  # the stages composed must make the same map
+        result["staged_mismatch"] = "the stages jitted apart made a different map than the fused step"
+    result.update(stage_frames=staged_timer.frames, stage_compiled=staged_timer.compiled)
+    result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items()
+                                 if k in FUSION_STAGES})
+    return result
+
+
+def state_digest(state) -> str:
+    """SHA-256 of every array of a map state (bit-exact comparison of two maps without keeping both)."""
+    import hashlib
+
+    import jax
+    import numpy as np
+
+    digest = hashlib.sha256()
+    for leaf in jax.tree.leaves(state):
+        digest.update(np.ascontiguousarray(jax.device_get(leaf)).data)
+    return digest.hexdigest()
+
+
+def _compile_ms(timer) -> dict[str, float]:
+    """First call minus the median call, per timed function: the compile time (and first-run effects)."""
+    return {name: first - timer.median_ms(name) for name, first in timer.first_ms.items()
+            if timer.samples_ms.get(name)}
+
+
+def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
+    """The Open3D per-instance reference pipeline: `frames` is its stage name -> ms per frame."""
+    import importlib
+
+    reason = peer_unavailable_reason()
+    if reason:
+        return {"pipeline": "peer", "unavailable": reason}
+    peer = importlib.import_module(PEER_MODULE)
+    from fmfusion_jax.labels import load_label_sets, load_likelihood
+
+    config, opened, folder = _open(scene, frames)
+    baseline_mb = peak_rss_mb()
+    pipeline = peer.Open3DInstancePipeline(config, opened.intrinsics, load_likelihood(config.label_fusion.likelihood),
+                                           load_label_sets())
+    times, counts = [], {"detections_in": [], "live_instances": []}
+    for frame, detections in _frames_with_detections(opened, folder, config, progress, f"Open3D peer {scene.name}"):
+        times.append({k: float(v) for k, v in pipeline.add_frame(frame, detections).items()})
+        counts["detections_in"].append(0 if detections is None else detections.num_detections)
+        counts["live_instances"].append(int(pipeline.num_instances))
+    return {"pipeline": "peer", "frames": times, **counts, "peak_rss_mb": peak_rss_mb(),
+            "baseline_rss_mb": baseline_mb, "open3d": _open3d_version()}
+
+
+def run_vbg(scene: BenchScene, frames: int | None, progress: bool) -> dict:
+    """Open3D's VoxelBlockGrid TSDF integration alone: `frames` is `{"tsdf": ms}` per frame."""
+    import importlib
+
+    reason = peer_unavailable_reason()
+    if reason:
+        return {"pipeline": "vbg", "unavailable": reason}
+    peer = importlib.import_module(PEER_MODULE)
+    config, opened, folder = _open(scene, frames)
+    baseline_mb = peak_rss_mb()
+    tsdf = peer.VoxelBlockGridTSDF(config.tsdf.voxel_size, config.tsdf.sdf_trunc, config.dataset.depth_max,
+                                   opened.intrinsics)
+    times = [{"tsdf": float(tsdf.integrate(frame))}
+             for frame, _ in _frames_with_detections(opened, folder, config, progress, f"Open3D VBG {scene.name}")]
+    return {"pipeline": "vbg", "frames": times, "peak_rss_mb": peak_rss_mb(), "baseline_rss_mb": baseline_mb,
+            "open3d": _open3d_version()}
+
+
+def _open3d_version() -> str | None:
+    try:
+        import open3d
+    except ImportError:
+        return None
+    return open3d.__version__
+
+
+RUNNERS = {"ours": run_ours, "peer": run_peer, "vbg": run_vbg}
+
+
+def main(argv: list[str]) -> int:
+    spec_path, result_path = map(Path, argv)
+    spec = json.loads(spec_path.read_text())
+    scene = BenchScene.from_json(spec["scene"])
+    result = RUNNERS[spec["pipeline"]](scene, spec.get("frames"), bool(spec.get("progress", True)))
+    result["scene"] = scene.name
+    result_path.write_text(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

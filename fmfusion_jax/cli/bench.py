@@ -1,0 +1,117 @@
+"""`fmfusion bench`: time the fusion step per stage, against Open3D peers on the same frames."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+#: The real scene used when --scene is not given (and present).
+DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "bench", help="time the fusion step per stage (like the paper's Table IV) against Open3D peers",
+        description="Runs the fusion step on the real scene with simulated detections and on generated rooms of "
+                    "growing object count, and reports per stage (global TSDF, projection, association, label "
+                    "fusion, instance integration, merge, geometry fusion) the median ms per frame, the compile "
+                    "times and the peak memory, beside the Open3D reference pipeline (a global "
+                    "ScalableTSDFVolume and one volume per instance, as the authors' code) and Open3D's "
+                    "VoxelBlockGrid integration on the same frames; then the base + per-object cost fitted "
+                    "over the generated rooms. Each pipeline runs in a process of its own. The Open3D peer "
+                    "needs the optional open3d-cpu==0.19.0 (and the Debian package libusb-1.0-0); without it "
+                    "ours is still measured. Writes bench.md and bench.json into --out. Scenes and simulated "
+                    "detections are made once into a cache folder.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--scene", type=Path, default=None,
+                        help=f"real ScanNet scene with ground truth (default: {DEFAULT_SCENE} when present; "
+                             "not used by --quick unless given)")
+    parser.add_argument("--no-scene", action="store_true", help="generated rooms only")
+    parser.add_argument("--frames", type=int, default=None, metavar="N",
+                        help="frames of the real scene (default 100; --quick 6; 0: all)")
+    parser.add_argument("--objects", type=int, nargs="*", default=None, metavar="N",
+                        help="object counts of the generated rooms (default 4 8 16 32; --quick 2 5; none: skip)")
+    parser.add_argument("--generated-frames", type=int, default=None, metavar="N",
+                        help="frames of each generated room (default 40; --quick 6)")
+    parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"),
+                        help="image size of the generated rooms (default 640 480; --quick 160 120)")
+    parser.add_argument("--no-peer", action="store_true", help="ours only (no Open3D)")
+    parser.add_argument("--peer-frames", type=int, default=None, metavar="N",
+                        help="the Open3D per-instance pipeline (about 1 s per frame) runs on the first N frames of "
+                             "each scene; ours is compared with it on that same prefix (default 30; 0: all)")
+    parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke test in well under a minute")
+    parser.add_argument("--cache", type=Path, default=None, help="folder of the prepared scenes (default OUT/cache)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the generated rooms and simulated detections")
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench"), help="output folder")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fmfusion_jax.bench.run import BenchOptions, QUICK_SIZES, run_bench
+    from fmfusion_jax.errors import UserError
+
+    for name in ("frames", "generated_frames", "peer_frames"):
+        value = getattr(args, name)
+        if value is not None and value < 0:
+            raise UserError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    if args.objects is not None and any(n < 1 for n in args.objects):
+        raise UserError(f"--objects must be positive, got {args.objects}")
+    if args.generated_frames == 0 or args.generated_frames == 1:
+        raise UserError("--generated-frames must be >= 2")
+
+    defaults = dict(QUICK_SIZES) if args.quick else {}
+    given = {"frames": args.frames, "objects": None if args.objects is None else tuple(args.objects),
+             "generated_frames": args.generated_frames, "peer_frames": args.peer_frames}
+    if args.size is not None:
+        given["width"], given["height"] = args.size
+    options = {**defaults, **{k: v for k, v in given.items() if v is not None}}
+    for name in ("frames", "peer_frames"):  # 0 = all
+        if options.get(name) == 0:
+            options[name] = None
+    scene = None if args.no_scene else _real_scene(args.scene, quick=args.quick)
+    bench = BenchOptions(out=args.out, cache=args.cache, scene=scene, peer=not args.no_peer, seed=args.seed,
+                         progress=not args.no_progress, **options)
+    summary = run_bench(bench, command=_command_line(args))
+    print(summary["markdown"])
+    print(f"written: {args.out / 'bench.md'}, {args.out / 'bench.json'}")
+    return 0
+
+
+def _command_line(args: argparse.Namespace) -> str:
+    """The command as given (for the report), rebuilt from the parsed options."""
+    words = ["fmfusion", "bench"] + (["--quick"] if args.quick else [])
+    for flag, value in (("--scene", args.scene), ("--frames", args.frames),
+                        ("--generated-frames", args.generated_frames), ("--peer-frames", args.peer_frames),
+                        ("--cache", args.cache), ("--out", args.out)):
+        if value is not None:
+            words += [flag, str(value)]
+    if args.objects is not None:
+        words += ["--objects", *map(str, args.objects)]
+    if args.size is not None:
+        words += ["--size", *map(str, args.size)]
+    if args.seed:
+        words += ["--seed", str(args.seed)]
+    words += [flag for flag, on in (("--no-scene", args.no_scene), ("--no-peer", args.no_peer)) if on]
+    return shlex.join(words)
+
+
+def _real_scene(given: Path | None, quick: bool) -> Path | None:
+    """The real scene to run: the one given (must exist), else the shared sample when present (not with
+    --quick); None, saying so, when there is none."""
+    from fmfusion_jax.errors import UserError
+
+    if given is not None:
+        if not given.is_dir():
+            raise UserError(f"scene folder {given} does not exist")
+        return given
+    if quick:
+        print("fmfusion bench: --quick runs generated rooms only (give --scene to add the real scene)", file=sys.stderr)
+        return None
+    if DEFAULT_SCENE.is_dir():
+        return DEFAULT_SCENE
+    print(f"fmfusion bench: no real scene at {DEFAULT_SCENE} (give one with --scene); generated rooms only",
+          file=sys.stderr)
+    return None

@@ -1,0 +1,147 @@
+"""`fmfusion bench`: the stages jitted apart make the fused step's map, the report's figures, and a
+`--quick` run end to end (with the Open3D peer when it can run here, and without it).
+
+The bench runs spawn worker processes; they share a persistent JAX compilation cache (a temporary
+folder) so that the second run does not compile again.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax
+import numpy as np
+import pytest
+
+from fmfusion_jax.bench import report
+from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+from fmfusion_jax.bench.worker import peer_unavailable_reason
+from fmfusion_jax.cli import main
+from fmfusion_jax.config import load_config
+from fmfusion_jax.engine import step
+from fmfusion_jax.engine.detections import pack_detections
+from fmfusion_jax.engine.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
+from fmfusion_jax.engine.state import init_map_state
+from fmfusion_jax.labels import load_label_sets, load_likelihood
+from fmfusion_jax.pipeline import build_fusion_config, build_map_config, frame_inputs
+from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
+
+H, W = 60, 80
+LABELS = load_label_sets()
+SURFACE_LABELS = {0: "floor", 2: "wall", 6: "bed", 7: "cabinet", 8: "bin"}
+
+
+def box_room_frames(n: int):
+    """`n` frames of the analytic box room with one clean detection per visible surface."""
+    room = BoxRoom()
+    k = scannet_like_intrinsics(W, H)
+    intrinsics = CameraIntrinsics(float(k[0]), float(k[1]), float(k[2]), float(k[3]), W, H)
+    frames = []
+    for i, pose in enumerate(orbit_poses(room, n)):
+        depth, color, labels = room.render(pose, k, H, W)
+        frame = RGBDFrame(i, f"frame-{i:06d}", color, depth.astype(np.float32), pose, intrinsics)
+        masks = [labels == s for s in SURFACE_LABELS if (labels == s).sum() >= 40]
+        names = [{SURFACE_LABELS[s]: 0.6} for s in SURFACE_LABELS if (labels == s).sum() >= 40]
+        detections = FrameDetections(frame.name, np.array(masks, bool).reshape(-1, H, W), names,
+                                     np.zeros((len(masks), 4), np.float32))
+        frames.append((frame, detections))
+    return room, frames
+
+
+def test_stages_composed_make_the_fused_steps_map_bit_for_bit():
+    room, frames = box_room_frames(3)
+    config = load_config("scannet", ["tsdf.block_capacity=3000", "tsdf.max_touched_blocks=1024",
+                                     "instances.capacity=16", "detections.max_detections=6",
+                                     "association.min_projected_pixels=50"])
+    map_config = build_map_config(config, room.lo, room.hi, H, W)
+    fusion = build_fusion_config(config)
+    likelihood = jax.numpy.asarray(load_likelihood("statistical"), jax.numpy.float32)
+    timer = FrameTimer()
+    staged = staged_fuse_detections(timer)
+    fused_state, staged_state = init_map_state(map_config), init_map_state(map_config)
+    for frame, detections in frames:
+        inputs = frame_inputs(frame, map_config)
+        batch = pack_detections(detections, LABELS.open_labels, 6, 40)
+        fused_state, fused_stats = step.fuse_detections(fused_state, inputs, batch, likelihood, map_config, fusion)
+        timer.start_frame()
+        staged_state, staged_stats = staged(staged_state, inputs, batch, likelihood, map_config, fusion)
+        assert tuple(map(int, staged_stats)) == tuple(map(int, fused_stats))
+    assert int(fused_state.instances.valid.sum()) >= 3
+    for got, expected in zip(jax.tree.leaves(staged_state), jax.tree.leaves(fused_state)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(expected))
+    # every stage was timed once per frame, the first call kept apart as the compiling one
+    assert set(timer.compiled[0]) == set(FUSION_STAGES) and set(timer.frames[1]) == set(FUSION_STAGES)
+
+
+def test_line_fit_recovers_base_and_slope():
+    x = np.array([3.0, 6.0, 12.0, 24.0])
+    base, slope = report.fit_line(x, 20.0 + 0.4 * x + np.array([0.01, -0.02, 0.02, -0.01]))
+    assert base == pytest.approx(20.0, abs=0.05) and slope == pytest.approx(0.4, abs=0.005)
+    assert all(math.isnan(v) for v in report.fit_line([5.0, 5.0], [1.0, 2.0]))  # one distinct load: no line
+
+
+def test_frame_sums_leave_out_warm_up_and_compiling_frames():
+    frames = [{"fusion": 900.0}, {"fusion": 10.0, "refine": 5.0}, {"fusion": 12.0}, {"fusion": 11.0, "refine": 7.0}]
+    compiled = [{"fusion": 3000.0}, {}, {"refine": 2000.0}, {}]
+    assert report.frame_sums(frames, compiled, ("fusion",)) == [10.0, 12.0, 11.0]  # frame 2 compiled refine only
+    assert report.frame_sums(frames, compiled, None) == [15.0, 18.0]
+    assert report.frame_sums(frames, None, ("refine",), stop=3) == [5.0]
+
+
+@pytest.fixture(scope="module")
+def bench_dirs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    return {"cache": root / "cache", "jax_cache": root / "jax-cache", "root": root}
+
+
+def run_quick_bench(bench_dirs, monkeypatch, name: str, *extra: str) -> dict:
+    """A --quick bench on one tiny generated room; returns bench.json."""
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(bench_dirs["jax_cache"]))
+    monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    out = bench_dirs["root"] / name
+    code = main(["bench", "--quick", "--no-scene", "--objects", "3", "--generated-frames", "4", "--peer-frames", "2",
+                 "--cache", str(bench_dirs["cache"]), "--out", str(out), "--no-progress", *extra])
+    assert code == 0
+    markdown = (out / "bench.md").read_text()
+    for label, *_ in report.STAGE_ROWS:
+        assert f"| {label} |" in markdown
+    data = json.loads((out / "bench.json").read_text())
+    ours = data["runs"][0]["ours"]
+    assert "error" not in ours and not ours.get("staged_mismatch")
+    rows = data["summary"]["stages"]["rows"]
+    assert len(rows) == len(report.STAGE_ROWS)
+    for row in rows:
+        assert math.isfinite(row["ours_all"]) and row["ours_all"] > 0, row
+    assert data["summary"]["device"]["cpus"] >= 1
+    assert data["summary"]["memory"]["ours"]["peak_rss_mb"] > 0
+    return data
+
+
+def test_quick_bench_with_the_open3d_peer(bench_dirs, monkeypatch):
+    reason = peer_unavailable_reason()
+    if reason:
+        pytest.skip(f"Open3D peer unavailable: {reason}")
+    data = run_quick_bench(bench_dirs, monkeypatch, "with-peer")
+    whole = data["summary"]["stages"]["rows"][-1]
+    assert math.isfinite(whole["peer"]) and math.isfinite(whole["ratio"])
+    assert math.isfinite(data["summary"]["vbg"]["ratio"])
+
+
+def test_quick_bench_without_the_peer(bench_dirs, monkeypatch):
+    data = run_quick_bench(bench_dirs, monkeypatch, "no-peer", "--no-peer")
+    assert data["runs"][0]["peer"] == {"unavailable": "--no-peer"}
+    whole = data["summary"]["stages"]["rows"][-1]
+    assert math.isnan(whole["ratio"])
+    assert "n/a (--no-peer)" in (bench_dirs["root"] / "no-peer" / "bench.md").read_text()
+
+
+def test_bad_arguments_fail_in_one_line_before_any_work(tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    for argv, fragment in ((["--frames", "-1"], "--frames must be >= 0"), (["--objects", "0"], "--objects must be"),
+                           (["--scene", str(tmp_path / "missing")], "does not exist"),
+                           (["--no-scene", "--out", str(a_file)], "is a file")):
+        assert main(["bench", *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("fmfusion bench: error: ") and fragment in err[0], err
