@@ -1,7 +1,7 @@
 """The label sets (open-set labels L_o, closed classes L_c) and the label-likelihood matrices.
 
 The figures live in `configs/labels/` (copied from the authors' published data, source named there);
-this module only reads them.
+this module reads them (and writes matrices in the same CSV format, for `fmfusion likelihood`).
 """
 
 from __future__ import annotations
@@ -94,6 +94,24 @@ def read_likelihood_csv(path: str | Path, label_sets: LabelSets | None = None) -
     if not np.all(np.isfinite(matrix)) or matrix.min() < 0:
         raise ValueError(f"{path}: a likelihood matrix must be finite and non-negative")
     return matrix
+
+
+def write_likelihood_csv(path: str | Path, matrix: np.ndarray, label_sets: LabelSets | None = None,
+                         comment: str = "") -> Path:
+    """Writes a `(num_open, num_classes)` matrix in the format `read_likelihood_csv` reads.
+
+    `comment` lines go first as `# ...`; values are written with `repr`, so a read gives the same floats.
+    """
+    label_sets = label_sets or load_label_sets()
+    matrix = np.asarray(matrix, np.float64)
+    if matrix.shape != (label_sets.num_open, label_sets.num_classes):
+        raise ValueError(f"likelihood shape {matrix.shape}, expected {(label_sets.num_open, label_sets.num_classes)}")
+    lines = [f"# {line}" for line in comment.splitlines()]
+    lines.append("open_label," + ",".join(label_sets.class_names))
+    lines += [name + "," + ",".join(repr(float(x)) for x in row) for name, row in zip(label_sets.open_labels, matrix)]
+    path = Path(path)
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
 def load_likelihood(name: str = "statistical") -> np.ndarray:
