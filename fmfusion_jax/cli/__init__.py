@@ -15,7 +15,7 @@ import sys
 from fmfusion_jax.errors import UserError
 
 #: Subcommand modules, in the order `--help` lists them.
-SUBCOMMANDS = ("demo", "info", "synth", "simulate", "detect", "run", "eval")
+SUBCOMMANDS = ("demo", "info", "synth", "simulate", "detect", "run", "eval", "bench", "likelihood", "experiment")
 
 
 def build_parser() -> argparse.ArgumentParser:
