@@ -1,5 +1,6 @@
-"""`fmfusion bench`: the stages jitted apart make the fused step's map, the report's figures, and a
-`--quick` run end to end (with the Open3D peer when it can run here, and without it).
+"""`fmfusion bench`: the stages jitted apart make the fused step's map, the report's figures, the sweep's
+detection cap, and a `--quick` run end to end, sweep included (with the Open3D peer when it can run here,
+and without it).
 
 The bench runs spawn worker processes; they share a persistent JAX compilation cache (a temporary
 folder) so that the second run does not compile again.
@@ -16,6 +17,7 @@ import pytest
 
 from fmfusion_jax.bench import report
 from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+from fmfusion_jax.bench.sweep import cap_detections, groups_that_fit
 from fmfusion_jax.bench.worker import peer_unavailable_reason
 from fmfusion_jax.cli import main
 from fmfusion_jax.config import load_config
@@ -89,6 +91,58 @@ def test_frame_sums_leave_out_warm_up_and_compiling_frames():
     assert report.frame_sums(frames, None, ("refine",), stop=3) == [5.0]
 
 
+def test_cap_keeps_the_k_highest_scoring_usable_detections_in_order():
+    masks = np.zeros((6, 40, 50), bool)
+    for i, rows in enumerate((30, 30, 30, 1, 30, 30)):  # detection 3: too small a mask (50 < 100 pixels)
+        masks[i, :rows] = True
+    labels = [{"chair": 0.5}, {"bed": 0.9}, {"tag not in the label set": 0.99}, {"wall": 0.95}, {"floor": 0.7},
+              {"sofa": 0.3, "table": 0.7}]  # usable: 0, 1, 4, 5; best scores 0.5, 0.9, 0.7, 0.7
+    detections = FrameDetections("frame-000000", masks, labels, np.zeros((6, 4), np.float32))
+    open_labels, min_pixels = LABELS.open_labels, 100
+
+    capped = cap_detections(detections, 2, open_labels, min_pixels)
+    assert capped.labels == [labels[1], labels[4]]  # 0.9, then 0.7 of detection 4 (the tie goes to the earlier)
+    np.testing.assert_array_equal(capped.masks, masks[[1, 4]])
+    assert capped.frame_name == detections.frame_name and capped.boxes.shape == (2, 4)
+    assert cap_detections(detections, 1, open_labels, min_pixels).labels == [labels[1]]
+    assert cap_detections(detections, 3, open_labels, min_pixels).labels == [labels[1], labels[4], labels[5]]
+    for k in (4, 5, 16):  # 4 usable detections or fewer than k: the frame as it is
+        assert cap_detections(detections, k, open_labels, min_pixels) is detections
+    # capping at k fuses what packing with capacity k keeps, while the padded shape stays the config's
+    with pytest.warns(RuntimeWarning, match="keeping the 3 highest-scoring"):
+        packed_k = pack_detections(detections, open_labels, 3, min_pixels)
+    packed = pack_detections(cap_detections(detections, 3, open_labels, min_pixels), open_labels, 8, min_pixels)
+    assert packed.masks.shape[0] == 8 and int(packed.valid.sum()) == 3
+    np.testing.assert_array_equal(packed.masks[:3], packed_k.masks)
+    np.testing.assert_array_equal(packed.label_scores[:3], packed_k.label_scores)
+    with pytest.raises(ValueError):
+        cap_detections(detections, 0, open_labels, min_pixels)
+
+
+def test_sweep_holds_as_many_maps_as_fit_in_half_the_free_memory():
+    assert groups_that_fit([1, 2, 4, 8, 16], 1.0, 100.0) == [[1, 2, 4, 8, 16]]
+    assert groups_that_fit([1, 2, 4, 8, 16], 1.0, 4.0) == [[1, 2], [4, 8], [16]]
+    assert groups_that_fit([1, 2, 4], 10.0, 1.0) == [[1], [2], [4]]
+
+
+def test_sweep_fit_over_the_caps():
+    def run(k: int, detections: float, ms: float) -> dict:
+        return {"k": k, "frames": [{"fusion": 1e3, "refine": 1.0}] + [{"fusion": ms, "refine": 1.0}] * 3,
+                "compiled": [{}] * 4, "detections_in": [9] * 4, "detections_fused": [detections] * 4,
+                "live_instances": [5] * 4}
+
+    sweep = {"scene": {"name": "room", "kind": "generated"}, "sweep": [1, 2, 4],
+             "ours": {"runs": [run(1, 1, 10.5), run(2, 2, 11.0), run(4, 3.5, 11.75)], "groups": [[1, 2, 4]]},
+             "peer": {"unavailable": "--no-peer"}}
+    costs = report.sweep_costs(sweep)
+    assert costs["fits"]["ours_fusion"]["per_object_ms"] == pytest.approx(0.5)
+    assert costs["fits"]["ours_whole"]["base_ms"] == pytest.approx(11.0)
+    assert math.isnan(costs["fits"]["peer_whole"]["per_object_ms"]) and costs["peer_note"] == "--no-peer"
+    target = report._per_object_target(costs)
+    assert target["met"] is True and "+0.50 ms per detection" in target["figure"]
+    assert report._per_object_target(None)["met"] is None
+
+
 @pytest.fixture(scope="module")
 def bench_dirs(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")
@@ -99,6 +153,9 @@ def run_quick_bench(bench_dirs, monkeypatch, name: str, *extra: str) -> dict:
     """A --quick bench on one tiny generated room; returns bench.json."""
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(bench_dirs["jax_cache"]))
     monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    # Open3D's OpenMP threads stall for seconds a call on a busy machine; one thread keeps the peer quick
+    # (its timings are not what this test checks)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
     out = bench_dirs["root"] / name
     code = main(["bench", "--quick", "--no-scene", "--objects", "3", "--generated-frames", "4", "--peer-frames", "2",
                  "--cache", str(bench_dirs["cache"]), "--out", str(out), "--no-progress", *extra])
@@ -115,6 +172,17 @@ def run_quick_bench(bench_dirs, monkeypatch, name: str, *extra: str) -> dict:
         assert math.isfinite(row["ours_all"]) and row["ours_all"] > 0, row
     assert data["summary"]["device"]["cpus"] >= 1
     assert data["summary"]["memory"]["ours"]["peak_rss_mb"] > 0
+    # the sweep, --quick's caps: 1 and 4
+    assert "## Cost per object (controlled sweep)" in markdown
+    sweep = data["summary"]["sweep"]
+    assert [q["k"] for q in sweep["points"]] == [1, 4] and not sweep["ours_note"]
+    for q in sweep["points"]:
+        assert q["ours_frames"] == 4 and 0 < q["ours_detections"] <= q["k"]
+        assert all(math.isfinite(q[key]) and q[key] > 0 for key in ("ours_fusion_ms", "ours_whole_ms")), q
+    assert sweep["points"][0]["ours_detections"] == 1  # every frame of the room has a detection or more
+    assert math.isfinite(sweep["fits"]["ours_whole"]["per_object_ms"])
+    target = next(t for t in data["summary"]["targets"] if t["target"].startswith("marginal cost"))
+    assert "controlled sweep" in target["figure"] and target["met"] is not None
     return data
 
 
@@ -126,20 +194,43 @@ def test_quick_bench_with_the_open3d_peer(bench_dirs, monkeypatch):
     whole = data["summary"]["stages"]["rows"][-1]
     assert math.isfinite(whole["peer"]) and math.isfinite(whole["ratio"])
     assert math.isfinite(data["summary"]["vbg"]["ratio"])
+    for q in data["summary"]["sweep"]["points"]:  # the peer fuses the same capped detections
+        assert q["peer_detections"] == q["ours_detections"] and math.isfinite(q["peer_whole_ms"])
+    assert math.isfinite(data["summary"]["sweep"]["fits"]["peer_whole"]["per_object_ms"])
 
 
 def test_quick_bench_without_the_peer(bench_dirs, monkeypatch):
     data = run_quick_bench(bench_dirs, monkeypatch, "no-peer", "--no-peer")
     assert data["runs"][0]["peer"] == {"unavailable": "--no-peer"}
+    assert data["summary"]["sweep"]["peer_note"] == "--no-peer"
+    assert "Not measured: Open3D peer: --no-peer." in (bench_dirs["root"] / "no-peer" / "bench.md").read_text()
     whole = data["summary"]["stages"]["rows"][-1]
     assert math.isnan(whole["ratio"])
     assert "n/a (--no-peer)" in (bench_dirs["root"] / "no-peer" / "bench.md").read_text()
+
+
+def test_sweep_options(monkeypatch, tmp_path):
+    import fmfusion_jax.bench.run as bench_run
+
+    given = []
+    monkeypatch.setattr(bench_run, "run_bench", lambda options, command: given.append((options, command)) or
+                        {"markdown": ""})
+    for argv, sweep, frames in ((["--quick"], (1, 4), 4), ([], (1, 2, 4, 8, 16), 30),
+                                (["--sweep", "2", "1", "2", "--sweep-frames", "0"], (2, 1), None),
+                                (["--quick", "--sweep"], (), 4)):
+        assert main(["bench", "--no-scene", "--out", str(tmp_path / "out"), *argv]) == 0
+        options, command = given.pop()
+        assert (options.sweep, options.sweep_frames) == (sweep, frames), argv
+        assert ("--sweep" in command) == ("--sweep" in argv)
+    assert "Not run (`--sweep` with no caps)." in report._sweep_lines(None)
 
 
 def test_bad_arguments_fail_in_one_line_before_any_work(tmp_path, capsys):
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
     for argv, fragment in ((["--frames", "-1"], "--frames must be >= 0"), (["--objects", "0"], "--objects must be"),
+                           (["--sweep", "2", "0"], "--sweep caps must be >= 1"),
+                           (["--sweep-frames", "1"], "--sweep-frames must be >= 2"),
                            (["--scene", str(tmp_path / "missing")], "does not exist"),
                            (["--no-scene", "--out", str(a_file)], "is a file")):
         assert main(["bench", *argv]) == 2

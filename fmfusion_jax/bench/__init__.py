@@ -5,5 +5,6 @@ Open3D peers run on the same frames (host-side glue; the engine knows nothing of
 - `scenes`: the scenes and their simulated detections (made once into a cache folder);
 - `open3d_peer`: the reference pipeline on Open3D (one TSDF volume per instance) and VoxelBlockGrid;
 - `worker`: one pipeline on one scene, in a process of its own (peak memory is that pipeline's);
-- `report`: medians, the per-object line fit, the Markdown table; `run`: all of it in order.
+- `sweep`: the per-object cost, controlled: one scene fused once per cap on the detections per frame;
+- `report`: medians, the per-object line fits, the Markdown table; `run`: all of it in order.
 """

@@ -1,6 +1,8 @@
 """`fmfusion bench`: prepares the scenes, runs every pipeline on them in its own process, writes the report.
 
     scenes (real + generated, cached) ──► a worker process per (pipeline, scene) ──► report ──► bench.md/.json
+                                      └──► the per-object sweep on the main scene (`bench.sweep`): a
+                                           process per pipeline, running every cap
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from fmfusion_jax.errors import UserError
 
 DEFAULT_OUT = Path("outputs/bench")
 #: The sizes of `--quick`: a smoke test in well under a minute.
-QUICK_SIZES = {"frames": 6, "objects": (2, 8), "generated_frames": 6, "width": 160, "height": 120, "peer_frames": 6}
+QUICK_SIZES = {"frames": 6, "objects": (2, 8), "generated_frames": 6, "width": 160, "height": 120, "peer_frames": 6,
+               "sweep": (1, 4), "sweep_frames": 4}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +40,8 @@ class BenchOptions:
     height: int = 480
     peer: bool = True
     peer_frames: int | None = 30  # the Open3D per-instance pipeline runs on this prefix (None: all)
+    sweep: tuple[int, ...] = (1, 2, 4, 8, 16)  # detection caps of the per-object sweep (empty: no sweep)
+    sweep_frames: int | None = 30  # the sweep runs on this prefix of the main scene (None: all)
     seed: int = 0
     progress: bool = True
 
@@ -73,9 +78,18 @@ def run_bench(options: BenchOptions, command: str = "fmfusion bench",
             run["vbg"] = {"unavailable": peer_reason}
         runs.append(run)
 
-    summary = report.summarize(runs, primary.name)
+    sweep = None
+    if options.sweep:
+        sweep = {"scene": primary.to_json(), "sweep": list(options.sweep), "frames": options.sweep_frames}
+        sweep["ours"] = _child("ours-sweep", primary, options.sweep_frames, options, work, say,
+                               sweep=list(options.sweep))
+        sweep["peer"] = ({"unavailable": peer_reason} if peer_reason else
+                         _child("peer-sweep", primary, options.sweep_frames, options, work, say,
+                                sweep=list(options.sweep)))
+
+    summary = report.summarize(runs, primary.name, sweep)
     summary["command"] = command
-    (out / "bench.json").write_text(json.dumps({"summary": summary, "runs": runs,
+    (out / "bench.json").write_text(json.dumps({"summary": summary, "runs": runs, "sweep": sweep,
                                                 "options": _jsonable(dataclasses.asdict(options))},
                                                default=float) + "\n")
     markdown = report.render_markdown(summary, runs, command)
@@ -96,16 +110,21 @@ def _prepare_scenes(options: BenchOptions, cache: Path, say) -> list[BenchScene]
     return scenes
 
 
-def _child(pipeline: str, scene: BenchScene, frames: int | None, options: BenchOptions, work: Path, say) -> dict:
+def _child(pipeline: str, scene: BenchScene, frames: int | None, options: BenchOptions, work: Path, say,
+           sweep: list[int] | None = None) -> dict:
     """Runs one pipeline on one scene in a fresh Python process (`bench.worker`); its result, or
-    `{"error": ...}` when it failed (its messages went to stderr)."""
+    `{"error": ...}` when it failed (its messages went to stderr). `sweep`: the caps of a sweep pipeline."""
     stem = f"{pipeline}-{scene.name}"
     spec_path, result_path = work / f"{stem}.spec.json", work / f"{stem}.result.json"
-    spec_path.write_text(json.dumps({"pipeline": pipeline, "scene": scene.to_json(), "frames": frames,
-                                     "progress": options.progress}))
+    spec = {"pipeline": pipeline, "scene": scene.to_json(), "frames": frames, "progress": options.progress}
+    if sweep is not None:
+        spec["sweep"] = sweep
+    spec_path.write_text(json.dumps(spec))
     result_path.unlink(missing_ok=True)
-    names = {"ours": "ours", "peer": "Open3D per-instance peer", "vbg": "Open3D VoxelBlockGrid"}
-    say(f"running {names[pipeline]} on {scene.name} ({frames or scene.frames} frames)")
+    names = {"ours": "ours", "peer": "Open3D per-instance peer", "vbg": "Open3D VoxelBlockGrid",
+             "ours-sweep": "the per-object sweep of ours", "peer-sweep": "the per-object sweep of the Open3D peer"}
+    caps = f", detections capped to {' '.join(map(str, sweep))}" if sweep else ""
+    say(f"running {names[pipeline]} on {scene.name} ({min(frames or scene.frames, scene.frames)} frames{caps})")
     start = time.perf_counter()
     completed = subprocess.run([sys.executable, "-m", "fmfusion_jax.bench.worker", str(spec_path), str(result_path)],
                                check=False)

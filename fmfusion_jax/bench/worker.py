@@ -2,10 +2,10 @@
 
     python -m fmfusion_jax.bench.worker SPEC.json RESULT.json
 
-SPEC: `{"pipeline": "ours" | "peer" | "vbg", "scene": BenchScene.to_json(), "frames": N | null,
-"progress": bool}`. RESULT: per-frame stage times in milliseconds and the counts and memory figures
-the report needs (see each `run_*`). A pipeline that cannot run (Open3D missing) writes
-`{"unavailable": reason}`.
+SPEC: `{"pipeline": "ours" | "peer" | "vbg" | "ours-sweep" | "peer-sweep", "scene": BenchScene.to_json(),
+"frames": N | null, "progress": bool}`; the sweeps (`bench.sweep`) add `"sweep": [k, ...]`. RESULT:
+per-frame stage times in milliseconds and the counts and memory figures the report needs (see each
+`run_*`). A pipeline that cannot run (Open3D missing) writes `{"unavailable": reason}`.
 
 - `ours`: the engine as `fmfusion run` drives it (`pipeline.MapBuilder`: its schedules, its timer around
   each jitted step), twice over the same frames: first with the fused `fuse_detections` (the figures
@@ -224,7 +224,13 @@ def main(argv: list[str]) -> int:
     spec_path, result_path = map(Path, argv)
     spec = json.loads(spec_path.read_text())
     scene = BenchScene.from_json(spec["scene"])
-    result = RUNNERS[spec["pipeline"]](scene, spec.get("frames"), bool(spec.get("progress", True)))
+    args = (scene, spec.get("frames"), bool(spec.get("progress", True)))
+    if spec["pipeline"].endswith("-sweep"):
+        from fmfusion_jax.bench.sweep import RUNNERS as SWEEP_RUNNERS
+
+        result = SWEEP_RUNNERS[spec["pipeline"]](*args, [int(k) for k in spec["sweep"]])
+    else:
+        result = RUNNERS[spec["pipeline"]](*args)
     result["scene"] = scene.name
     result_path.write_text(json.dumps(result))
     return 0

@@ -19,8 +19,10 @@ def register(subparsers) -> None:
                     "fusion, instance integration, merge, geometry fusion) the median ms per frame, the compile "
                     "times and the peak memory, beside the Open3D reference pipeline (a global "
                     "ScalableTSDFVolume and one volume per instance, as the authors' code) and Open3D's "
-                    "VoxelBlockGrid integration on the same frames; then the base + per-object cost fitted "
-                    "over the generated rooms. Each pipeline runs in a process of its own. The Open3D peer "
+                    "VoxelBlockGrid integration on the same frames; then the base + per-object cost from a "
+                    "controlled sweep (the main scene's first frames fused once per cap on the detections per "
+                    "frame: same frames, same map, only the objects fused vary), with a line across the "
+                    "generated rooms as context. Each pipeline runs in a process of its own. The Open3D peer "
                     "needs the optional open3d-cpu==0.19.0 (and the Debian package libusb-1.0-0); without it "
                     "ours is still measured. Writes bench.md and bench.json into --out. Scenes and simulated "
                     "detections are made once into a cache folder.",
@@ -32,7 +34,7 @@ def register(subparsers) -> None:
     parser.add_argument("--frames", type=int, default=None, metavar="N",
                         help="frames of the real scene (default 100; --quick 6; 0: all)")
     parser.add_argument("--objects", type=int, nargs="*", default=None, metavar="N",
-                        help="object counts of the generated rooms (default 4 8 16 32; --quick 2 5; none: skip)")
+                        help="object counts of the generated rooms (default 4 8 16 32; --quick 2 8; none: skip)")
     parser.add_argument("--generated-frames", type=int, default=None, metavar="N",
                         help="frames of each generated room (default 40; --quick 6)")
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"),
@@ -41,6 +43,13 @@ def register(subparsers) -> None:
     parser.add_argument("--peer-frames", type=int, default=None, metavar="N",
                         help="the Open3D per-instance pipeline (about 1 s per frame) runs on the first N frames of "
                              "each scene; ours is compared with it on that same prefix (default 30; 0: all)")
+    parser.add_argument("--sweep", type=int, nargs="*", default=None, metavar="K",
+                        help="caps on the detections fused per frame for the per-object sweep on the main scene "
+                             "(the real one, else the largest generated room): each frame keeps its K "
+                             "highest-scoring detections (default 1 2 4 8 16; --quick 1 4; none: skip)")
+    parser.add_argument("--sweep-frames", type=int, default=None, metavar="N",
+                        help="the sweep (ours and the Open3D peer, once per cap) runs on the first N frames of the "
+                             "main scene (default 30; --quick 4; 0: all)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke test in well under a minute")
     parser.add_argument("--cache", type=Path, default=None, help="folder of the prepared scenes (default OUT/cache)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the generated rooms and simulated detections")
@@ -53,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.bench.run import BenchOptions, QUICK_SIZES, run_bench
     from fmfusion_jax.errors import UserError
 
-    for name in ("frames", "generated_frames", "peer_frames"):
+    for name in ("frames", "generated_frames", "peer_frames", "sweep_frames"):
         value = getattr(args, name)
         if value is not None and value < 0:
             raise UserError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
@@ -61,14 +70,20 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--objects must be positive, got {args.objects}")
     if args.generated_frames == 0 or args.generated_frames == 1:
         raise UserError("--generated-frames must be >= 2")
+    if args.sweep is not None and any(k < 1 for k in args.sweep):
+        raise UserError(f"--sweep caps must be >= 1, got {args.sweep}")
+    if args.sweep_frames == 1:
+        raise UserError("--sweep-frames must be >= 2 (frame 0 warms up)")
 
     defaults = dict(QUICK_SIZES) if args.quick else {}
     given = {"frames": args.frames, "objects": None if args.objects is None else tuple(args.objects),
-             "generated_frames": args.generated_frames, "peer_frames": args.peer_frames}
+             "generated_frames": args.generated_frames, "peer_frames": args.peer_frames,
+             "sweep": None if args.sweep is None else tuple(dict.fromkeys(args.sweep)),
+             "sweep_frames": args.sweep_frames}
     if args.size is not None:
         given["width"], given["height"] = args.size
     options = {**defaults, **{k: v for k, v in given.items() if v is not None}}
-    for name in ("frames", "peer_frames"):  # 0 = all
+    for name in ("frames", "peer_frames", "sweep_frames"):  # 0 = all
         if options.get(name) == 0:
             options[name] = None
     scene = None if args.no_scene else _real_scene(args.scene, quick=args.quick)
@@ -85,11 +100,14 @@ def _command_line(args: argparse.Namespace) -> str:
     words = ["fmfusion", "bench"] + (["--quick"] if args.quick else [])
     for flag, value in (("--scene", args.scene), ("--frames", args.frames),
                         ("--generated-frames", args.generated_frames), ("--peer-frames", args.peer_frames),
+                        ("--sweep-frames", args.sweep_frames),
                         ("--cache", args.cache), ("--out", args.out)):
         if value is not None:
             words += [flag, str(value)]
     if args.objects is not None:
         words += ["--objects", *map(str, args.objects)]
+    if args.sweep is not None:
+        words += ["--sweep", *map(str, args.sweep)]
     if args.size is not None:
         words += ["--size", *map(str, args.size)]
     if args.seed:

@@ -36,6 +36,27 @@ class DetectionBatch(NamedTuple):
     valid: np.ndarray
 
 
+def select_detections(frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int,
+                      min_mask_pixels: int) -> tuple[np.ndarray, int]:
+    """Which detections `pack_detections` keeps: `(sorted indices, number usable)`.
+
+    Usable: a mask of at least `min_mask_pixels` pixels and a score on some label of `open_labels`.
+    When more than `max_detections` are usable, the `max_detections` with the highest score (max over
+    their labels; ties: earlier detection) are kept. Indices are in the original order.
+    """
+    if frame_detections.num_detections == 0:
+        return np.zeros((0,), np.int64), 0
+    best = frame_detections.label_score_matrix(tuple(open_labels)).max(axis=1)
+    all_masks = np.asarray(frame_detections.masks, bool)
+    pixels = all_masks.reshape(all_masks.shape[0], -1).sum(axis=1)
+    keep = np.flatnonzero((pixels >= min_mask_pixels) & (best > 0))
+    usable = int(keep.size)
+    if usable > max_detections:
+        order = np.argsort(-best[keep], kind="stable")[:max_detections]
+        keep = np.sort(keep[order])
+    return keep, usable
+
+
 def pack_detections(frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int,
                     min_mask_pixels: int) -> DetectionBatch:
     """Pads a frame's detections into a `DetectionBatch` of capacity `max_detections` (host side).
@@ -43,8 +64,8 @@ def pack_detections(frame_detections: FrameDetections, open_labels: Sequence[str
     Dropped: masks with fewer than `min_mask_pixels` pixels (full resolution; the reference uses 1000
     in its Python pipeline, 100 in C++) and detections with no score on any label of `open_labels`
     (they carry no semantic measurement). When more than `max_detections` remain, a warning is issued
-    and those with the highest score (max over their labels; ties: earlier detection) are kept.
-    Kept detections stay in their original order.
+    and those with the highest score (max over their labels; ties: earlier detection) are kept
+    (`select_detections`). Kept detections stay in their original order.
     """
     open_labels = tuple(open_labels)
     height, width = frame_detections.image_shape
@@ -54,21 +75,15 @@ def pack_detections(frame_detections: FrameDetections, open_labels: Sequence[str
     if frame_detections.num_detections == 0:
         return DetectionBatch(masks, scores, valid)
 
-    all_scores = frame_detections.label_score_matrix(open_labels)
-    all_masks = np.asarray(frame_detections.masks, bool)
-    pixels = all_masks.reshape(all_masks.shape[0], -1).sum(axis=1)
-    best = all_scores.max(axis=1)
-    keep = np.flatnonzero((pixels >= min_mask_pixels) & (best > 0))
-    if keep.size > max_detections:
+    keep, usable = select_detections(frame_detections, open_labels, max_detections, min_mask_pixels)
+    if usable > max_detections:
         warnings.warn(
-            f"{frame_detections.frame_name}: {keep.size} detections, capacity {max_detections}; "
+            f"{frame_detections.frame_name}: {usable} detections, capacity {max_detections}; "
             f"keeping the {max_detections} highest-scoring (raise detections.max_detections to keep all)",
             RuntimeWarning, stacklevel=2)
-        order = np.argsort(-best[keep], kind="stable")[:max_detections]
-        keep = np.sort(keep[order])
     n = keep.size
-    masks[:n] = all_masks[keep]
-    scores[:n] = all_scores[keep]
+    masks[:n] = np.asarray(frame_detections.masks, bool)[keep]
+    scores[:n] = frame_detections.label_score_matrix(open_labels)[keep]
     valid[:n] = True
     return DetectionBatch(masks, scores, valid)
 
