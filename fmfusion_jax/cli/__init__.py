@@ -14,6 +14,17 @@ import sys
 
 from fmfusion_jax.errors import UserError
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Adds "(default: X)" to an option's help unless the help already says its default, or there is
+    none worth saying (None: "not given", the help explains what happens then; off flags; empty lists)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "default" in text or action.default is None or action.default is False or action.default == []:
+            return text
+        return super()._get_help_string(action)
+
+
 #: Subcommand modules, in the order `--help` lists them.
 SUBCOMMANDS = ("demo", "info", "synth", "simulate", "detect", "run", "eval", "bench", "likelihood", "experiment")
 

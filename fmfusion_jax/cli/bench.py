@@ -7,6 +7,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from fmfusion_jax.cli import HelpFormatter
+
 #: The real scene used when --scene is not given (and present).
 DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
 
@@ -26,7 +28,7 @@ def register(subparsers) -> None:
                     "needs the optional open3d-cpu==0.19.0 (and the Debian package libusb-1.0-0); without it "
                     "ours is still measured. Writes bench.md and bench.json into --out. Scenes and simulated "
                     "detections are made once into a cache folder.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     parser.add_argument("--scene", type=Path, default=None,
                         help=f"real ScanNet scene with ground truth (default: {DEFAULT_SCENE} when present; "
                              "not used by --quick unless given)")

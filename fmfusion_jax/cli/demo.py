@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
 
 
@@ -19,7 +20,7 @@ def register(subparsers) -> None:
                     "with configs/demo.yaml, writes the map's outputs into OUT (overview.png first, then "
                     "instances.json, PLY files, map_state.npz, ...) and scores it with the ScanNet benchmark. "
                     "About a minute on two CPU cores at the defaults.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
                         help="output folder (a previous demo's output there is replaced)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the room, camera path, noise and detections")

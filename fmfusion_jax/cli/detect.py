@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
 
 
@@ -16,7 +17,7 @@ def register(subparsers) -> None:
                     "SAM, as ONNX models) on every N-th frame of a scene and writes one detection pair per frame "
                     "(<frame>_label.json + <frame>_mask.png/.npy, the authors' format) for `fmfusion run "
                     "--detections`. The models folder layout and how to export the models: docs/detectors.md.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     parser.add_argument("scene", type=Path, help="scene folder (ScanNet or SceneNN layout)")
     parser.add_argument("--models", type=Path, required=True, metavar="DIR",
                         help="folder with ram.onnx, ram_tag_list.txt, groundingdino.onnx, vocab.txt, "

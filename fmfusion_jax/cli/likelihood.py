@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
 
 
@@ -55,7 +56,7 @@ def register(subparsers) -> None:
                     "and their product, the 38 x 20 likelihood matrix: likelihood.csv (the format of "
                     "configs/labels/likelihood_statistical.csv, usable as --set label_fusion.likelihood=PATH), "
                     "tagging.csv, detection.csv, a heat map of each (PNG) and counts.json.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     summarize.add_argument("scenes", type=Path, nargs="*", metavar="SCENE",
                            help="ScanNet-layout scene folders with their ground truth (mesh, segs, aggregation)")
     summarize.add_argument("--detections", type=Path, nargs="+", default=None, metavar="DIR",
@@ -82,7 +83,7 @@ def register(subparsers) -> None:
                     "to <= 1). Then fuses each held-out scene with the manual, statistical, summarized (from the "
                     "training scenes) and calibrated matrices and reports label accuracy, loss and the ScanNet "
                     "benchmark (mAP50): report.md, report.json, calibrated.csv, heat maps.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     calibrate.add_argument("--train", default="1-16", metavar="SEEDS", help="seeds of the generated training scenes")
     calibrate.add_argument("--test", default="17-19", metavar="SEEDS", help="seeds of the generated held-out scenes")
     calibrate.add_argument("--test-real", type=Path, nargs="*", default=None, metavar="SCENE",

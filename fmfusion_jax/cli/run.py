@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
 
 
@@ -16,7 +17,7 @@ def register(subparsers) -> None:
                     "(semantic.ply, instances.ply, one per instance), mesh.ply, the ScanNet benchmark "
                     "prediction files (when the scene has its _vh_clean_2.ply mesh), the config used and "
                     "run.json with timings. With ground truth, it also scores the map (report.json).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     parser.add_argument("scene", type=Path, help="scene folder")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--detections", type=Path,
