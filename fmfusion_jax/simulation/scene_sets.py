@@ -17,6 +17,8 @@ import logging
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.simulation.noise import NoiseModel
 
@@ -90,11 +92,12 @@ def simulated_detections(scene_dir: str | Path, out_dir: str | Path, noise: Nois
     from fmfusion_jax.simulation.simulate import simulate_scene
 
     out_dir = Path(out_dir)
+    scene = open_scene(scene_dir)
+    expected = int(np.count_nonzero(np.asarray(scene.frame_indices) % every == 0))
     done = _read_record(out_dir / "simulation.json")
     if (likelihood is None and done and done.get("noise") == noise.to_dict() and done.get("every") == every
-            and done.get("likelihood") == "statistical"):
+            and done.get("likelihood") == "statistical" and len(done.get("frames", ())) == expected):
         return out_dir
-    scene = open_scene(scene_dir)
     gt = load_scannet_ground_truth(scene.path)
     simulate_scene(scene, gt, out_dir, noise, every=every, progress=progress, likelihood=likelihood)
     return out_dir
