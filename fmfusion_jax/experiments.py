@@ -55,7 +55,7 @@ DEFAULT_GENERATED = 3
 DEFAULT_GENERATED_FRAMES = 120
 DEFAULT_GENERATED_OBJECTS = 12
 #: `--quick`: one tiny generated room, real scenes cut to a few frames.
-QUICK_GENERATED = dict(count=1, num_frames=12, num_objects=4, width=160, height=120)
+QUICK_GENERATED = dict(count=1, num_frames=30, num_objects=5, width=320, height=240)
 QUICK_REAL_FRAMES = 20
 #: Detection variants: the default simulation, and the one without prompt augmentation (ablation B).
 DETECTIONS_DEFAULT, DETECTIONS_NO_AUGMENTATION = "default", "noaug"

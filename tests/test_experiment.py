@@ -108,7 +108,7 @@ def test_quick_runs_tiny_generated_rooms_only(monkeypatch, tmp_path):
     assert main(["experiment", "--quick", "--out", str(tmp_path), "--methods", "kimera", "full"]) == 0
     assert seen["real_scenes"] == [] and len(seen["generated"]) == 1
     spec = seen["generated"][0]
-    assert (spec.width, spec.height, spec.num_frames) == (160, 120, 12) and seen["methods"] == ["kimera", "full"]
+    assert (spec.width, spec.height, spec.num_frames) == (320, 240, 30) and seen["methods"] == ["kimera", "full"]
     main(["experiment", "--generated", "2", "--generated-frames", "30", "--scenes", "--out", str(tmp_path)])
     assert [s.seed for s in seen["generated"]] == [1, 2] and seen["generated"][0].num_frames == 30
     assert seen["generated"][0].width == 640 and seen["real_max_frames"] is None
