@@ -135,6 +135,81 @@ def test_frozen_columns_keep_their_initial_values():
     assert np.abs(fit.logits[:, trainable] - init[:, trainable]).max() > 0.1
 
 
+# ----------------------------------------------------------------------------- cross-validation
+
+
+def test_scene_folds_keep_each_scene_on_one_side():
+    scenes = [f"s{i % 7}" for i in range(40)]
+    folds = cal.scene_folds(scenes, 4)
+    assert len(folds) == 4 and sorted(sum(folds, [])) == sorted(set(scenes))
+    assert all(not set(a) & set(b) for i, a in enumerate(folds) for b in folds[i + 1:])
+    assert cal.scene_folds(["a", "b", "a"], 4) == [["a"], ["b"]]  # no more folds than scenes
+    with pytest.raises(ValueError):
+        cal.scene_folds(["a", "a"], 4)
+
+
+def test_cross_validation_fits_on_the_other_scenes_only():
+    """Each fold's path is a fit on the other folds' instances alone, evaluated on the fold's own."""
+    rng = np.random.default_rng(4)
+    hist, classes = synthetic_instances(STATISTICAL, 60, rng)
+    scenes = [f"s{i % 6}" for i in range(60)]
+    init = cal.logits_from_likelihood(STATISTICAL)
+    cv = cal.cross_validate(init, hist, classes, scenes, (0.0, 1.0), steps=15, folds=3)
+    assert cv.fold_losses.shape == (3, 2, 16) and cv.losses.shape == (2, 16)
+    assert cv.fold_sizes.sum() == 60 and cv.folds == [["s0", "s3"], ["s1", "s4"], ["s2", "s5"]]
+    # fold 0's fit uses only the instances of the other folds: fitting them directly gives its path
+    held = np.isin(scenes, cv.folds[0])
+    fit = cal.fit_likelihood(init, hist[~held], classes[~held], steps=15, l2=1.0)
+    val = float(cal.negative_log_likelihood(jnp.asarray(fit.likelihood, jnp.float32), jnp.asarray(hist[held]),
+                                            jnp.asarray(classes[held])))
+    assert cv.fold_losses[0, 1, -1] == pytest.approx(val, rel=1e-4)
+    # the pooled loss weighs each instance once
+    np.testing.assert_allclose(cv.losses, np.einsum("k,kgt->gt", cv.fold_sizes / 60, cv.fold_losses))
+    assert cv.loss == pytest.approx(cv.losses.min())
+
+
+def test_cross_validation_regularizes_more_with_few_noisy_instances():
+    """Instances drawn from a known likelihood, the fit starting halfway between it and the (wrong) manual
+    matrix. With many clean instances the fit should run long and free; with few instances half of whose
+    classes are random, cross-validation must choose a stronger pull (at a fixed number of steps) and stop
+    earlier (early stopping)."""
+    true = 0.6 * STATISTICAL / STATISTICAL.sum(axis=0)
+    init = cal.logits_from_likelihood(0.5 * true + 0.5 * load_likelihood("manual") / 8)
+
+    def choose(n, noise, early_stopping):
+        rng = np.random.default_rng(0)
+        hist, classes = synthetic_instances(true, n, rng)
+        classes = np.where(rng.random(n) < noise, rng.integers(C, size=n), classes)
+        scenes = [f"scene{i % 8}" for i in range(n)]
+        return cal.cross_validate(init, hist, classes, scenes, steps=200, folds=4, early_stopping=early_stopping)
+
+    few, many = choose(48, 0.5, False), choose(800, 0.0, False)
+    assert few.steps == many.steps == 200
+    assert few.l2 >= 10 * max(many.l2, 1e-3)
+    few, many = choose(48, 0.5, True), choose(800, 0.0, True)
+    assert few.steps < many.steps / 4
+    assert few.l2 >= many.l2
+    # the choice is the best entry of the table
+    assert few.loss == pytest.approx(min(r["loss_best"] for r in few.table()))
+    # the fitted matrix at the chosen (l2, steps) beats the start on fresh instances of the clean case
+    fresh = synthetic_instances(true, 400, np.random.default_rng(9))
+    hist, classes = synthetic_instances(true, 800, np.random.default_rng(0))
+    fit = cal.fit_likelihood(init, hist, classes, steps=many.steps, l2=many.l2)
+    start = cal.likelihood_from_logits(jnp.asarray(init))
+    def nll(matrix):
+        return float(cal.negative_log_likelihood(jnp.asarray(matrix, jnp.float32), *map(jnp.asarray, fresh)))
+
+    assert nll(fit.likelihood) < nll(start) - 0.3
+
+
+def test_zero_steps_give_the_initial_matrix():
+    init = cal.logits_from_likelihood(STATISTICAL)
+    hist, classes = synthetic_instances(STATISTICAL, 10, np.random.default_rng(2))
+    fit = cal.fit_likelihood(init, hist, classes, steps=0)
+    np.testing.assert_array_equal(fit.logits, init)
+    assert fit.losses.shape == (1,)
+
+
 # ----------------------------------------------------------------------------- the engine and ground truth
 
 
@@ -192,3 +267,17 @@ def test_histogram_identity_on_a_fused_map_and_matching(tmp_path):
     assert matched.classes.tolist() == [classes[i] for i in ids[:2]] and matched.predicted.tolist() == [0, 1]
     np.testing.assert_array_equal(matched.histograms, np.stack([hist[0], hist[0]]))
     assert len(match_instances(instances, gt, scene.name, LABELS)) <= len(instances)
+
+
+def test_cli_regularization_errors(tmp_path, capsys):
+    from fmfusion_jax.cli import main
+
+    out = ["--out", str(tmp_path / "o")]
+    assert main(["likelihood", "calibrate", "--folds", "1", *out]) == 2
+    assert "--folds must be >= 2" in capsys.readouterr().err
+    assert main(["likelihood", "calibrate", "--l2-grid", "0,x", *out]) == 2
+    assert "--l2-grid" in capsys.readouterr().err
+    assert main(["likelihood", "calibrate", "--train", "1", *out]) == 2
+    assert "at least 2 training seeds" in capsys.readouterr().err
+    assert main(["likelihood", "calibrate", "--steps", "0", "--l2", "0", *out]) == 2
+    assert "--steps must be >= 1" in capsys.readouterr().err

@@ -80,8 +80,9 @@ def register(subparsers) -> None:
                     "to ground truth (vertex IoU >= 0.5) with its open-set label histogram h, and fits L to "
                     "maximize p(true class | h @ L) under the additive fusion (Adam on logits: each column a "
                     "softmax over the 38 labels and a dropped 'not detected' entry, so L >= 0 and columns sum "
-                    "to <= 1). Then fuses each held-out scene with the manual, statistical, summarized (from the "
-                    "training scenes) and calibrated matrices and reports label accuracy, loss and the ScanNet "
+                    "to <= 1), with the L2 pull toward the initial logits and the number of Adam steps chosen by "
+                    "K-fold cross-validation over the training scenes unless given. Then fuses each held-out scene "
+                    "with the manual, statistical, summarized (from the training scenes) and calibrated matrices and reports label accuracy, loss and the ScanNet "
                     "benchmark (mAP50): report.md, report.json, calibrated.csv, heat maps.",
         formatter_class=HelpFormatter)
     calibrate.add_argument("--train", default="1-16", metavar="SEEDS", help="seeds of the generated training scenes")
@@ -96,9 +97,17 @@ def register(subparsers) -> None:
     calibrate.add_argument("--parametrization", choices=("column", "entry"), default="column",
                            help="column: per class a softmax over the labels and 'not detected' (columns sum "
                                 "<= 1); entry: each entry a sigmoid in (0, 1)")
-    calibrate.add_argument("--steps", type=int, default=500, help="Adam steps")
+    calibrate.add_argument("--steps", type=int, default=None,
+                           help="Adam steps (default: chosen by cross-validation, early stopping up to --max-steps)")
+    calibrate.add_argument("--max-steps", type=int, default=500, help="the most steps cross-validation considers")
     calibrate.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (on the logits)")
-    calibrate.add_argument("--l2", type=float, default=1e-3, help="weight of the pull toward the initial logits")
+    calibrate.add_argument("--l2", type=float, default=None,
+                           help="weight of the pull toward the initial logits (default: chosen by cross-validation "
+                                "from --l2-grid)")
+    calibrate.add_argument("--l2-grid", default="0,1e-3,1e-2,1e-1,1,10,100", metavar="L2,...",
+                           help="candidate l2 weights of the cross-validation")
+    calibrate.add_argument("--folds", type=int, default=4,
+                           help="cross-validation folds (training scenes dealt round-robin; no scene in two folds)")
     calibrate.add_argument("--min-class-instances", type=int, default=3,
                            help="classes with fewer training instances keep their initial column")
     _add_generated_arguments(calibrate)
@@ -163,11 +172,20 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from fmfusion_jax.likelihood import workflow
     from fmfusion_jax.runner import prepare_output_dir
 
-    for name in ("steps",):
-        if getattr(args, name) < 1:
-            raise UserError(f"--{name} must be >= 1")
-    if args.lr <= 0 or args.l2 < 0:
+    for name in ("steps", "max_steps"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+    if args.lr <= 0 or (args.l2 is not None and args.l2 < 0):
         raise UserError("--lr must be > 0 and --l2 >= 0")
+    try:
+        l2_grid = tuple(float(v) for v in args.l2_grid.split(",") if v.strip())
+    except ValueError:
+        raise UserError(f"--l2-grid {args.l2_grid!r}: expected comma-separated numbers") from None
+    if not l2_grid or min(l2_grid) < 0:
+        raise UserError("--l2-grid needs at least one weight, all >= 0")
+    cross_validated = args.l2 is None or args.steps is None
+    if cross_validated and args.folds < 2:
+        raise UserError("--folds must be >= 2")
     try:
         load_likelihood(args.init)
     except (OSError, ValueError) as error:
@@ -175,6 +193,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     train_seeds, test_seeds = parse_seeds(args.train), parse_seeds(args.test)
     if not train_seeds:
         raise UserError("--train needs at least one seed")
+    if cross_validated and len(train_seeds) < 2:
+        raise UserError("cross-validation needs at least 2 training seeds (or give both --l2 and --steps)")
     if set(train_seeds) & set(test_seeds):
         raise UserError(f"seeds {sorted(set(train_seeds) & set(test_seeds))} are both training and held-out scenes")
     real = args.test_real
@@ -190,10 +210,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     test = workflow.generated_cases(test_seeds, args.cache, size, progress)
     test += [workflow.real_case(scene, None, args.cache, args.real_config, progress) for scene in real]
     settings = workflow.CalibrationSettings(init=args.init, parametrization=args.parametrization, steps=args.steps,
-                                            learning_rate=args.lr, l2=args.l2,
+                                            learning_rate=args.lr, l2=args.l2, folds=args.folds, l2_grid=l2_grid,
+                                            max_steps=args.max_steps,
                                             min_class_instances=args.min_class_instances)
     report = workflow.calibrate_and_compare(train, test, args.out, settings, progress=progress, say=_say)
     print(workflow.report_markdown(report))
     print(f"done in {time.perf_counter() - start:.0f} s; outputs in {args.out}: report.md, report.json, "
-          "calibrated.csv/.png, difference.png, loss.csv, summarized/")
+          "calibrated.csv/.png, difference.png, loss.csv, validation.csv, summarized/")
     return 0

@@ -30,6 +30,9 @@ a class the training scenes hardly show would only be pushed down (its column sh
 about the training set, not about the detector. `fit_likelihood` therefore takes a column mask
 `trainable` (C,); the workflow freezes the columns of classes with fewer than 3 training instances.
 
+The regularization (`l2`, and the number of Adam steps as early stopping) is chosen by `cross_validate`:
+K folds of training scenes, the validation loss recorded along every fit.
+
 The optimizer is Adam, written out below (a few lines; no optax dependency), run as one `lax.scan`.
 """
 
@@ -148,10 +151,13 @@ class FitResult:
         return float(self.losses[-1])
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "parametrization"))
-def _adam(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2, parametrization):
+def _adam_scan(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2, parametrization,
+               record=None):
+    """Adam from `init_logits`: `(theta, losses (steps + 1,), recorded (steps + 1,) or None)`, `recorded` the
+    value of `record(theta)` before each step and after the last (traced; call inside `jit`)."""
     loss_and_grad = jax.value_and_grad(calibration_loss)
     beta1, beta2, eps = 0.9, 0.999, 1e-8
+    record = (lambda theta: jnp.zeros((), init_logits.dtype)) if record is None else record
 
     def step(carry, t):
         theta, m, v = carry
@@ -161,13 +167,20 @@ def _adam(init_logits, histograms, classes, weights, trainable, steps, learning_
         v = beta2 * v + (1 - beta2) * grad * grad
         m_hat = m / (1 - beta1 ** t)
         v_hat = v / (1 - beta2 ** t)
-        return (theta - learning_rate * m_hat / (jnp.sqrt(v_hat) + eps), m, v), loss
+        return (theta - learning_rate * m_hat / (jnp.sqrt(v_hat) + eps), m, v), (loss, record(theta))
 
     zeros = jnp.zeros_like(init_logits)
-    (theta, _, _), losses = jax.lax.scan(step, (init_logits, zeros, zeros),
-                                         jnp.arange(1, steps + 1, dtype=init_logits.dtype))
+    (theta, _, _), (losses, recorded) = jax.lax.scan(step, (init_logits, zeros, zeros),
+                                                     jnp.arange(1, steps + 1, dtype=init_logits.dtype))
     final = calibration_loss(theta, histograms, classes, init_logits, l2, parametrization, weights)
-    return theta, jnp.concatenate([losses, final[None]])
+    return theta, jnp.concatenate([losses, final[None]]), jnp.concatenate([recorded, record(theta)[None]])
+
+
+@functools.partial(jax.jit, static_argnames=("steps", "parametrization"))
+def _adam(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2, parametrization):
+    theta, losses, _ = _adam_scan(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2,
+                                  parametrization)
+    return theta, losses
 
 
 def fit_likelihood(init_logits: np.ndarray, histograms: np.ndarray, classes: np.ndarray, steps: int = 500,
@@ -177,13 +190,14 @@ def fit_likelihood(init_logits: np.ndarray, histograms: np.ndarray, classes: np.
 
     Args:
       histograms: `(N, O)`; classes: `(N,)` int; weights: optional `(N,)`.
-      steps, learning_rate: of Adam (the step moves each logit by about `learning_rate`).
+      steps, learning_rate: of Adam (the step moves each logit by about `learning_rate`); 0 steps give the
+        initial matrix back.
       l2: weight of the pull toward the initial logits.
       trainable: optional `(C,)` bool, the columns (classes) that may change (default: all).
     """
     _check(parametrization)
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
     init = jnp.asarray(init_logits, jnp.float32)
     hist = jnp.asarray(histograms, jnp.float32).reshape(-1, init.shape[0] - (parametrization == "column"))
     cls = jnp.asarray(classes, jnp.int32).reshape(-1)
@@ -193,3 +207,120 @@ def fit_likelihood(init_logits: np.ndarray, histograms: np.ndarray, classes: np.
                           parametrization)
     return FitResult(np.asarray(theta), np.asarray(likelihood_from_logits(theta, parametrization), np.float64),
                      np.asarray(losses, np.float64))
+
+
+# ---------------------------------------------------------------------------------------------------
+# Choosing the regularization: cross-validation by scene
+
+#: Candidate `l2` weights of `cross_validate` (the pull is a mean over all (O + 1) * C logits, so its weight per
+#: logit is l2 / 780: the grid goes well past 1).
+DEFAULT_L2_GRID = (0.0, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
+
+
+def scene_folds(scenes: list[str], folds: int) -> list[list[str]]:
+    """The distinct scenes, in order of first appearance, dealt round-robin into `min(folds, #scenes)` folds."""
+    distinct = list(dict.fromkeys(scenes))
+    if folds < 2 or len(distinct) < 2:
+        raise ValueError(f"cross-validation needs at least 2 folds and 2 scenes (folds {folds}, "
+                         f"scenes {len(distinct)})")
+    k = min(folds, len(distinct))
+    return [distinct[i::k] for i in range(k)]
+
+
+@dataclasses.dataclass
+class CrossValidation:
+    """What `cross_validate` returns.
+
+    `losses[i, t]`: the mean `-log p(true class)` over all left-out instances (each instance counted once,
+    pooled over the folds) after `t` Adam steps with `l2_grid[i]`; `fold_losses[k, i, t]` the same per fold.
+    The choice minimizes `losses` over the grid and, with early stopping, over `t` (ties: the larger l2,
+    then the fewer steps).
+    """
+
+    l2_grid: np.ndarray          # (G,)
+    folds: list[list[str]]       # scenes of each fold
+    fold_sizes: np.ndarray       # (K,) instances per fold
+    losses: np.ndarray           # (G, steps + 1)
+    fold_losses: np.ndarray      # (K, G, steps + 1)
+    l2: float                    # the choice
+    steps: int
+    early_stopping: bool
+
+    @property
+    def loss(self) -> float:
+        """Validation loss of the choice."""
+        return float(self.losses[list(self.l2_grid).index(self.l2), self.steps])
+
+    def table(self) -> list[dict]:
+        """One row per l2: the best step, its validation loss, and the loss after all steps."""
+        rows = []
+        for i, l2 in enumerate(self.l2_grid):
+            t = int(np.argmin(self.losses[i])) if self.early_stopping else self.losses.shape[1] - 1
+            rows.append({"l2": float(l2), "best_steps": t, "loss_best": float(self.losses[i, t]),
+                         "loss_last": float(self.losses[i, -1]), "loss_initial": float(self.losses[i, 0])})
+        return rows
+
+
+@functools.partial(jax.jit, static_argnames=("steps", "parametrization"))
+def _validation_paths(init_logits, histograms, classes, train_weights, val_weights, trainable, steps,
+                      learning_rate, l2_grid, parametrization):
+    """`(K, G, steps + 1)` validation loss along Adam for each fold (train/val weights, trainable: (K, ...))
+    and each l2 of the grid."""
+
+    def path(train_w, val_w, mask, l2):
+        def validation(theta):
+            return negative_log_likelihood(likelihood_from_logits(theta, parametrization), histograms, classes, val_w)
+
+        return _adam_scan(init_logits, histograms, classes, train_w, mask, steps, learning_rate, l2,
+                          parametrization, validation)[2]
+
+    over_l2 = jax.vmap(path, in_axes=(None, None, None, 0))
+    return jax.vmap(over_l2, in_axes=(0, 0, 0, None))(train_weights, val_weights, trainable, l2_grid)
+
+
+def cross_validate(init_logits: np.ndarray, histograms: np.ndarray, classes: np.ndarray, scenes: list[str],
+                   l2_grid=DEFAULT_L2_GRID, steps: int = 500, folds: int = 4, learning_rate: float = 0.05,
+                   parametrization: str = "column", min_class_instances: int = 0,
+                   early_stopping: bool = True) -> CrossValidation:
+    """Chooses `l2` (and, with `early_stopping`, the number of Adam steps) by K-fold cross-validation over scenes.
+
+    The scenes are dealt into folds (`scene_folds`: no scene on both sides); for each fold and each `l2` of
+    the grid, Adam fits on the other folds' instances (as `fit_likelihood`, with the columns of classes that
+    have at least `min_class_instances` instances there trainable) and the left-out instances' mean
+    `-log p(true class)` is recorded before every step. All fits run at once (one `vmap` over folds and
+    grid, instance weights selecting each side, so one compilation).
+
+    Args:
+      histograms: `(N, O)`; classes: `(N,)` int; scenes: `N` scene names (the fold unit).
+      steps: the most Adam steps (with `early_stopping`, every count from 0 to `steps` is a candidate;
+        without, exactly `steps`).
+    """
+    _check(parametrization)
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    grid = np.asarray(sorted(float(v) for v in l2_grid), np.float64)
+    if grid.size == 0 or np.any(grid < 0):
+        raise ValueError(f"l2 grid must be non-empty and >= 0, got {list(l2_grid)}")
+    classes = np.asarray(classes).reshape(-1)
+    if len(scenes) != classes.size:
+        raise ValueError(f"{len(scenes)} scene names for {classes.size} instances")
+    fold_scenes = scene_folds(list(scenes), folds)
+    scene_array = np.asarray(scenes, dtype=object)
+    held = np.stack([np.isin(scene_array, f) for f in fold_scenes])            # (K, N)
+    num_classes = np.asarray(init_logits).shape[1]
+    counts = np.stack([np.bincount(classes[~h], minlength=num_classes) for h in held])
+    trainable = counts >= min_class_instances
+    paths = _validation_paths(jnp.asarray(init_logits, jnp.float32), jnp.asarray(histograms, jnp.float32),
+                              jnp.asarray(classes, jnp.int32), jnp.asarray(~held, jnp.float32),
+                              jnp.asarray(held, jnp.float32), jnp.asarray(trainable, jnp.float32), int(steps),
+                              jnp.float32(learning_rate), jnp.asarray(grid, jnp.float32), parametrization)
+    fold_losses = np.asarray(paths, np.float64)                                  # (K, G, steps + 1)
+    sizes = held.sum(axis=1)
+    pooled = np.einsum("k,kgt->gt", sizes / sizes.sum(), fold_losses)
+    candidates = pooled if early_stopping else pooled[:, -1:]
+    # ties (to float precision): the larger l2, then the fewer steps
+    best = candidates.min()
+    tied = np.argwhere(candidates <= best + 1e-7 * max(1.0, abs(best)))
+    i = int(tied[:, 0].max())
+    t = int(tied[tied[:, 0] == i, 1].min()) if early_stopping else int(steps)
+    return CrossValidation(grid, fold_scenes, sizes, pooled, fold_losses, float(grid[i]), t, early_stopping)

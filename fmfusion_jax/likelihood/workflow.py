@@ -8,7 +8,9 @@ scene with simulated (or real) detections (fused with `scannet-subsampled` unles
 1. summarizes the likelihood over the training cases (Appendix B, `summarize`);
 2. fuses each training case once with the initial matrix and collects its instances matched to ground
    truth (`matching`): their open-label histograms and true classes;
-3. fits the matrix (`calibrate.fit_likelihood`);
+3. chooses the regularization (`l2`, Adam steps) by cross-validation over the training scenes
+   (`calibrate.cross_validate`: folds by scene; the held-out cases play no part) unless both are given,
+   and fits the matrix on all training instances with it (`calibrate.fit_likelihood`);
 4. on each held-out case, fuses once per compared matrix (manual, statistical, summarized, calibrated:
    merges depend on the likelihood, so the map itself changes) and reports the ScanNet benchmark
    (mAP, mAP50, mAP25), the label accuracy of the instances matched to ground truth in that run, and the
@@ -202,9 +204,12 @@ def pooled_scores(outcomes: Sequence[RunOutcome]) -> dict[str, float]:
 class CalibrationSettings:
     init: str = "statistical"          # matrix the fit starts from (and the training runs are fused with)
     parametrization: str = "column"
-    steps: int = 500
+    steps: int | None = None           # Adam steps; None: chosen by cross-validation (early stopping)
     learning_rate: float = 0.05
-    l2: float = 1e-3
+    l2: float | None = None            # pull toward the initial logits; None: chosen by cross-validation
+    folds: int = 4                     # of the cross-validation, by training scene
+    l2_grid: tuple[float, ...] = (0.0, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)  # candidates when l2 is None
+    max_steps: int = 500               # the most steps the cross-validation considers when steps is None
     min_class_instances: int = 3       # classes with fewer training instances keep their initial column
     label_rule: str = "main"           # of the summarization
     min_pixels: int | None = None      # of the summarization (default: scaled from 400 at 640x480)
@@ -221,7 +226,7 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
 
     Files: summarized/ (the summary of the training cases: CSVs, heat maps, counts), calibrated.csv,
     calibrated.png, difference.png (calibrated - initial, absolute), loss.csv (the loss per step),
-    report.json, report.md.
+    validation.csv (the pooled validation loss per l2 and step, when cross-validated), report.json, report.md.
     """
     import jax.numpy as jnp
 
@@ -264,22 +269,45 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
         raise UserError("no fused instance of the training scenes matched a ground-truth instance")
     lap("train_runs")
 
-    # 3. The fit.
-    say(f"fitting the likelihood on {len(train_set)} instances ({settings.parametrization} parametrization, "
-        f"{settings.steps} Adam steps) ...")
+    # 3. The regularization (cross-validated on the training scenes) and the fit.
     init_logits = cal.logits_from_likelihood(init_matrix, settings.parametrization)
     class_instances = np.bincount(train_set.classes, minlength=label_sets.num_classes)
     trainable = class_instances >= settings.min_class_instances
+    l2, steps, validation = settings.l2, settings.steps, None
+    if l2 is None or steps is None:
+        grid = settings.l2_grid if l2 is None else (l2,)
+        horizon = settings.max_steps if steps is None else steps
+        folds = cal.scene_folds(train_set.scenes, settings.folds)
+        say(f"cross-validating l2 in {list(grid)}" + (f" and 0-{horizon} Adam steps" if steps is None else "")
+            + f" over {len(folds)} folds of training scenes ...")
+        cv = cal.cross_validate(init_logits, train_set.histograms, train_set.classes, train_set.scenes, grid,
+                                horizon, settings.folds, settings.learning_rate, settings.parametrization,
+                                settings.min_class_instances, early_stopping=steps is None)
+        l2, steps = cv.l2, cv.steps
+        validation = {"folds": cv.folds, "fold_instances": cv.fold_sizes.tolist(), "l2_grid": cv.l2_grid.tolist(),
+                      "early_stopping": cv.early_stopping, "table": cv.table(), "l2": cv.l2, "steps": cv.steps,
+                      "loss": cv.loss}
+        (out_dir / "validation.csv").write_text(
+            "step," + ",".join(f"l2={v:g}" for v in cv.l2_grid) + "\n"
+            + "".join(f"{t}," + ",".join(f"{v:.6f}" for v in cv.losses[:, t]) + "\n"
+                      for t in range(cv.losses.shape[1])))
+        say(f"  chosen: l2 {l2:g}, {steps} steps (validation loss {cv.loss:.4f}; "
+            f"{cv.losses[0, 0]:.4f} with the initial matrix)")
+        lap("cross_validation")
+    say(f"fitting the likelihood on {len(train_set)} instances ({settings.parametrization} parametrization, "
+        f"{steps} Adam steps, l2 {l2:g}) ...")
     say(f"  trained columns: {', '.join(n for n, t in zip(label_sets.class_names, trainable) if t) or 'none'}")
-    fit = cal.fit_likelihood(init_logits, train_set.histograms, train_set.classes, settings.steps,
-                             settings.learning_rate, settings.l2, settings.parametrization, trainable=trainable)
+    fit = cal.fit_likelihood(init_logits, train_set.histograms, train_set.classes, steps,
+                             settings.learning_rate, l2, settings.parametrization, trainable=trainable)
     calibrated = fit.likelihood
     calibrated_path = write_likelihood_csv(
         out_dir / "calibrated.csv", calibrated, label_sets,
         comment=(f"Calibrated with fmfusion likelihood calibrate from the {init_name} likelihood on "
                  f"{len(train_set)} instances of {', '.join(c.name for c in train)}\n"
-                 f"parametrization {settings.parametrization}, {settings.steps} Adam steps, learning rate "
-                 f"{settings.learning_rate}, l2 {settings.l2}; loss {fit.initial_loss:.4f} -> {fit.final_loss:.4f}"))
+                 f"parametrization {settings.parametrization}, {steps} Adam steps, learning rate "
+                 f"{settings.learning_rate}, l2 {l2:g}"
+                 + (" (cross-validated)" if validation else "")
+                 + f"; loss {fit.initial_loss:.4f} -> {fit.final_loss:.4f}"))
     write_heatmap(out_dir / "calibrated.png", calibrated, label_sets.open_labels, label_sets.class_names,
                   title=f"calibrated likelihood (from {init_name}, {len(train_set)} training instances)")
     write_heatmap(out_dir / "difference.png", np.abs(calibrated - init_matrix), label_sets.open_labels,
@@ -343,6 +371,8 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
         "train_instances": len(train_set),
         "train_instances_per_class": {n: int(k) for n, k in zip(label_sets.class_names, class_instances)},
         "trained_columns": [n for n, t in zip(label_sets.class_names, trainable) if t],
+        "fit": {"l2": l2, "steps": steps, "cross_validated": validation is not None},
+        "validation": validation,
         "loss": {"initial_raw": train_figures[init_name]["loss"], "initial": fit.initial_loss, "final": fit.final_loss},
         "train": train_figures,
         "held_out": held_out,
@@ -366,15 +396,17 @@ def _json_default(value):
 
 def report_markdown(report: dict) -> str:
     """report.md: the figures of `calibrate_and_compare` as tables."""
-    s = report["settings"]
+    s, fit = report["settings"], report["fit"]
     lines = [
         "# Likelihood calibration",
         "",
         f"Training scenes: {', '.join(report['train_scenes'])} ({report['train_instances']} instances matched to "
         f"ground truth). Held-out scenes: {', '.join(report['test_scenes']) or 'none'}.",
-        f"Fit: from the {s['init']} likelihood, {s['parametrization']} parametrization, {s['steps']} Adam steps, "
-        f"learning rate {s['learning_rate']}, l2 {s['l2']}; columns trained (classes with at least "
-        f"{s['min_class_instances']} training instances): {', '.join(report['trained_columns']) or 'none'}.",
+        f"Fit: from the {s['init']} likelihood, {s['parametrization']} parametrization, {fit['steps']} Adam steps, "
+        f"learning rate {s['learning_rate']}, l2 {fit['l2']:g}"
+        + (" (chosen by cross-validation)" if fit["cross_validated"] else "")
+        + f"; columns trained (classes with at least {s['min_class_instances']} training instances): "
+        f"{', '.join(report['trained_columns']) or 'none'}.",
         "",
         f"Training loss (mean -log p(true class)): {_fmt(report['loss']['initial_raw'], 4)} with the {s['init']} "
         f"matrix as published, {_fmt(report['loss']['initial'], 4)} at the start of the fit (the matrix in the "
@@ -384,6 +416,24 @@ def report_markdown(report: dict) -> str:
         "|---|---|---|",
     ]
     lines += [f"| {name} | {_fmt(f['loss'], 4)} | {_fmt(f['accuracy'])} |" for name, f in report["train"].items()]
+    cv = report.get("validation")
+    if cv:
+        lines += [
+            "",
+            "## Cross-validation (training scenes only)",
+            "",
+            f"{len(cv['folds'])} folds by scene ({', '.join(str(n) for n in cv['fold_instances'])} instances): "
+            + "; ".join(", ".join(f) for f in cv["folds"]) + ". Mean -log p(true class) of the left-out "
+            "instances (pooled over folds), fitting on the other folds"
+            + (" (best step: early stopping)." if cv["early_stopping"] else f" for {fit['steps']} steps."),
+            "",
+            "| l2 | best steps | validation loss at best | after the last step |",
+            "|---|---:|---:|---:|",
+        ]
+        lines += [f"| {r['l2']:g} | {r['best_steps']} | {_fmt(r['loss_best'], 4)} | {_fmt(r['loss_last'], 4)} |"
+                  for r in cv["table"]]
+        lines += ["", f"Chosen: l2 {cv['l2']:g}, {cv['steps']} steps (validation loss {_fmt(cv['loss'], 4)}; "
+                  f"{_fmt(cv['table'][0]['loss_initial'], 4)} with the initial matrix)."]
     for group, block in report["held_out"].items():
         lines += [
             "",
