@@ -33,13 +33,13 @@ class BenchOptions:
     out: Path = DEFAULT_OUT
     cache: Path | None = None  # scenes and detections made once; default OUT/cache
     scene: Path | None = None  # the real scene, or None
-    frames: int | None = 100  # frames of the real scene (None: all)
+    frames: int | None = None  # frames of the real scene (None: all)
     objects: tuple[int, ...] = (4, 8, 16, 32)  # generated rooms' object counts
     generated_frames: int = 40
     width: int = 640  # generated frames
     height: int = 480
     peer: bool = True
-    peer_frames: int | None = 30  # the Open3D per-instance pipeline runs on this prefix (None: all)
+    peer_frames: int | None = None  # the Open3D per-instance pipeline runs on this prefix (None: all)
     sweep: tuple[int, ...] = (1, 2, 4, 8, 16)  # detection caps of the per-object sweep (empty: no sweep)
     sweep_frames: int | None = 30  # the sweep runs on this prefix of the main scene (None: all)
     seed: int = 0

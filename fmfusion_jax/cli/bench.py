@@ -34,7 +34,7 @@ def register(subparsers) -> None:
                              "not used by --quick unless given)")
     parser.add_argument("--no-scene", action="store_true", help="generated rooms only")
     parser.add_argument("--frames", type=int, default=None, metavar="N",
-                        help="frames of the real scene (default 100; --quick 6; 0: all)")
+                        help="frames of the real scene (default: all; --quick 6; 0: all)")
     parser.add_argument("--objects", type=int, nargs="*", default=None, metavar="N",
                         help="object counts of the generated rooms (default 4 8 16 32; --quick 2 8; none: skip)")
     parser.add_argument("--generated-frames", type=int, default=None, metavar="N",
@@ -43,8 +43,8 @@ def register(subparsers) -> None:
                         help="image size of the generated rooms (default 640 480; --quick 160 120)")
     parser.add_argument("--no-peer", action="store_true", help="ours only (no Open3D)")
     parser.add_argument("--peer-frames", type=int, default=None, metavar="N",
-                        help="the Open3D per-instance pipeline (about 1 s per frame) runs on the first N frames of "
-                             "each scene; ours is compared with it on that same prefix (default 30; 0: all)")
+                        help="the Open3D per-instance pipeline (0.1-1 s per frame, growing with the map) runs on the first N frames of "
+                             "each scene; ours is compared with it on that same prefix (default: all frames; 0: all)")
     parser.add_argument("--sweep", type=int, nargs="*", default=None, metavar="K",
                         help="caps on the detections fused per frame for the per-object sweep on the main scene "
                              "(the real one, else the largest generated room): each frame keeps its K "
