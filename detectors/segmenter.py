@@ -172,14 +172,17 @@ class Segmenter:
         if self.decoder.has_input("orig_im_size"):
             feeds["orig_im_size"] = np.array(embedding.image_shape, np.float32)
         use_full = self.decoder.has_input("orig_im_size") and self.decoder.has_output("masks")
-        out = self.decoder.run(feeds, ["iou_predictions", "masks" if use_full else "low_res_masks"])
+        # One decoder run: with full-size masks, the low-resolution ones come along as a fallback when present.
+        wanted = ["iou_predictions", "masks"] if use_full else ["iou_predictions", "low_res_masks"]
+        if use_full and self.decoder.has_output("low_res_masks"):
+            wanted.append("low_res_masks")
+        out = self.decoder.run(feeds, wanted)
         if use_full and out["masks"].shape[2:] != embedding.image_shape:
             # Masks at another size than asked for: take the low-resolution ones back ourselves.
-            if not self.decoder.has_output("low_res_masks"):
+            if "low_res_masks" not in out:
                 raise ContractError(f"{self.decoder.path}: masks of size {out['masks'].shape[2:]} for an image of "
                                     f"{embedding.image_shape}, and no low_res_masks to take back to the image")
             use_full = False
-            out = self.decoder.run(feeds, ["iou_predictions", "low_res_masks"])
         name = "masks" if use_full else "low_res_masks"
         iou = np.asarray(out["iou_predictions"], np.float32).reshape(count, -1)
         if out[name].ndim != 4 or out[name].shape[:2] != iou.shape:

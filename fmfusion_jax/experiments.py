@@ -131,11 +131,15 @@ def resolve_methods(names: Sequence[str] | None) -> tuple[Method, ...]:
     return tuple(m for m in METHODS.values() if m.name in names)
 
 
+def sample_scene_dir() -> Path:
+    """Where the sample ScanNet scene is expected: `$FMFUSION_SCANNET_DIR/scene0000_00`, else
+    ../shared/data/scannet/scene0000_00 from the working folder (whether or not it is there)."""
+    return Path(os.environ.get("FMFUSION_SCANNET_DIR", "../shared/data/scannet")) / "scene0000_00"
+
+
 def default_real_scenes() -> list[Path]:
-    """The sample ScanNet scene (`$FMFUSION_SCANNET_DIR/scene0000_00`, else ../shared/data/scannet/scene0000_00
-    from the working folder) when it is there; none otherwise (logged)."""
-    root = Path(os.environ.get("FMFUSION_SCANNET_DIR", "../shared/data/scannet"))
-    scene = root / "scene0000_00"
+    """The sample ScanNet scene (`sample_scene_dir`) when it is there; none otherwise (logged)."""
+    scene = sample_scene_dir()
     if scene.is_dir():
         return [scene]
     log.warning("no real scene: %s not found (name scenes with --scenes); running on generated scenes only", scene)
@@ -216,10 +220,12 @@ def scene_sources(real_scenes: Sequence[str | Path], generated: Sequence[Generat
 
 @dataclasses.dataclass
 class RunOutcome:
-    """One (scene, method) run: its predictions on the scene's mesh and its summary (run.json)."""
+    """One (scene, method) run: its predictions on the scene's mesh, its summary (run.json) and its score on
+    that scene alone."""
 
     predictions: object  # io.benchmark_format.InstancePredictions
     summary: dict
+    score: object  # evaluation.scannet_benchmark.BenchmarkResult
 
 
 def run_method(method: Method, scene, detections_dir: Path, config: PipelineConfig, gt, out_dir: Path,
@@ -235,11 +241,11 @@ def run_method(method: Method, scene, detections_dir: Path, config: PipelineConf
       gt: the scene's `SceneGroundTruth`.
       out_dir: the run's folder (replaced).
     """
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
     from fmfusion_jax.io import map_outputs
     from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.labels import load_label_sets
+    from fmfusion_jax.runner import score_instances
 
     label_sets = load_label_sets()
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
@@ -268,18 +274,17 @@ def run_method(method: Method, scene, detections_dir: Path, config: PipelineConf
     del result  # the map (up to ~1 GB for a ScanNet room) is not needed any more
 
     _replace_run_dir(out_dir)
-    predictions = map_outputs.benchmark_predictions(instances, label_sets, gt.vertices, config.export.transfer_radius)
+    predictions, score = score_instances(instances, gt, scene.name, config, label_sets)
     write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
     map_outputs.write_instances_json(out_dir / "instances.json", instances, label_sets)
     (out_dir / "config.yaml").write_text(config.to_yaml())
-    score = evaluate_scenes([(gt.benchmark_ids(), predictions)], scene_names=[scene.name])
     summary = {"scene": scene.name, "method": method.name, "title": method.title, "detections": str(detections_dir),
                "overrides": list(method.overrides), "instances": len(instances),
                "benchmark_predictions": int(predictions.num_instances),
                "seconds": {"map": round(map_seconds, 2), "total": round(time.perf_counter() - start, 2)},
                **details, "score": score.to_json_dict()}
     (out_dir / RUN_RECORD).write_text(json.dumps(summary, indent=1, default=float))
-    return RunOutcome(predictions, summary)
+    return RunOutcome(predictions, summary, score)
 
 
 def _replace_run_dir(run_dir: Path) -> None:
@@ -467,7 +472,8 @@ def run_experiment(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
 
 def score_methods(methods: Sequence[Method], scene_names: Sequence[str], gt_ids: dict, runs: dict) -> tuple[dict, dict]:
     """`(pooled, per_scene)`: each method scored over all scenes together (method -> `BenchmarkResult`), and
-    on each scene alone (scene -> method -> `BenchmarkResult`).
+    on each scene alone (scene -> method -> `BenchmarkResult`; the score `run_method` already made, kept in
+    the run's outcome).
 
     Args:
       gt_ids: scene -> `(V,)` benchmark ids of its mesh vertices.
@@ -478,8 +484,7 @@ def score_methods(methods: Sequence[Method], scene_names: Sequence[str], gt_ids:
     names = tuple(scene_names)
     pooled = {m.name: evaluate_scenes([(gt_ids[s], runs[s][m.name].predictions) for s in names], scene_names=names)
               for m in methods}
-    per_scene = {s: {m.name: evaluate_scenes([(gt_ids[s], runs[s][m.name].predictions)], scene_names=[s])
-                     for m in methods} for s in names}
+    per_scene = {s: {m.name: runs[s][m.name].score for m in methods} for s in names}
     return pooled, per_scene
 
 

@@ -55,6 +55,10 @@ class LabelSets:
     def nyu40_to_class_index(self) -> dict[int, int]:
         return {int(n): i for i, n in enumerate(self.nyu40_ids)}
 
+    def class_to_nyu40(self) -> dict[str, int]:
+        """The NYU40 id of each closed-class name."""
+        return dict(zip(self.class_names, (int(i) for i in self.nyu40_ids)))
+
 
 @functools.lru_cache(maxsize=None)
 def load_label_sets(path: str | None = None) -> LabelSets:

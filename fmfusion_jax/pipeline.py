@@ -192,6 +192,7 @@ class MapBuilder:
             self.state, stats = self.timer.run("fusion", self.fuse_detections, self.state, inputs, batch,
                                                self.likelihood, self.map_config, self.fusion_config)
             self.detection_frames += 1
+            stats = jax.device_get(stats)  # one transfer for the counters and the log line
             for name in ("created", "matched", "detections"):
                 self.counters[name] += int(getattr(stats, name))
             log.info("%s: %d detections, %d matched, %d new instances, %d in view", frame.name,

@@ -182,15 +182,27 @@ def _write_overview(path: Path, scene_name: str, instances, mesh, gt, result: Fu
         log.warning("no overview: %s", error)
 
 
+def score_instances(instances, gt, scene_name: str, config: PipelineConfig, label_sets, gt_ids=None):
+    """`(predictions, BenchmarkResult)`: the ScanNet benchmark predictions of `instances` over the scene's
+    mesh vertices (transfer radius `config.export.transfer_radius`), and their score on this scene alone.
+
+    Args:
+      gt: the scene's `SceneGroundTruth`.
+      gt_ids: `gt.benchmark_ids()` when the caller already has it (computed here otherwise).
+    """
+    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+
+    predictions = map_outputs.benchmark_predictions(instances, label_sets, gt.vertices, config.export.transfer_radius)
+    gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
+    return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
+
+
 def _export_and_score(instances, gt, scene: Scene, result: FusionResult, out_dir: Path, label_sets) -> dict:
     """Benchmark prediction files over the scene's mesh vertices, and the score against its GT."""
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
     from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
 
-    predictions = map_outputs.benchmark_predictions(instances, label_sets, gt.vertices,
-                                                    result.config.export.transfer_radius)
+    predictions, score = score_instances(instances, gt, scene.name, result.config, label_sets)
     txt = write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
-    score = evaluate_scenes([(gt.benchmark_ids(), predictions)], scene_names=[scene.name])
     report = score.to_json_dict()
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     return {"predictions": str(txt), "mAP": score.mAP, "mAP50": score.mAP50, "mAP25": score.mAP25,

@@ -149,9 +149,4 @@ def _jsonable(value):
     return str(value) if isinstance(value, Path) else value
 
 
-def quick_options(**given) -> BenchOptions:
-    """`--quick` sizes, overridden by what is given explicitly."""
-    return BenchOptions(**{**QUICK_SIZES, **given})
-
-
-__all__ = ["BenchOptions", "run_bench", "quick_options", "DEFAULT_OUT"]
+__all__ = ["BenchOptions", "run_bench", "DEFAULT_OUT"]

@@ -57,7 +57,7 @@ class InstanceTable(NamedTuple):
     open_label_histogram: jax.Array  # float32[K, O]: accumulated open-set label scores
     observations: jax.Array  # int32[K]: detections associated with the instance
     missed: jax.Array  # int32[K]: detection frames in which it was visible but not detected
-    voxel_count: jax.Array  # int32[K]: voxels holding the instance (refreshed from the voxels)
+    voxel_count: jax.Array  # int32[K]: voxels holding the instance (as of the last merge step)
     created_frame: jax.Array  # int32[K]: frame index of creation
     last_seen_frame: jax.Array  # int32[K]: frame index of the last association
     overflow: jax.Array  # int32[]: detections that found no free row (cumulative)

@@ -31,7 +31,7 @@ from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.instance_volume import (
-    fuse_instance_geometry, instance_voxel_counts, integrate_instances, pixel_instances)
+    fuse_instance_geometry, integrate_instances, pixel_instances)
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
@@ -203,11 +203,6 @@ def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:
     )
 
 
-def _refresh_voxel_counts(state: MapState, config: MapConfig) -> MapState:
-    counts = instance_voxel_counts(state.blocks, config).counts
-    return state._replace(instances=state.instances._replace(voxel_count=counts))
-
-
 def _apply_new_ids(blocks, census, new_id: jax.Array, config: MapConfig):
     """Renames the instance ids in the voxels (`remap_instances`) and returns `(blocks, voxel counts)`.
 
@@ -316,9 +311,13 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
 
 @functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
 def fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> MapState:
-    """Instance-geometry fusion: drop instance voxels the global surface does not support."""
+    """Instance-geometry fusion: drop instance voxels the global surface does not support.
+
+    The table's `voxel_count` is left as it was: the next merge step (`refine`, or `finalize` right
+    after this) counts the voxels itself before deciding anything, and nothing else reads it.
+    """
     blocks = fuse_instance_geometry(state.blocks, config, fusion.geometry_min_weight)
-    return _refresh_voxel_counts(state._replace(blocks=blocks), config)
+    return state._replace(blocks=blocks)
 
 
 def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[MapState, RefineStats]:

@@ -17,6 +17,7 @@ import numpy as np
 
 from fmfusion_jax.instances import MapInstance
 from fmfusion_jax.labels import LabelSets, load_label_sets
+from fmfusion_jax.likelihood.summarize import mask_iou
 
 MATCH_IOU = 0.5
 
@@ -56,27 +57,12 @@ class MatchedInstances:
                                 np.concatenate([p.predicted for p in parts]), np.concatenate([p.iou for p in parts]),
                                 [name for p in parts for name in p.scenes])
 
-    def select(self, scene: str) -> "MatchedInstances":
-        keep = np.array([name == scene for name in self.scenes], bool)
-        return MatchedInstances(self.histograms[keep], self.classes[keep], self.predicted[keep], self.iou[keep],
-                                [scene] * int(keep.sum()))
-
 
 def vertex_iou(pred_masks: np.ndarray, gt_instance_ids: np.ndarray, candidate_ids: np.ndarray) -> np.ndarray:
     """`(P, G)` IoU of each predicted vertex mask (`(P, V)` bool) with the vertices of each ground-truth
-    instance in `candidate_ids` (`(G,)`; `gt_instance_ids` `(V,)`, 0 = none)."""
-    candidate_ids = np.asarray(candidate_ids, np.int64)
-    gt_instance_ids = np.asarray(gt_instance_ids, np.int64)
-    p, g = pred_masks.shape[0], candidate_ids.size
-    if p == 0 or g == 0:
-        return np.zeros((p, g))
-    order = np.argsort(candidate_ids)
-    pos = np.clip(np.searchsorted(candidate_ids[order], gt_instance_ids), 0, g - 1)
-    compact = np.where(candidate_ids[order][pos] == gt_instance_ids, order[pos] + 1, 0)  # (V,) 0 = other
-    gt_area = np.bincount(compact, minlength=g + 1)[1:]
-    inter = np.stack([np.bincount(compact[mask], minlength=g + 1)[1:] for mask in pred_masks])
-    union = pred_masks.sum(axis=1)[:, None] + gt_area[None, :] - inter
-    return np.divide(inter, union, out=np.zeros((p, g)), where=union > 0)
+    instance in `candidate_ids` (`(G,)`; `gt_instance_ids` `(V,)`, 0 = none): `summarize.mask_iou` with the
+    mesh's vertices as the pixels, transposed."""
+    return mask_iou(gt_instance_ids, candidate_ids, pred_masks).T
 
 
 def match_instances(instances: Sequence[MapInstance], gt, scene_name: str, label_sets: LabelSets | None = None,

@@ -23,7 +23,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -45,9 +44,11 @@ DEFAULT_REAL_CONFIG = "scannet-subsampled"
 
 
 def default_real_scene() -> Path | None:
-    """The shared ScanNet sample (`$FMFUSION_SCANNET_DIR/scene0000_00` or ../shared/data/scannet/...), if present."""
-    root = Path(os.environ.get("FMFUSION_SCANNET_DIR", "../shared/data/scannet"))
-    scene = root / "scene0000_00"
+    """The shared ScanNet sample (`experiments.sample_scene_dir`: `$FMFUSION_SCANNET_DIR/scene0000_00` or
+    ../shared/data/scannet/...), if present."""
+    from fmfusion_jax.experiments import sample_scene_dir
+
+    scene = sample_scene_dir()
     return scene if scene.is_dir() else None
 
 
@@ -155,15 +156,13 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
               progress: bool = False) -> RunOutcome:
     """Fuses `case` with `likelihood` (packaged name or CSV), matches its instances to ground truth and
     scores its benchmark export."""
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.instances import drop_small_instances
-    from fmfusion_jax.io import map_outputs
+    from fmfusion_jax.instances import drop_small_instances, postprocess_instances
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
     from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.likelihood.matching import match_instances
     from fmfusion_jax.pipeline import extract_map_instances
-    from fmfusion_jax.runner import fuse_scene
+    from fmfusion_jax.runner import fuse_scene, score_instances
 
     label_sets = label_sets or load_label_sets()
     start = time.perf_counter()
@@ -175,13 +174,16 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     result = fuse_scene(scene, lambda frame: folder.get(frame.name), config, progress=progress)
     gt = load_scannet_ground_truth(case.scene_dir)
     # Unprocessed instances keep `distribution = class_distribution(h @ L)`; the small ones are dropped as
-    # the export drops them.
-    raw = drop_small_instances(extract_map_instances(result, label_sets, postprocess=False), config.export.min_points)
+    # the export drops them. The export's are the same instances post-processed (as
+    # `extract_map_instances(postprocess=True)` does; `result.config` is `config`).
+    unprocessed = extract_map_instances(result, label_sets, postprocess=False)
+    raw = drop_small_instances(unprocessed, config.export.min_points)
     matched = match_instances(raw, gt, case.name, label_sets, config.export.transfer_radius)
-    exported = extract_map_instances(result, label_sets)
-    predictions = map_outputs.benchmark_predictions(exported, label_sets, gt.vertices, config.export.transfer_radius)
-    score = evaluate_scenes([(gt.benchmark_ids(), predictions)], scene_names=[case.name])
-    return RunOutcome(case.name, str(likelihood), matched, predictions, gt.benchmark_ids(),
+    exported = postprocess_instances(unprocessed, label_sets, config.export.min_points,
+                                     config.export.shower_curtain_radius)
+    gt_ids = gt.benchmark_ids()
+    predictions, score = score_instances(exported, gt, case.name, config, label_sets, gt_ids=gt_ids)
+    return RunOutcome(case.name, str(likelihood), matched, predictions, gt_ids,
                       {"mAP": score.mAP, "mAP50": score.mAP50, "mAP25": score.mAP25}, time.perf_counter() - start)
 
 

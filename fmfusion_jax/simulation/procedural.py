@@ -833,7 +833,7 @@ def _assemble(seed: int, size, placed: list[_Placed], rng) -> ProceduralScene:
     from fmfusion_jax.labels import load_label_sets
 
     label_sets = load_label_sets()
-    nyu40 = dict(zip(label_sets.class_names, (int(i) for i in label_sets.nyu40_ids)))
+    nyu40 = label_sets.class_to_nyu40()
     w, d, h = size
     t = WALL_THICKNESS
     boxes: list[Box] = []
@@ -893,7 +893,7 @@ def add_object(scene: ProceduralScene, kind: str, boxes: Sequence[tuple], raw_la
     from fmfusion_jax.labels import load_label_sets
 
     label_sets = load_label_sets()
-    nyu40 = dict(zip(label_sets.class_names, (int(i) for i in label_sets.nyu40_ids)))
+    nyu40 = label_sets.class_to_nyu40()
     if kind not in nyu40:
         raise ValueError(f"kind {kind!r}: expected one of the closed classes {list(nyu40)}")
     instance_id = max(scene.instances) + 1

@@ -269,25 +269,11 @@ def _enclosure_exit(R_wc, origin, xs, ys, lower, upper, face_boxes, depth, box_i
     face[closer] = best_face[closer] ^ 1
 
 
-def face_normals(boxes: BoxArrays, hits: RayHits) -> np.ndarray:
-    """`(H, W, 3)` float32 unit world normals of the hit faces (zeros where nothing was hit)."""
-    table = _face_normal_table(boxes)  # (B * 6 + 1, 3), last row zero
-    index = np.where(hits.hit, hits.box * 6 + hits.face, table.shape[0] - 1)
-    return table[index]
-
-
 def _face_normal_table(boxes: BoxArrays) -> np.ndarray:
     """`(6 B + 1, 3)` float32: the world normal of face `f` of box `b` at row `6 b + f`, then a zero row."""
     axes = np.transpose(boxes.rotations, (0, 2, 1))  # (B, 3 local axes, 3 world)
     table = np.stack([-axes[:, 0], axes[:, 0], -axes[:, 1], axes[:, 1], -axes[:, 2], axes[:, 2]], axis=1)
     return np.concatenate([table.reshape(-1, 3), np.zeros((1, 3))]).astype(np.float32)
-
-
-def hit_points(hits: RayHits, T_world_camera: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
-    """`(H, W, 3)` float32 world points of the hits (the camera centre where nothing was hit)."""
-    xs, ys = camera_rays(intrinsics)
-    z = np.where(hits.hit, hits.depth, 0.0).astype(np.float32)
-    return np.stack(_world_points(np.asarray(T_world_camera, np.float64), xs, ys, z)[0], axis=-1)
 
 
 def _world_points(T: np.ndarray, xs: np.ndarray, ys: np.ndarray, z: np.ndarray):
@@ -395,14 +381,12 @@ class RenderedFrame:
       depth: `(H, W)` float32 metres (sensor model applied when asked), 0 = invalid.
       depth_exact: `(H, W)` float32 metres, the analytic z-depth (0 where no hit or beyond `max_range`).
       instance: `(H, W)` uint16 instance ids, 0 where the (possibly noisy) depth is invalid.
-      normal: `(H, W, 3)` float32 world normals of the hit faces.
     """
 
     color: np.ndarray
     depth: np.ndarray
     depth_exact: np.ndarray
     instance: np.ndarray
-    normal: np.ndarray
 
 
 def render_frame(scene: "ProceduralScene", T_world_camera: np.ndarray, intrinsics: CameraIntrinsics,
@@ -468,8 +452,7 @@ def render_frame(scene: "ProceduralScene", T_world_camera: np.ndarray, intrinsic
     ids = boxes.instance_ids.astype(np.uint16)[b].reshape(shape)
     ids[(depth <= 0) | ~hit] = 0
     return RenderedFrame(color=color_u8, depth=depth.astype(np.float32, copy=False),
-                         depth_exact=exact.astype(np.float32, copy=False), instance=ids,
-                         normal=np.stack(normal, axis=-1).reshape(shape + (3,)))
+                         depth_exact=exact.astype(np.float32, copy=False), instance=ids)
 
 
 def raycast_rays(boxes: BoxArrays, origins: np.ndarray, directions: np.ndarray,

@@ -208,7 +208,7 @@ def write_labels_tsv(path: str | Path, scene: ProceduralScene | None = None) -> 
     from fmfusion_jax.labels import load_label_sets
 
     label_sets = load_label_sets()
-    nyu40 = dict(zip(label_sets.class_names, (int(i) for i in label_sets.nyu40_ids)))
+    nyu40 = label_sets.class_to_nyu40()
     nyu40[CEILING_CLASS] = CEILING_NYU40
     counts: dict[str, int] = {}
     if scene is not None:

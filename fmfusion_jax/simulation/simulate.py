@@ -420,6 +420,7 @@ def simulate_scene(scene: Any, gt: "SceneGroundTruth", out_dir: str | Path, nois
       max_distance: m, ground-truth rendering tolerance between the depth and the mesh.
       progress: show a tqdm progress bar.
     """
+    from detectors.prompt import PromptAugmenter
     from fmfusion_jax.io.detections import write_frame_detections
     from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
 
@@ -436,7 +437,7 @@ def simulate_scene(scene: Any, gt: "SceneGroundTruth", out_dir: str | Path, nois
     start = time.perf_counter()
     renderer = GroundTruthRenderer.from_ground_truth(gt, max_distance=max_distance, stride=render_stride)
     classes = instance_classes(gt, label_sets)
-    window: collections.deque[set[str]] = collections.deque(maxlen=max(noise.augmentation_window, 1))
+    augmenter = PromptAugmenter(noise.augmentation_window, label_sets.prompt_augmentation_excluded)
     names: list[str] = []
     per_frame: list[int] = []
     label_counts: collections.Counter[str] = collections.Counter()
@@ -455,10 +456,10 @@ def simulate_scene(scene: Any, gt: "SceneGroundTruth", out_dir: str | Path, nois
             if max_frames is not None and len(names) >= max_frames:
                 break
             gt_image = renderer.render(depth, T_world_camera, intrinsics)
-            recent = set().union(*window) if noise.augmentation_window > 0 else set()
-            detections = simulate_frame(gt_image, classes, name, index, noise, label_sets, likelihood, recent)
+            detections = simulate_frame(gt_image, classes, name, index, noise, label_sets, likelihood,
+                                        augmenter.candidates())
             write_frame_detections(out_dir, detections, mask_format=mask_format)
-            window.append({label for labels in detections.labels for label in labels})
+            augmenter.observe(label for labels in detections.labels for label in labels)
             names.append(name)
             per_frame.append(detections.num_detections)
             label_counts.update(next(iter(labels)) for labels in detections.labels)
