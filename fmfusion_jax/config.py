@@ -40,7 +40,10 @@ class TSDFConfig:
 
 @dataclasses.dataclass
 class DetectionConfig:
-    every: int = 10                 # fuse detections every Nth frame (ScanNet 10, SceneNN 5)
+    schedule: str = "motion"        # motion: when the camera moved/turned enough | every: every Nth frame
+    min_translation: float = 0.05   # m since the last detection frame (motion schedule)
+    min_rotation: float = 5.0       # degrees since the last detection frame (motion schedule)
+    every: int = 10                 # every Nth frame (schedule `every`; paper: ScanNet 10, SceneNN 5)
     max_detections: int = 32        # detections per frame kept (highest scores first)
     min_mask_pixels: int = 1000     # smaller masks are ignored (reference Python: 1000, C++: 100)
     depth_percentiles: tuple[float, float] = (0.1, 0.9)  # keep mask depth between these quantiles
@@ -58,6 +61,8 @@ class AssociationConfig:
 class InstanceConfig:
     capacity: int = 1024            # instance table size K
     voxel_slots: int = 2            # instances one voxel can hold (overlapping instance volumes)
+    contrary_vote_weight: float = 0.5  # a voxel seen outside its instance's mask while that instance is
+                                    # detected loses this per pixel (0: hits alone, the paper's rule)
 
 
 @dataclasses.dataclass
@@ -72,7 +77,7 @@ class RefinementConfig:
     merge_every: int = 1            # online merge every Nth detection frame
     merge_similarity: float = 0.15  # semantic similarity p_a . p_b above this
     merge_overlap: float = 0.4      # share of the smaller instance inside the larger, inflated
-    geometry_fusion_every: int = 200  # frames (ScanNet 200, SceneNN 300)
+    geometry_fusion_every: int = 20  # detection frames (paper: 200 frames at every 10th: 20; SceneNN 60)
     remove_missed: int = 5          # remove instances missed this often while in view ...
     remove_min_voxels: int = 500    # ... when smaller than this many voxels (SceneNN 8 / 2000)
 
@@ -211,6 +216,12 @@ def load_config(name_or_path: str | None = None, overrides: list[str] | None = N
     return config
 
 
+def detection_frame_stride(config: PipelineConfig) -> int:
+    """Frames read per possible detection frame: `every` on the fixed schedule, 1 on the motion schedule
+    (any frame may be due), e.g. for simulating detections only where the fusion can use them."""
+    return config.detections.every if config.detections.schedule == "every" else 1
+
+
 def validate_config(config: PipelineConfig) -> None:
     """Range checks that would otherwise surface as wrong maps or shape errors deep inside JAX."""
     checks = [
@@ -221,7 +232,11 @@ def validate_config(config: PipelineConfig) -> None:
         (config.tsdf.voxel_size > 0 and config.tsdf.sdf_trunc > config.tsdf.voxel_size,
          "tsdf.sdf_trunc must exceed tsdf.voxel_size > 0"),
         (config.detections.every >= 1 and config.dataset.frame_stride >= 1, "strides must be >= 1"),
+        (config.detections.schedule in ("motion", "every"), "detections.schedule must be motion or every"),
+        (config.detections.min_translation >= 0 and config.detections.min_rotation >= 0,
+         "detections.min_translation and min_rotation must be >= 0"),
         (config.instances.capacity >= 2 and config.instances.voxel_slots >= 1, "instance capacities too small"),
+        (config.instances.contrary_vote_weight >= 0, "instances.contrary_vote_weight must be >= 0"),
         (config.tsdf.block_capacity >= 2 and config.tsdf.max_touched_blocks >= 1, "block capacities too small"),
     ]
     for ok, message in checks:

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
-from fmfusion_jax.config import PipelineConfig, load_config
+from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -68,8 +68,8 @@ def demo_config(num_frames: int = DEFAULT_FRAMES, width: int = DEFAULT_WIDTH, he
     """`configs/demo.yaml` for a demo of `num_frames` frames of `width x height`, then `overrides`.
 
     demo.yaml holds the values for 120 frames of 640x480. Over a longer loop consecutive frames are
-    closer, so the schedules (detections.every, refinement.geometry_fusion_every) grow in proportion to
-    the frame count; pixel counts (detections.min_mask_pixels, association.min_projected_pixels) follow
+    closer, so the detection stride (detections.every; refinement is counted in detection frames) grows in
+    proportion to the frame count; pixel counts (detections.min_mask_pixels, association.min_projected_pixels) follow
     the image area, and so does export.min_points below 640x480 (instance voxels come from sampled
     pixels). With `room_size` (W, D, H metres), the block pool grows with the room's surface beyond the
     default room's. `--set` overrides win over this scaling.
@@ -79,7 +79,6 @@ def demo_config(num_frames: int = DEFAULT_FRAMES, width: int = DEFAULT_WIDTH, he
     area_scale = (width * height) / (DEFAULT_WIDTH * DEFAULT_HEIGHT)
     scaled = {
         "detections.every": max(1, round(config.detections.every * frames_scale)),
-        "refinement.geometry_fusion_every": max(1, round(config.refinement.geometry_fusion_every * frames_scale)),
         "detections.min_mask_pixels": max(20, round(config.detections.min_mask_pixels * area_scale)),
         "association.min_projected_pixels": max(20, round(config.association.min_projected_pixels * area_scale)),
         # instance voxels come from sampled pixels: fewer pixels, sparser instances
@@ -183,7 +182,7 @@ def run_demo(out_dir: str | Path = DEFAULT_OUT, seed: int = 0, num_objects: int 
     gt = load_scannet_ground_truth(scene_dir)
     noise = demo_noise(seed, width, height)
     detections_dir = out_dir / DETECTIONS_DIR
-    simulate_scene(opened, gt, detections_dir, noise, every=config.detections.every * dataset.frame_stride,
+    simulate_scene(opened, gt, detections_dir, noise, every=detection_frame_stride(config) * dataset.frame_stride,
                    progress=progress)
     lap("simulate_detections")
     log.info("detections simulated into %s (%.1f s)", detections_dir, seconds["simulate_detections"])

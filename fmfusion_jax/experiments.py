@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 from typing import Callable, Sequence
 
-from fmfusion_jax.config import PipelineConfig, load_config
+from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 
@@ -370,7 +370,7 @@ def prepare_source(source: SceneSource, variants: Sequence[str], cache_dir: Path
     from fmfusion_jax.simulation.scene_sets import prepare_generated, prepare_real
 
     start = time.perf_counter()
-    every = base_config.detections.every * base_config.dataset.frame_stride
+    every = detection_frame_stride(base_config) * base_config.dataset.frame_stride
     default_noise = source.noise(seed)
     detections, noise = {}, {}
     for variant in variants:

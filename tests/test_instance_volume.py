@@ -121,6 +121,85 @@ def test_slot_rule_matches_reference_exactly(seed, rounds, n_votes):
     check_slot_invariants(blocks)
 
 
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), rounds=st.integers(1, 4), n_votes=st.integers(1, 300),
+       weight=st.sampled_from([0.25, 0.5, 1.0, 2.0]))
+def test_slot_rule_with_contrary_votes_matches_reference_exactly(seed, rounds, n_votes, weight):
+    """Contrary votes (pixels outside a detected instance's mask) on crowded voxels, neutral pixels too."""
+    rng = np.random.default_rng(seed)
+    blocks = integrated_map(1)
+    grid = ref.blocks_to_dense(blocks, CONFIG)
+    n_alloc = int(blocks.num_blocks)
+    coords = np.asarray(blocks.block_coords)[:n_alloc]
+    hot = rng.integers(0, n_alloc, 3)
+    for _ in range(rounds):
+        slot = rng.choice(hot, 512)[:n_votes]
+        local = rng.integers(0, 2, (512, 3))[:n_votes]
+        inst = rng.integers(-1, 6, 512)[:n_votes]
+        neutral = rng.random(512)[:n_votes] < 0.2
+        detected = rng.random(NUM_INSTANCES) < 0.5
+        voxel = local_voxel_index(local[:, 0], local[:, 1], local[:, 2], CONFIG.block_size)
+        blocks = iv.apply_instance_hits(blocks, _pad(slot), _pad(voxel), _pad(inst), CONFIG, detected,
+                                        _pad(neutral.astype(np.int32)).astype(bool), contrary_weight=weight)
+        g = coords[slot] * CONFIG.block_size + local
+        grid = ref.reference_apply_hits(grid, g, inst, np.flatnonzero(detected), neutral, weight)
+        got = ref.blocks_to_dense(blocks, CONFIG)
+        assert np.array_equal(got.instance_id, grid.instance_id)
+        assert np.array_equal(got.instance_weight, grid.instance_weight)
+    check_slot_invariants(blocks)
+
+
+def _vote_one_voxel(blocks, config, instances, detected, weight):
+    """Votes on voxel 0 of slot 0: `instances` int per pixel (-1 none), `detected` ids of the frame."""
+    n = len(instances)
+    mask = np.zeros(config.instance_capacity, bool)
+    mask[list(detected)] = True
+    return iv.apply_instance_hits(blocks, jnp.zeros(n, jnp.int32), jnp.zeros(n, jnp.int32),
+                                  jnp.asarray(instances, jnp.int32), config, mask, None, contrary_weight=weight)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(frames=st.lists(st.tuples(st.integers(0, 3), st.integers(0, 3), st.booleans()), min_size=1, max_size=8),
+       weight=st.sampled_from([0.5, 1.0]))
+def test_membership_needs_consistent_evidence(frames, weight):
+    """One instance on one voxel: after any sequence of frames (hits, pixels outside its mask, detected or
+    not), the voxel holds the instance exactly when its hits since it last took the slot outweigh the
+    contrary votes (`weight` each), counted only in frames where it was detected."""
+    blocks = integrated_map(1)
+    blocks = blocks._replace(instance_id=jnp.full_like(blocks.instance_id, -1),
+                             instance_weight=jnp.zeros_like(blocks.instance_weight))
+    net = 0.0
+    for hits, others, detected in frames:
+        pixels = [3] * hits + [-1] * others
+        if not pixels:
+            continue
+        blocks = _vote_one_voxel(blocks, CONFIG, pixels, {3} if detected else set(), weight)
+        if net > 0:  # holds the slot: hits add, contrary votes subtract
+            net += hits - (weight * others if detected else 0.0)
+        else:  # a fresh claim: its own contrary votes of this frame do not count (the slot was empty)
+            net = float(hits)
+        net = max(net, 0.0)
+        held = int(blocks.instance_id[0, 0, 0]) == 3
+        assert held == (net > 0), (frames, net)
+        assert float(blocks.instance_weight[0, 0, 0]) == (net if held else 0.0)
+
+
+def test_a_border_hit_seen_once_never_joins():
+    """A voxel hit once by an instance's mask border, then seen outside that instance's mask in a frame where
+    it is detected, is not the instance's; one that the instance's masks keep covering stays."""
+    blocks = integrated_map(1)
+    blocks = blocks._replace(instance_id=jnp.full_like(blocks.instance_id, -1),
+                             instance_weight=jnp.zeros_like(blocks.instance_weight))
+    border = _vote_one_voxel(blocks, CONFIG, [5, 5], {5}, 0.5)            # two border pixels
+    border = _vote_one_voxel(border, CONFIG, [-1] * 4, {5}, 0.5)          # next view: outside the mask
+    assert int(border.instance_id[0, 0, 0]) == -1
+    object_voxel = _vote_one_voxel(blocks, CONFIG, [5, 5], {5}, 0.5)
+    object_voxel = _vote_one_voxel(object_voxel, CONFIG, [5, 5, -1], {5}, 0.5)  # a partial miss
+    object_voxel = _vote_one_voxel(object_voxel, CONFIG, [-1] * 4, set(), 0.5)  # not detected: no vote
+    assert int(object_voxel.instance_id[0, 0, 0]) == 5
+    assert float(object_voxel.instance_weight[0, 0, 0]) == 3.5
+
+
 def _pad(x, n=512):
     """Fixed-length vote arrays (one compilation for every example), padded with -1 (no vote)."""
     out = np.full(n, -1, np.int32)

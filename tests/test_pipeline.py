@@ -249,3 +249,54 @@ def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, id
     assert int(stats.merged) > 0 or ids_per_cell == 1
     for leaf_got, leaf_expected in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
         np.testing.assert_array_equal(np.asarray(leaf_got), np.asarray(leaf_expected))
+
+
+def _walk(steps: int, metres_per_step: float, degrees_per_step: float) -> list[np.ndarray]:
+    """Poses of a camera moving along x and turning about z at a constant rate."""
+    poses = []
+    for i in range(steps):
+        angle = np.radians(degrees_per_step * i)
+        pose = np.eye(4)
+        pose[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+        pose[0, 3] = metres_per_step * i
+        poses.append(pose)
+    return poses
+
+
+def _due_positions(poses, config, available=lambda i: True) -> list[int]:
+    from fmfusion_jax.pipeline import DetectionSchedule
+
+    schedule, due = DetectionSchedule(config), []
+    for i, pose in enumerate(poses):
+        if schedule.due(i, pose) and available(i):
+            schedule.fused(pose)
+            due.append(i)
+    return due
+
+
+def test_motion_schedule_follows_the_camera_not_the_frame_rate():
+    """The same path recorded at 30 Hz and subsampled 18x: about the paper's every 10th frame at 30 Hz,
+    every frame of the subsampled sequence, and the same detection poses per metre walked."""
+    config = load_config("scannet")
+    assert config.detections.schedule == "motion"
+    full_rate = _walk(18 * 30, 0.116 / 18, 6.3 / 18)  # the shared scene's median motion per 18 frames
+    fused = _due_positions(full_rate, config)
+    gaps = np.diff(fused)
+    assert 6 <= np.median(gaps) <= 15
+    subsampled = full_rate[::18]
+    assert _due_positions(subsampled, config) == list(range(len(subsampled)))
+    assert _due_positions(_walk(20, 0.0, 0.0), config) == [0]  # a camera standing still: one frame
+
+
+def test_a_due_frame_without_detections_keeps_the_schedule_due():
+    config = load_config("scannet")
+    poses = _walk(40, 0.0101, 0.0)  # 5 cm every 5 frames
+    dense = _due_positions(poses, config)
+    sparse = _due_positions(poses, config, available=lambda i: i % 7 == 0)  # detection files every 7th
+    assert dense == list(range(0, 40, 5))
+    assert sparse == [0, 7, 14, 21, 28, 35]  # the first available frame once the camera moved enough
+
+
+def test_fixed_stride_schedule_is_the_papers():
+    config = load_config("scannet", ["detections.schedule=every", "detections.every=10"])
+    assert _due_positions(_walk(35, 1.0, 30.0), config) == [0, 10, 20, 30]

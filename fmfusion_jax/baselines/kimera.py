@@ -453,8 +453,8 @@ class KimeraMapper:
 def run_kimera(scene, detection_source, config: PipelineConfig, progress: bool = True,
                label_sets: LabelSets | None = None) -> KimeraResult:
     """The Kimera-style baseline over every frame of an opened `scene` (`io.scene.Scene`), with detections
-    from `detection_source(frame)` on the detection frames (`detections.every`, as FM-Fusion)."""
-    from fmfusion_jax.pipeline import build_map_config, is_detection_frame
+    from `detection_source(frame)` on the detection frames (`pipeline.DetectionSchedule`, as FM-Fusion)."""
+    from fmfusion_jax.pipeline import build_map_config, scheduled_detections
 
     bounds_min, bounds_max = scene.bounds()
     map_config = build_map_config(config, bounds_min, bounds_max, scene.intrinsics.height, scene.intrinsics.width)
@@ -466,8 +466,7 @@ def run_kimera(scene, detection_source, config: PipelineConfig, progress: bool =
 
         bar = tqdm(total=len(scene), desc=f"kimera {scene.name}", unit="frame", dynamic_ncols=True)
     try:
-        for position, frame in enumerate(frames):
-            detections = detection_source(frame) if is_detection_frame(position, config) else None
+        for frame, detections in scheduled_detections(frames, detection_source, config):
             mapper.add_frame(frame, detections)
             if bar is not None:
                 bar.update(1)

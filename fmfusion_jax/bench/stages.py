@@ -27,7 +27,7 @@ project_instances = jax.jit(step.project_instances, static_argnames=("config",))
 associate = jax.jit(step.associate, static_argnames=("config", "fusion"))
 # the table and the pool are updated in place, as inside the fused step (no copy of the voxel pool)
 fuse_table = jax.jit(step.fuse_table, static_argnames=("config", "fusion"), donate_argnames=("table",))
-integrate_instance_votes = jax.jit(step.integrate_instance_votes, static_argnames=("config",),
+integrate_instance_votes = jax.jit(step.integrate_instance_votes, static_argnames=("config", "fusion"),
                                    donate_argnames=("blocks",))
 frame_stats = jax.jit(step.frame_stats)
 
@@ -46,7 +46,7 @@ def staged_fuse_detections(timer: StageTimer):
         table, update = timer.run("label_fusion", fuse_table, state.instances, matches, batch.label_scores,
                                  likelihood, frame.frame_index, config, fusion)
         blocks = timer.run("integration", integrate_instance_votes, state.blocks, frame, det_image,
-                           matches.assignment.instance_for_detection, config)
+                           matches.assignment.instance_for_detection, config, fusion)
         return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
 
     return fuse

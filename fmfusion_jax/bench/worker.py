@@ -73,11 +73,11 @@ def _frames_with_detections(opened, folder, config, progress: bool, desc: str):
     """Yields `(frame, detections or None)` on the fusion's schedule, with a progress bar on stderr."""
     from tqdm import tqdm
 
-    from fmfusion_jax.pipeline import is_detection_frame
+    from fmfusion_jax.pipeline import scheduled_detections
 
-    for position, frame in enumerate(tqdm(opened.frames(), total=len(opened), desc=desc, unit="frame",
-                                          disable=not progress, dynamic_ncols=True, leave=False)):
-        yield frame, (folder.get(frame.name) if is_detection_frame(position, config) else None)
+    frames = tqdm(opened.frames(), total=len(opened), desc=desc, unit="frame", disable=not progress,
+                  dynamic_ncols=True, leave=False)
+    yield from scheduled_detections(frames, lambda frame: folder.get(frame.name), config)
 
 
 def device_description() -> dict:

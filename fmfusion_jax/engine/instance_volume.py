@@ -171,14 +171,16 @@ def pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, conf
     return _pixel_instances(blocks, depth, T_world_camera, intrinsics, config)
 
 
-def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig) -> VoxelBlocks:
+def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig, detected=None,
+                         neutral=None, contrary_weight: float = 0.0) -> VoxelBlocks:
     num_blocks, v_per_block, num_slots = blocks.instance_id.shape
     n_entries = num_blocks * v_per_block * num_slots
     slot = jnp.asarray(slot, jnp.int32).reshape(-1)
     voxel = jnp.asarray(voxel, jnp.int32).reshape(-1)
     instance = jnp.asarray(instance, jnp.int32).reshape(-1)
-    valid = (slot >= 0) & (slot < config.dummy_slot) & (instance >= 0)
-    ids, weights = _slot_entries(blocks, jnp.where(valid, slot, -1), voxel)  # the state before the frame
+    seen = (slot >= 0) & (slot < config.dummy_slot)  # the pixel observes an allocated voxel
+    valid = seen & (instance >= 0)
+    ids, weights = _slot_entries(blocks, jnp.where(seen, slot, -1), voxel)  # the state before the frame
 
     # Target slot: the instance's own slot, else the first empty one, else the weakest.
     has_match = jnp.zeros(instance.shape, bool)
@@ -200,17 +202,32 @@ def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: Map
     target = jnp.where(has_match, own, jnp.where(has_empty, empty, weakest))
     claim = valid & ~has_match & has_empty
     decay = valid & ~has_match & ~has_empty
-    entry = jnp.where(valid, (slot * v_per_block + voxel) * num_slots + target, n_entries)
+    base = (slot * v_per_block + voxel) * num_slots
+    entry = jnp.where(valid, base + target, n_entries)
     safe_entry = jnp.minimum(entry, n_entries - 1)
 
     # Pass 1, claim: empty target slots take the largest claiming id (-1 is a no-op for the others).
     ids_flat = blocks.instance_id.reshape(-1).at[entry].max(jnp.where(claim, instance, -1), mode="drop")
     # Pass 2, add: pixels whose instance holds the target slot vote +1, displaced ones vote -1.
     won = valid & ~decay & (ids_flat[safe_entry] == instance)
-    delta = jnp.where(won, 1.0, jnp.where(decay, -1.0, 0.0))
-    w_flat = blocks.instance_weight.reshape(-1).at[entry].add(delta, mode="drop")
+    entries = [entry]
+    deltas = [jnp.where(won, 1.0, jnp.where(decay, -1.0, 0.0))]
+    lowered = [decay]
+    if contrary_weight > 0.0 and detected is not None:
+        # Contrary votes: a slot whose instance was detected in this frame loses `contrary_weight` for each
+        # pixel that sees its voxel outside that detection (neutral pixels, inside a mask but cut by its
+        # depth filter, say nothing).
+        k = detected.shape[0]
+        speaks = seen if neutral is None else seen & ~jnp.asarray(neutral, bool).reshape(-1)
+        for s in range(num_slots):
+            against = speaks & (ids[s] >= 0) & (ids[s] != instance) & detected[jnp.clip(ids[s], 0, k - 1)]
+            entries.append(jnp.where(against, base + s, n_entries))
+            deltas.append(jnp.where(against, -contrary_weight, 0.0))
+            lowered.append(against)
+    entries, lowered = jnp.concatenate(entries), jnp.concatenate(lowered)
+    w_flat = blocks.instance_weight.reshape(-1).at[entries].add(jnp.concatenate(deltas), mode="drop")
     # Slots voted down to zero are emptied.
-    cleared_entry = jnp.where(decay & (w_flat[safe_entry] <= 0.0), entry, n_entries)
+    cleared_entry = jnp.where(lowered & (w_flat[jnp.minimum(entries, n_entries - 1)] <= 0.0), entries, n_entries)
     ids_flat = ids_flat.at[cleared_entry].set(-1, mode="drop")
     w_flat = w_flat.at[cleared_entry].set(0.0, mode="drop")
     return blocks._replace(
@@ -219,24 +236,30 @@ def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: Map
     )
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig) -> VoxelBlocks:
+@functools.partial(jax.jit, static_argnames=("config", "contrary_weight"))
+def apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig, detected=None, neutral=None,
+                        contrary_weight: float = 0.0) -> VoxelBlocks:
     """Apply one frame's instance votes given explicit voxel addresses (the core of `integrate_instances`).
 
     Args:
       blocks: the pool.
       slot: int32 `(N,)` pool slot of each vote's voxel (-1 = drop the vote).
       voxel: int32 `(N,)` voxel index inside the block, in `[0, V)`.
-      instance: int32 `(N,)` instance id of each vote (-1 = drop).
+      instance: int32 `(N,)` instance id of each vote (-1 = no instance: the pixel can still vote against).
       config: static.
+      detected: bool `(K,)` instances detected in this frame (contrary votes only concern them); None: none.
+      neutral: bool `(N,)` votes that say nothing against other instances (None: all speak).
+      contrary_weight: static; weight of a contrary vote (0 disables them: the plain slot rule).
 
     Returns:
-      The pool after the slot update rule of the module docstring (4 scatters of N updates).
+      The pool after the slot update rule of the module docstring (scatters of N, or N * (S + 1) updates
+      with contrary votes).
     """
-    return _apply_instance_hits(blocks, slot, voxel, instance, config)
+    return _apply_instance_hits(blocks, slot, voxel, instance, config, detected, neutral, contrary_weight)
 
 
-def _integrate_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig):
+def _integrate_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig,
+                         detected=None, neutral=None, contrary_weight: float = 0.0):
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     depth = jnp.asarray(depth, jnp.float32)
     pixel_instance = jnp.asarray(pixel_instance, jnp.int32)
@@ -244,12 +267,14 @@ def _integrate_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
         raise ValueError(f"pixel_instance has shape {pixel_instance.shape}, expected {config.subsampled_shape}")
     ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, 0.0)
     slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
-    return _apply_instance_hits(blocks, jnp.where(ok, slot, -1), v, pixel_instance, config)
+    return _apply_instance_hits(blocks, jnp.where(ok, slot, -1), v, pixel_instance, config, detected, neutral,
+                                contrary_weight)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(jax.jit, static_argnames=("config", "contrary_weight"))
 def integrate_instances(
-    blocks: VoxelBlocks, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig
+    blocks: VoxelBlocks, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig, detected=None,
+    neutral=None, contrary_weight: float = 0.0,
 ) -> VoxelBlocks:
     """Vote each subsampled pixel's instance into its surface voxel.
 
@@ -261,11 +286,15 @@ def integrate_instances(
       pixel_instance: int32 `(Hs, Ws)` instance id per subsampled pixel (`mask[::stride, ::stride]`),
         -1 for none.
       config: static.
+      detected: bool `(K,)` instances detected in this frame; their slots take contrary votes.
+      neutral: bool `(Hs, Ws)` pixels that cast no contrary vote (inside a mask, cut by its depth filter).
+      contrary_weight: static; weight of one contrary vote (0: none, the plain slot rule).
 
     Returns:
-      The pool after the slot update rule of the module docstring (scatters bounded by `Hs * Ws`).
+      The pool after the slot update rule of the module docstring (scatters bounded by `Hs * Ws * (S + 1)`).
     """
-    return _integrate_instances(blocks, depth, T_world_camera, intrinsics, pixel_instance, config)
+    return _integrate_instances(blocks, depth, T_world_camera, intrinsics, pixel_instance, config, detected,
+                                neutral, contrary_weight)
 
 
 # --------------------------------------------------------------------------------------------------

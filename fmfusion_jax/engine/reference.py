@@ -199,36 +199,48 @@ def reference_pixel_instances(grid: DenseGrid, depth, T_world_camera, intrinsics
     return out
 
 
-def reference_apply_hits(grid: DenseGrid, voxels, instances) -> DenseGrid:
+def reference_apply_hits(grid: DenseGrid, voxels, instances, detected=None, neutral=None,
+                         contrary_weight: float = 0.0) -> DenseGrid:
     """The slot update rule of `instance_volume` for explicit votes (global voxel, instance).
 
     `voxels` int `(N, 3)` global voxel coordinates (votes in unallocated voxels are dropped),
-    `instances` int `(N,)` (-1 = no vote). Modifies and returns `grid`.
+    `instances` int `(N,)` (-1 = no instance). With `contrary_weight > 0`, every vote on an allocated
+    voxel that is not `neutral` also takes `contrary_weight` from each slot whose instance is in
+    `detected` (a set of ids) and is not the vote's own. Modifies and returns `grid`.
     """
     before_ids = grid.instance_id.copy()
     before_w = grid.instance_weight.copy()
+    detected = set() if detected is None else set(int(i) for i in detected)
+    neutral = np.zeros(len(instances), bool) if neutral is None else np.asarray(neutral, bool)
     claims: dict[tuple, list[int]] = defaultdict(list)  # (voxel, slot) -> claiming ids
     votes: dict[tuple, float] = defaultdict(float)  # (voxel, slot) -> net weight change of matches
-    decays: dict[tuple, int] = defaultdict(int)
-    for (x, y, z), inst in zip(np.asarray(voxels).tolist(), np.asarray(instances).tolist()):
-        if inst < 0 or not grid.allocated[x, y, z]:
+    lowered: dict[tuple, float] = defaultdict(float)  # (voxel, slot) -> decays and contrary votes
+    for (x, y, z), inst, quiet in zip(np.asarray(voxels).tolist(), np.asarray(instances).tolist(), neutral):
+        if not grid.allocated[x, y, z]:
             continue
         ids = list(before_ids[x, y, z])
+        if contrary_weight > 0 and not quiet:
+            for k, other in enumerate(ids):
+                if other >= 0 and other != inst and other in detected:
+                    lowered[(x, y, z, k)] += contrary_weight
+        if inst < 0:
+            continue
         if inst in ids:
             votes[(x, y, z, ids.index(inst))] += 1
         elif -1 in ids:
             claims[(x, y, z, ids.index(-1))].append(inst)
         else:
             weakest = min(range(len(ids)), key=lambda k: (before_w[x, y, z, k], k))
-            decays[(x, y, z, weakest)] += 1
+            lowered[(x, y, z, weakest)] += 1
     for (x, y, z, k), claimants in claims.items():
         winner = max(claimants)
         grid.instance_id[x, y, z, k] = winner
         grid.instance_weight[x, y, z, k] = claimants.count(winner)
     for (x, y, z, k), n in votes.items():
         grid.instance_weight[x, y, z, k] += n
-    for (x, y, z, k), n in decays.items():
+    for (x, y, z, k), n in lowered.items():
         grid.instance_weight[x, y, z, k] -= n
+    for (x, y, z, k) in lowered:  # emptied once every vote of the frame is in
         if grid.instance_weight[x, y, z, k] <= 0:
             grid.instance_weight[x, y, z, k] = 0
             grid.instance_id[x, y, z, k] = -1
@@ -236,13 +248,16 @@ def reference_apply_hits(grid: DenseGrid, voxels, instances) -> DenseGrid:
 
 
 def reference_integrate_instances(
-    grid: DenseGrid, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig
+    grid: DenseGrid, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig, detected=None,
+    neutral=None, contrary_weight: float = 0.0,
 ) -> DenseGrid:
     """Each subsampled pixel votes its instance into its surface voxel (see `reference_apply_hits`)."""
     ok, g = subsampled_pixel_points(depth, T_world_camera, intrinsics, config, 0.0)
-    inst = np.where(ok, np.asarray(pixel_instance), -1)
-    g = np.where(ok[..., None], g, 0)
-    return reference_apply_hits(grid, g.reshape(-1, 3), inst.reshape(-1))
+    g = g.reshape(-1, 3)
+    ok = ok.reshape(-1)
+    inst = np.asarray(pixel_instance).reshape(-1)[ok]
+    quiet = None if neutral is None else np.asarray(neutral, bool).reshape(-1)[ok]
+    return reference_apply_hits(grid, g[ok], inst, detected, quiet, contrary_weight)
 
 
 def reference_overlap_counts(grid: DenseGrid, num_instances: int, inflate: bool) -> np.ndarray:

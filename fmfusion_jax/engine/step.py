@@ -53,6 +53,9 @@ class FusionConfig:
     post_merge_iou: float = 0.2
     post_merge_similarity: float = 0.1
     geometry_min_weight: float = 1.0  # global TSDF weight a voxel needs to support instances
+    # Weight of a contrary vote: a pixel that sees an instance's voxel outside the mask of that instance's
+    # detection in the same frame (0: membership by hits alone, the paper's rule). See `instance_volume`.
+    contrary_vote_weight: float = 0.0
 
 
 class FrameInputs(NamedTuple):
@@ -110,20 +113,27 @@ def fuse_detections(state: MapState, frame: FrameInputs, batch: DetectionBatch, 
     table, update = fuse_table(state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config,
                                fusion)
     blocks = integrate_instance_votes(state.blocks, frame, det_image, matches.assignment.instance_for_detection,
-                                      config)
+                                      config, fusion)
     return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
 
 
 # --------------------------------------------------------------------------------------------------
 # The stages of `fuse_detections` (pure, unjitted: traced inside it, or jitted alone by the benchmark).
 
+#: `detection_image` value of a pixel inside a mask whose depth filter dropped it: neither the detection's
+#: pixel nor evidence against other instances.
+FILTERED_PIXEL = -2
+
+
 def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig, fusion: FusionConfig) -> jax.Array:
     """int32[Hs, Ws]: the detection each subsampled pixel belongs to (-1 none), each mask's depth outliers
-    removed (mask borders that bleed onto the background would otherwise smear instances along the rays)."""
+    removed (mask borders that bleed onto the background would otherwise smear instances along the rays);
+    removed pixels are `FILTERED_PIXEL`."""
     stride = config.pixel_stride
-    det_image = detections.detection_pixel_image(batch.masks, batch.valid, stride)
-    return detections.filter_detection_depth(det_image, frame.depth[::stride, ::stride], batch.valid.shape[0],
+    raw = detections.detection_pixel_image(batch.masks, batch.valid, stride)
+    kept = detections.filter_detection_depth(raw, frame.depth[::stride, ::stride], batch.valid.shape[0],
                                              fusion.depth_low, fusion.depth_high, depth_max=config.depth_max)
+    return jnp.where((raw >= 0) & (kept < 0), FILTERED_PIXEL, kept)
 
 
 def project_instances(blocks: VoxelBlocks, frame: FrameInputs, config: MapConfig) -> jax.Array:
@@ -184,11 +194,16 @@ def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array, 
 
 
 def integrate_instance_votes(blocks: VoxelBlocks, frame: FrameInputs, det_image: jax.Array,
-                             instance_for_detection: jax.Array, config: MapConfig) -> VoxelBlocks:
+                             instance_for_detection: jax.Array, config: MapConfig, fusion: FusionConfig) -> VoxelBlocks:
     """Instance volumes: every detection pixel votes for its row (`instance_for_detection int32[N]`) in the
-    voxel it sees."""
+    voxel it sees; with `fusion.contrary_vote_weight`, every pixel also votes against the instances detected
+    in this frame whose voxel it sees outside their mask."""
     pixel_instance = association.instance_pixel_image(det_image, instance_for_detection)
-    return integrate_instances(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, pixel_instance, config)
+    k = config.instance_capacity
+    detected = jnp.zeros((k + 1,), bool).at[jnp.where(instance_for_detection >= 0, instance_for_detection, k)].set(
+        True)[:k]
+    return integrate_instances(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, pixel_instance, config,
+                               detected, det_image == FILTERED_PIXEL, fusion.contrary_vote_weight)
 
 
 def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:

@@ -29,7 +29,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from fmfusion_jax.config import PipelineConfig, load_config
+from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood, write_likelihood_csv
 from fmfusion_jax.likelihood.matching import MatchedInstances
@@ -86,7 +86,7 @@ def generated_cases(seeds: Sequence[int], root: str | Path = DEFAULT_CACHE, size
         spec = GeneratedSceneSpec(int(seed), size.num_objects, size.num_frames, size.width, size.height)
         room = generate_scene(spec.seed, num_objects=spec.num_objects).room_size
         config = demo_config(spec.num_frames, spec.width, spec.height, room_size=room)
-        every = config.detections.every * config.dataset.frame_stride
+        every = detection_frame_stride(config) * config.dataset.frame_stride
         prepared = prepare_generated(spec, root, demo_noise(spec.seed, spec.width, spec.height), every=every,
                                      progress=progress)
         cases.append(Case(prepared.name, prepared.scene_dir, prepared.detections_dir, config, True))
@@ -103,7 +103,7 @@ def real_case(scene_dir: str | Path, detections_dir: str | Path | None = None, r
     scene_dir = Path(scene_dir)
     pipeline_config = load_config(config)
     if detections_dir is None:
-        every = pipeline_config.detections.every * pipeline_config.dataset.frame_stride
+        every = detection_frame_stride(pipeline_config) * pipeline_config.dataset.frame_stride
         detections_dir = prepare_real(scene_dir, root, NoiseModel.preset("default", seed=0), every=every,
                                       progress=progress).detections_dir
     elif not Path(detections_dir).is_dir():
