@@ -80,6 +80,8 @@ class RefinementConfig:
     geometry_fusion_every: int = 20  # detection frames (paper: 200 frames at every 10th: 20; SceneNN 60)
     remove_missed: int = 5          # remove instances missed this often while in view ...
     remove_min_voxels: int = 500    # ... when smaller than this many voxels (SceneNN 8 / 2000)
+    reunite_min_frames: int = 2     # reunite b with a once a's detections covered b this often and at least
+                                    # as often as b was detected itself, whatever the labels (0: off)
 
 
 @dataclasses.dataclass
@@ -237,6 +239,7 @@ def validate_config(config: PipelineConfig) -> None:
          "detections.min_translation and min_rotation must be >= 0"),
         (config.instances.capacity >= 2 and config.instances.voxel_slots >= 1, "instance capacities too small"),
         (config.instances.contrary_vote_weight >= 0, "instances.contrary_vote_weight must be >= 0"),
+        (config.refinement.reunite_min_frames >= 0, "refinement.reunite_min_frames must be >= 0"),
         (config.tsdf.block_capacity >= 2 and config.tsdf.max_touched_blocks >= 1, "block capacities too small"),
     ]
     for ok, message in checks:

@@ -56,6 +56,7 @@ def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
         remove_min_voxels=config.refinement.remove_min_voxels, post_merge_iou=config.export.post_merge_iou,
         post_merge_similarity=config.export.post_merge_similarity,
         contrary_vote_weight=config.instances.contrary_vote_weight,
+        reunite_min_frames=config.refinement.reunite_min_frames,
     )
 
 

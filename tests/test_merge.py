@@ -249,3 +249,80 @@ def test_merge_step_compiles_once():
     for seed in range(1, 4):
         calls(seed)
     assert (M.merge_groups._cache_size(), M.merge_instance_table._cache_size()) == before
+
+
+# --------------------------------------------------------------------------------------------------
+# Reuniting fragments: pair counts of covered instances.
+
+def reference_reunion_pairs(covered, observations, valid, min_frames):
+    """Plain loops: a and b reunite when either covered the other often enough."""
+    k = len(valid)
+    out = np.zeros((k, k), bool)
+    if min_frames <= 0:
+        return out
+    for a in range(k):
+        for b in range(k):
+            if a == b or not (valid[a] and valid[b]):
+                continue
+            ab = covered[a, b] >= max(min_frames, observations[b])
+            ba = covered[b, a] >= max(min_frames, observations[a])
+            out[a, b] = ab or ba
+    return out
+
+
+def reference_fold(counts, new_id):
+    k = len(new_id)
+    out = np.zeros_like(counts)
+    for a in range(k):
+        for b in range(k):
+            if new_id[a] >= 0 and new_id[b] >= 0 and new_id[a] != new_id[b]:
+                out[new_id[a], new_id[b]] += counts[a, b]
+    return out
+
+
+@CHECK
+@given(seed=seeds, min_frames=st.integers(0, 4))
+def test_reunion_pairs_match_reference(seed, min_frames):
+    rng = np.random.default_rng(seed)
+    covered = rng.integers(0, 6, (K, K)).astype(np.int32)
+    observations = rng.integers(0, 6, K).astype(np.int32)
+    valid = rng.random(K) < 0.8
+    got = np.asarray(M.reunion_pairs(covered, observations, valid, min_frames))
+    assert np.array_equal(got, reference_reunion_pairs(covered, observations, valid, min_frames))
+    assert np.array_equal(got, got.T) and not np.any(np.diag(got))
+
+
+@CHECK
+@given(seed=seeds)
+def test_fold_pair_counts_match_reference_and_keep_the_invariant(seed):
+    """Counts follow their rows into the representatives; dropped rows and the diagonal end at zero."""
+    rng = np.random.default_rng(seed)
+    rows = random_rows(rng)
+    dist, overlap, voxel_count, _ = random_instances(rng)
+    rows = rows._replace(voxel_count=voxel_count)
+    pairs = np.asarray(M.merge_pairs(dist @ dist.T, overlap, voxel_count, rows.valid, 0.15, 0.4))
+    merged = M.merge_instance_table(rows, M.merge_groups(pairs, rows.valid, voxel_count))
+    new_id = np.asarray(merged.new_id)
+    counts = rng.integers(0, 5, (K, K)).astype(np.int32)
+    counts[~np.asarray(rows.valid)] = 0
+    counts[:, ~np.asarray(rows.valid)] = 0
+    np.fill_diagonal(counts, 0)
+    got = np.asarray(M.fold_pair_counts(counts, merged.new_id, rows.valid))
+    assert np.array_equal(got, reference_fold(counts, new_id))
+    dead = ~np.asarray(merged.rows.valid)
+    assert not got[dead].any() and not got[:, dead].any()
+    assert got.sum() <= counts.sum()
+
+
+def test_a_fragment_covered_by_the_whole_object_reunites_a_neighbour_does_not():
+    """Instance 1 (a part) lay in instance 0's masks 3 times and was detected alone once: it reunites with 0,
+    whatever its labels. Instance 2 (a chair that a merged mask sometimes swallows with its table 0) was
+    covered 2 times but detected alone 6 times: it stays."""
+    covered = np.zeros((4, 4), np.int32)
+    covered[0, 1], covered[0, 2] = 3, 2
+    observations = np.array([8, 1, 6, 3], np.int32)
+    valid = np.array([True, True, True, True])
+    pairs = np.asarray(M.reunion_pairs(covered, observations, valid, 2))
+    assert pairs[0, 1] and pairs[1, 0]
+    assert not pairs[0, 2] and not pairs[2, 0] and not pairs[0, 3]
+    assert not np.asarray(M.reunion_pairs(covered, observations, valid, 0)).any()

@@ -300,3 +300,25 @@ def test_a_due_frame_without_detections_keeps_the_schedule_due():
 def test_fixed_stride_schedule_is_the_papers():
     config = load_config("scannet", ["detections.schedule=every", "detections.every=10"])
     assert _due_positions(_walk(35, 1.0, 30.0), config) == [0, 10, 20, 30]
+
+
+def test_count_covered_counts_candidates_mostly_inside_another_instances_detection():
+    from fmfusion_jax.engine import association
+
+    k = 5
+    intersection = np.array([[40, 30, 2, 0, 9], [0, 0, 0, 20, 0]], np.int32)  # detections x instances
+    inst_area = np.array([50, 40, 10, 25, 10], np.int32)
+    counts = association.AssociationCounts(intersection, np.array([80, 30], np.int32), inst_area)
+    assignment = association.Assignment(np.array([0, 3], np.int32), np.zeros(2, bool), np.zeros(k, bool),
+                                        np.ones(k, bool), np.int32(0))
+    matches = step.Matches(counts, np.ones(2, bool), assignment)
+    candidates = np.array([False, True, True, False, True])  # in view, not detected: 1, 2, 4
+    got = np.asarray(step.count_covered(np.zeros((k, k), np.int32), matches, np.array([True, True]),
+                                        candidates, 0.5))
+    expected = np.zeros((k, k), np.int32)
+    expected[0, 1] = 1  # 30 / 40 of instance 1 inside detection 0 (fused into 0); 2: 2/10; 4: 9/10 -> also
+    expected[0, 4] = 1
+    assert np.array_equal(got, expected)
+    not_fused = np.asarray(step.count_covered(np.zeros((k, k), np.int32), matches, np.array([False, True]),
+                                              candidates, 0.5))
+    assert not not_fused.any()

@@ -79,6 +79,36 @@ def post_merge_pairs(similarity: jax.Array, overlap: jax.Array, voxel_count: jax
 
 
 @jax.jit
+def reunion_pairs(covered: jax.Array, observations: jax.Array, valid: jax.Array, min_frames) -> jax.Array:
+    """`(K, K)` symmetric bool: fragments to reunite, whatever their labels.
+
+    `covered[a, b]` counts the detection frames in which b (in view, not detected itself) lay mostly inside
+    a detection fused into a. A pair joins when b was covered at least `min_frames` times and at least as
+    often as it was detected on its own (`observations[b]`): the detector keeps seeing a and b as one
+    object. A neighbour that a merged mask (a chair with its table) swallows now and then is detected on
+    its own more often, and stays apart. `min_frames <= 0` turns the test off.
+    """
+    directed = (covered >= jnp.maximum(min_frames, observations[None, :])) & (min_frames > 0)
+    return _pair_mask(valid) & (directed | directed.T)
+
+
+@jax.jit
+def fold_pair_counts(counts: jax.Array, new_id: jax.Array, valid: jax.Array) -> jax.Array:
+    """`(K, K)` pair counts after a merge or removal: rows and columns summed into each row's `new_id`
+    (-1: dropped), the diagonal cleared. Skipped (one test) when no valid row changed its id."""
+    k = counts.shape[0]
+    changed = jnp.any(valid & (new_id != jnp.arange(k, dtype=new_id.dtype)))
+
+    def fold():
+        seg = jnp.where(new_id >= 0, new_id, k)
+        rows = jax.ops.segment_sum(counts, seg, num_segments=k + 1)[:k]
+        folded = jax.ops.segment_sum(rows.T, seg, num_segments=k + 1)[:k].T
+        return jnp.where(jnp.eye(k, dtype=bool), 0, folded).astype(counts.dtype)
+
+    return jax.lax.cond(changed, fold, lambda: counts)
+
+
+@jax.jit
 def merge_groups(pairs: jax.Array, valid: jax.Array, voxel_count: jax.Array) -> jax.Array:
     """`(K,)` int32 representative of each instance's group (connected component of `pairs`); -1 if invalid.
 

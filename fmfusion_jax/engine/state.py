@@ -60,6 +60,10 @@ class InstanceTable(NamedTuple):
     voxel_count: jax.Array  # int32[K]: voxels holding the instance (as of the last merge step)
     created_frame: jax.Array  # int32[K]: frame index of creation
     last_seen_frame: jax.Array  # int32[K]: frame index of the last association
+    # int32[K, K]: covered[a, b] = detection frames in which instance b, in view and not detected itself,
+    # was mostly inside the mask of a detection fused into a (the evidence that reunites fragments);
+    # zero in the rows and columns of invalid instances
+    covered: jax.Array
     overflow: jax.Array  # int32[]: detections that found no free row (cumulative)
 
 
@@ -142,6 +146,7 @@ def init_instance_table(config: MapConfig) -> InstanceTable:
         voxel_count=zeros_k(),
         created_frame=zeros_k(),
         last_seen_frame=zeros_k(),
+        covered=jnp.zeros((k, k), jnp.int32),
         overflow=jnp.zeros((), jnp.int32),
     )
 

@@ -56,6 +56,9 @@ class FusionConfig:
     # Weight of a contrary vote: a pixel that sees an instance's voxel outside the mask of that instance's
     # detection in the same frame (0: membership by hits alone, the paper's rule). See `instance_volume`.
     contrary_vote_weight: float = 0.0
+    # Reunite instance b with a when b was covered by a's detections in at least this many detection frames
+    # and in at least as many as b was detected itself (0: off, the paper's merge tests alone).
+    reunite_min_frames: int = 0
 
 
 class FrameInputs(NamedTuple):
@@ -189,8 +192,23 @@ def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array, 
         label_evidence=evidence, open_label_histogram=histogram, observations=observations,
         missed=maintenance.update_missed(rows.missed, table.valid, in_view, was_matched),
         last_seen_frame=maintenance.mark_seen(rows.last_seen_frame, was_matched, frame_index))
-    table = table._replace(**rows._asdict(), overflow=table.overflow + assignment.overflow)
+    covered = count_covered(table.covered, matches, fused_ok, in_view & ~was_matched, fusion.association_threshold)
+    table = table._replace(**rows._asdict(), covered=covered, overflow=table.overflow + assignment.overflow)
     return table, TableUpdate(fused_ok, in_view)
+
+
+def count_covered(covered: jax.Array, matches: Matches, fused: jax.Array, candidates: jax.Array,
+                  threshold: float) -> jax.Array:
+    """`covered int32[K, K]` plus this frame: +1 at (a, b) when more than `threshold` of instance b's projection
+    lies in the mask of a detection fused into a (`fused bool[N]`), b a `candidate` (`bool[K]`: in view, not
+    detected itself) other than a. One row scatter of the N detections."""
+    counts = matches.counts
+    k = covered.shape[0]
+    inst_for_det = matches.assignment.instance_for_detection
+    area = counts.inst_area.astype(jnp.float32)[None, :]
+    share = counts.intersection.astype(jnp.float32) / jnp.where(area > 0, area, 1.0)
+    cover = (share > threshold) & candidates[None, :] & (jnp.arange(k)[None, :] != inst_for_det[:, None])
+    return jnp.asarray(covered).at[jnp.where(fused, inst_for_det, k)].add(cover.astype(covered.dtype), mode="drop")
 
 
 def integrate_instance_votes(blocks: VoxelBlocks, frame: FrameInputs, det_image: jax.Array,
@@ -252,6 +270,7 @@ class _MergeParams(NamedTuple):
     remove_min_voxels: jax.Array  # int32[]
     similarity: jax.Array  # float32[]: semantic similarity threshold
     overlap: jax.Array  # float32[]: overlap ratio (online) or 3D IoU (final) threshold
+    reunite: jax.Array  # int32[]: `FusionConfig.reunite_min_frames` (0: off)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "label_mode"), donate_argnames=("state",))
@@ -296,11 +315,13 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig,
     similarity = merge.semantic_similarity(label_fusion.class_distribution(rows.label_evidence, label_mode))
     test = (similarity, overlap, rows.voxel_count, rows.valid, params.similarity, params.overlap)
     pairs = jax.lax.cond(final, merge.post_merge_pairs, merge.merge_pairs, *test)
+    pairs = pairs | merge.reunion_pairs(state.instances.covered, rows.observations, rows.valid, params.reunite)
     representative = merge.merge_groups(pairs, rows.valid, rows.voxel_count)
     merged = merge.merge_instance_table(rows, representative, label_mode)
     # merged.new_id is -1 for the removed rows too: one renaming applies the removal and the merge
     blocks, voxel_count = _apply_new_ids(blocks, census, merged.new_id, config)
-    table = state.instances._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict())
+    covered = merge.fold_pair_counts(state.instances.covered, merged.new_id, state.instances.valid)
+    table = state.instances._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered)
     stats = RefineStats(removed=jnp.sum(remove).astype(jnp.int32),
                         merged=(jnp.sum(rows.valid) - jnp.sum(table.valid)).astype(jnp.int32),
                         dropped_cells=census.dropped_cells + overfull)
@@ -320,7 +341,8 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
     """
     params = _MergeParams(final=np.bool_(False), remove_missed=np.int32(fusion.remove_missed),
                           remove_min_voxels=np.int32(fusion.remove_min_voxels),
-                          similarity=np.float32(fusion.merge_similarity), overlap=np.float32(fusion.merge_overlap))
+                          similarity=np.float32(fusion.merge_similarity), overlap=np.float32(fusion.merge_overlap),
+                          reunite=np.int32(fusion.reunite_min_frames))
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
 
 
@@ -345,7 +367,7 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
     state = fuse_geometry(state, config, fusion)
     params = _MergeParams(final=np.bool_(True), remove_missed=np.int32(np.iinfo(np.int32).max),
                           remove_min_voxels=np.int32(0), similarity=np.float32(fusion.post_merge_similarity),
-                          overlap=np.float32(fusion.post_merge_iou))
+                          overlap=np.float32(fusion.post_merge_iou), reunite=np.int32(fusion.reunite_min_frames))
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
 
 
