@@ -90,6 +90,8 @@ class ExportConfig:
     post_merge_iou: float = 0.2     # post-processing merge: 3D IoU above this ...
     post_merge_similarity: float = 0.1  # ... and semantic similarity above this
     min_points: int = 200           # instances with fewer points are dropped
+    support_observations: float = 3.0  # confidence = class probability x (1 - exp(-observations / this)),
+                                    # so one-off instances rank low (0: class probability alone)
     transfer_radius: float = 0.08   # m; instance labels to mesh vertices by radius search
     shower_curtain_radius: float = 2.0  # m; a curtain this close to a toilet/bathtub is a shower curtain
 

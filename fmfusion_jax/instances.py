@@ -25,6 +25,8 @@ class MapInstance:
       points: `(P, 3)` float32 world points (voxel centres) of the instance.
       observations: how many detections were fused into it.
       open_label_histogram: `(O,)` accumulated open-set label scores.
+      support: in [0, 1], how well the detections support the instance's existence (`observation_support`);
+        1 when not known.
     """
 
     instance_id: int
@@ -32,6 +34,7 @@ class MapInstance:
     points: np.ndarray
     observations: int
     open_label_histogram: np.ndarray
+    support: float = 1.0
 
     @property
     def class_index(self) -> int:
@@ -39,7 +42,16 @@ class MapInstance:
 
     @property
     def confidence(self) -> float:
-        return float(np.max(self.distribution))
+        """The class probability times the support: the benchmark ranks by it within a class."""
+        return float(np.max(self.distribution)) * float(self.support)
+
+
+def observation_support(observations: int, scale: float) -> float:
+    """`1 - exp(-observations / scale)`: an instance seen in one detection frame (a fragment, a false blob, a
+    one-off mislabel) ranks below one that the detector found again and again. `scale <= 0`: 1."""
+    if scale <= 0:
+        return 1.0
+    return float(1.0 - np.exp(-max(int(observations), 0) / scale))
 
 
 def drop_small_instances(instances: list[MapInstance], min_points: int) -> list[MapInstance]:
@@ -87,6 +99,7 @@ def merge_same_class(instances: list[MapInstance], class_index: int) -> list[Map
         points=np.concatenate([m.points for m in members]),
         observations=sum(m.observations for m in members),
         open_label_histogram=np.sum([m.open_label_histogram for m in members], axis=0),
+        support=max(m.support for m in members),
     )
     return [inst for inst in instances if inst.class_index != class_index] + [merged]
 

@@ -24,7 +24,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import pack_detections
 from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.instances import MapInstance, postprocess_instances
+from fmfusion_jax.instances import MapInstance, observation_support, postprocess_instances
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
@@ -299,7 +299,8 @@ def extract_map_instances(result: FusionResult, label_sets: LabelSets | None = N
     instances = [
         MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[k], np.float32),
                     observations=int(table.observations[k]),
-                    open_label_histogram=np.asarray(table.open_label_histogram[k]))
+                    open_label_histogram=np.asarray(table.open_label_histogram[k]),
+                    support=observation_support(int(table.observations[k]), result.config.export.support_observations))
         for k in np.flatnonzero(np.asarray(table.valid)) if k in points
     ]
     if postprocess:
