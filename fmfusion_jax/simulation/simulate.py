@@ -7,16 +7,22 @@ scene frame by frame (`render.GroundTruthRenderer`), simulates, and writes the d
 authors' file format, plus a `simulation.json` recording the parameters.
 
 How one frame is made (each step draws from its own random stream spawned from the frame's generator,
-so turning one failure mode off leaves the draws of the others unchanged):
+so turning one failure mode off leaves the draws of the others unchanged; the failure modes of the noise
+zoo draw from further streams, only when on, so that `clean`/`default` frames are unchanged by them):
 1. objects: ground-truth instances of a closed class with at least `min_mask_pixels` pixels; adjacent
-   pairs may merge into one object (`merge_prob`);
-2. labels: each object draws its open-set labels and scores from its class's likelihood column;
+   pairs may merge into one object (`merge_prob`), an object may absorb a touching neighbour of any kind
+   (`merge_neighbor_prob`), and non-target objects may be taken for a class (`confuser_prob`);
+2. labels: each object draws its open-set labels and scores from its class's likelihood column (the
+   detector's own, perturbed one with `likelihood_perturbation`), with consistent mislabels and extra
+   confusions the published matrix lacks; false blobs on walls and floors (`blob_rate`);
 3. tagger: the labels present in the image form the tags, each missed with `missed_tag_prob`; the
    prompt is the tags plus, with prompt augmentation, the labels detected in the recent frames;
 4. detector: an object is missed (`miss_prob`, more when small); labels not in the prompt are lost and an
    object left without a label above the box threshold is relabelled with a prompt label or dropped;
-5. masks: partial segmentation or a split into two detections, then border noise;
-6. false detections on background objects or blobs, labelled with random prompt labels;
+5. masks: partial segmentation (wavy, straight or occluder cuts; large objects more) or a split into two
+   detections, bleeding onto the background or erosion, then border noise;
+6. false detections on background objects or blobs, labelled with random prompt labels; scores
+   miscalibrated (`score_miscalibration`);
 7. overlaps resolved (the smaller mask wins, as the authors' PNG mask format holds one detection per
    pixel), small and image-filling masks dropped, boxes from the masks.
 """
@@ -168,7 +174,8 @@ def wrong_labels(columns: np.ndarray) -> np.ndarray:
     return columns.argmax(axis=1)[:, None] != np.arange(columns.shape[1])[None, :]
 
 
-def consistent_mislabels(columns: np.ndarray, prob: float, seed: int, lookalikes: Mapping[int, list[int]]) -> dict[int, int]:
+def consistent_mislabels(columns: np.ndarray, prob: float, seed: int,
+                         lookalikes: Mapping[int, list[int]]) -> dict[int, int]:
     """Class -> the one wrong open label it is always named by, for the classes (per seed) drawn with `prob`.
 
     Wrong labels are weighted by their published probability, look-alikes (`EXTRA_CONFUSIONS`) get
