@@ -6,7 +6,8 @@ import argparse
 import collections
 from pathlib import Path
 
-PRESETS = ("clean", "default", "hard")
+# Kept equal to fmfusion_jax.simulation.noise.PRESETS (a test checks) without importing it at start-up.
+PRESETS = ("clean", "default", "hard", "label_model", "partial", "merged", "border", "confusers")
 
 
 def register(subparsers) -> None:
@@ -26,10 +27,14 @@ def register(subparsers) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--noise-preset", default="default", choices=PRESETS,
                         help="clean: ground-truth masks with each class's most likely label; default: the "
-                             "documented noise; hard: more of every failure mode (default: default)")
+                             "documented noise; hard: more of every failure mode; label_model, partial, merged, "
+                             "border, confusers: a noise family of the zoo at severity 1 (misspecified labels, "
+                             "partial masks, masks merged with a neighbour, borders bleeding onto floor and "
+                             "wall, confusers and false blobs with miscalibrated scores), on top of default "
+                             "(default: default)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="override one noise parameter, e.g. --set missed_tag_prob=0.4 (repeatable; value "
-                             "parsed as YAML)")
+                        help="override one noise parameter, e.g. --set missed_tag_prob=0.4 or, with "
+                             "--noise-preset border, --set bleed_px=8 (repeatable; value parsed as YAML)")
     parser.add_argument("--no-prompt-augmentation", action="store_true",
                         help="leave missed tags uncorrected (ablation B)")
     parser.add_argument("--stride", type=int, default=1, help="read every N-th frame of the sequence (default 1)")

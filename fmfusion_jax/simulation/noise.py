@@ -5,7 +5,10 @@ described in the FM-Fusion paper (false label measurements, missed tags, inconsi
 viewpoints, missed and false detections). Setting every failure-mode parameter to zero (the `clean`
 preset) gives detections whose masks are exactly the ground-truth instance masks, each labelled with its
 class's most likely open-set label. `docs/simulated-detections.md` explains each parameter and its
-default.
+default. The failure modes beyond the paper's (a misspecified label model, large partial masks, merges with
+any neighbour, borders bleeding onto the floor, confusers, miscalibrated scores) are zero in `clean` and
+`default`; the noise families of `fmfusion_jax.simulation.zoo` turn them on, and `NoiseModel.preset`
+accepts the family names too.
 
 The mask functions here work on `(H, W)` bool masks and touch only a padded crop around the mask, so
 their cost is proportional to the object's size, not the image's.
@@ -22,7 +25,18 @@ import numpy as np
 
 from fmfusion_jax.errors import UserError
 
-PRESETS = ("clean", "default", "hard")
+#: The noise families of `fmfusion_jax.simulation.zoo` beyond `default` (also accepted as presets).
+FAMILY_PRESETS = ("label_model", "partial", "merged", "border", "confusers")
+PRESETS = ("clean", "default", "hard", *FAMILY_PRESETS)
+#: Parameters that must lie in [0, 1].
+PROBABILITIES = ("label_confusion", "label_persistence", "extra_label_prob", "missed_tag_prob", "relabel_prob",
+                 "extra_confusion_prob", "consistent_mislabel_prob",
+                 "score_miscalibration", "partial_prob", "split_prob", "merge_prob", "partial_large_prob",
+                 "partial_straight_share", "partial_occluder_share", "merge_neighbor_prob", "bleed_prob",
+                 "erode_prob", "miss_prob", "small_object_miss_prob", "confuser_prob")
+#: Groups of probabilities of mutually exclusive outcomes: each group must sum to at most 1.
+EXCLUSIVE_GROUPS = (("partial_prob", "split_prob"), ("partial_straight_share", "partial_occluder_share"),
+                    ("bleed_prob", "erode_prob"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +52,17 @@ class NoiseModel:
       max_labels: most labels one detection carries.
       score_mean, score_std: main-label score ~ N(mean, std), kept in [box_threshold, 0.95]; further
         labels score a random 50-95% of it and are dropped below `text_threshold`.
+    Misspecified label model (real detectors do not follow the published matrix; the fusion still uses it):
+      likelihood_perturbation: sigma of log-normal factors on every entry of the likelihood the labels
+        are drawn from (one perturbed matrix per seed: one "detector"), plus `0.05 * sigma` of mass moved
+        onto a few labels each column lacks; columns re-normalized.
+      extra_confusion_prob: probability that a detection of a class of `simulate.EXTRA_CONFUSIONS` takes
+        one of the labels listed there (confusions the published matrix lacks) as its main label.
+      consistent_mislabel_prob: probability, per seed and class, that the class is always named by one
+        fixed wrong open-set label (one that the published matrix ascribes to another class) at a normal
+        score, in every view and instance.
+      score_miscalibration: share in [0, 1] of every label score replaced by a uniform draw in
+        [box_threshold, 0.8], so that wrong labels and false detections score like right ones.
     Tagger (RAM) and prompt:
       missed_tag_prob: probability that the tagger misses a label present in the image in one frame;
         a detection none of whose labels reaches the prompt is relabelled or dropped.
@@ -53,6 +78,19 @@ class NoiseModel:
       merge_prob: probability per pair of adjacent visible objects that they come as one mask.
       border_offset_px: std of a per-mask erosion (<0) / dilation (>0) of the border, pixels.
       border_jitter_px: amplitude of a smooth random wobble of the border, pixels.
+      partial_large_prob: extra probability that an object of at least `large_object_pixels` pixels is
+        segmented only in part (occluded, or one part of it): 30-80% kept.
+      large_object_pixels: least visible size of an object exposed to `partial_large_prob`.
+      partial_straight_share, partial_occluder_share: shares of the partial cuts that are straight
+        (near horizontal or vertical: seat vs back, half a cabinet) and that remove an occluder-shaped
+        region (a rectangle or ellipse); the rest are wavy cuts.
+      merge_neighbor_prob: probability that an object's mask also covers one touching neighbour of any
+        kind (targets and non-target objects, never a wall or floor) at most 3x its size, keeping the
+        object's label.
+      bleed_prob, bleed_px: probability that a mask spreads by ~N(bleed_px, bleed_px / 3) pixels, further
+        downwards, onto the pixels behind it only (wall, floor, non-target objects, nothing); walls and
+        floors themselves do not bleed.
+      erode_prob, erode_px: probability that a mask shrinks by ~N(erode_px, erode_px / 3) pixels.
     Detections:
       miss_prob: probability that a visible object is not detected at all.
       small_object_miss_prob: extra miss probability at `min_mask_pixels`, falling linearly to 0 at
@@ -61,6 +99,10 @@ class NoiseModel:
       min_mask_pixels: masks smaller than this are never output (objects seen smaller are dropped).
       false_positive_rate: mean number (Poisson) of false detections per frame: an unannotated or
         non-target object, or a blob on the background, labelled with a random prompt label, low score.
+      confuser_prob: probability, per seed and non-target object, that the object is taken for one of the
+        closed classes: detected in every view with one fixed open-set label of that class, normal score.
+      blob_rate: mean number (Poisson) per frame of false blobs on a wall or the floor, labelled with a
+        label such surfaces are mistaken for, normal score.
     Detector thresholds (respected by every output):
       box_threshold: least main score of a detection (GroundingDINO box threshold).
       text_threshold: least score of any label of a detection.
@@ -77,6 +119,11 @@ class NoiseModel:
     max_labels: int = 3
     score_mean: float = 0.47
     score_std: float = 0.07
+    # misspecified label model and scores
+    likelihood_perturbation: float = 0.0
+    extra_confusion_prob: float = 0.0
+    consistent_mislabel_prob: float = 0.0
+    score_miscalibration: float = 0.0
     # tagger and prompt
     missed_tag_prob: float = 0.2
     prompt_augmentation: bool = True
@@ -89,12 +136,23 @@ class NoiseModel:
     merge_prob: float = 0.05
     border_offset_px: float = 1.5
     border_jitter_px: float = 2.0
+    partial_large_prob: float = 0.0
+    large_object_pixels: int = 15000
+    partial_straight_share: float = 0.0
+    partial_occluder_share: float = 0.0
+    merge_neighbor_prob: float = 0.0
+    bleed_prob: float = 0.0
+    bleed_px: float = 0.0
+    erode_prob: float = 0.0
+    erode_px: float = 0.0
     # detections
     miss_prob: float = 0.05
     small_object_miss_prob: float = 0.3
     small_object_pixels: int = 4000
     min_mask_pixels: int = 400
     false_positive_rate: float = 0.3
+    confuser_prob: float = 0.0
+    blob_rate: float = 0.0
     # detector thresholds
     box_threshold: float = 0.35
     text_threshold: float = 0.25
@@ -111,17 +169,24 @@ class NoiseModel:
                 ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
             if not ok:
                 raise UserError(f"noise parameter {field.name}={value!r} must be a {type(default).__name__}")
-        for name in ("label_confusion", "label_persistence", "extra_label_prob", "missed_tag_prob",
-                     "relabel_prob", "partial_prob", "split_prob", "merge_prob", "miss_prob",
-                     "small_object_miss_prob"):
+        for name in PROBABILITIES:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise UserError(f"noise parameter {name}={value} must be a probability in [0, 1]")
-        if self.partial_prob + self.split_prob > 1.0:
-            raise UserError(f"partial_prob + split_prob = {self.partial_prob + self.split_prob} must be <= 1")
-        for name in ("score_std", "border_offset_px", "border_jitter_px", "false_positive_rate"):
+        for group in EXCLUSIVE_GROUPS:
+            total = sum(getattr(self, name) for name in group)
+            if total > 1.0:
+                raise UserError(f"{' + '.join(group)} = {total:g} must be <= 1")
+        for name in ("score_std", "border_offset_px", "border_jitter_px", "false_positive_rate",
+                     "likelihood_perturbation", "bleed_px", "erode_px", "blob_rate"):
             if getattr(self, name) < 0:
                 raise UserError(f"noise parameter {name}={getattr(self, name)} must be >= 0")
+        # A probability without a size would silently do nothing.
+        for prob, size in (("bleed_prob", "bleed_px"), ("erode_prob", "erode_px")):
+            if getattr(self, prob) > 0 and getattr(self, size) <= 0:
+                raise UserError(f"{prob}={getattr(self, prob)} needs {size} > 0 (pixels)")
+        if self.large_object_pixels < 1:
+            raise UserError(f"large_object_pixels={self.large_object_pixels} must be >= 1")
         if self.max_labels < 1:
             raise UserError(f"max_labels={self.max_labels} must be >= 1")
         if self.min_mask_pixels < 1:
@@ -149,7 +214,13 @@ class NoiseModel:
 
     @staticmethod
     def preset(name: str, **changes: Any) -> "NoiseModel":
-        """`clean` (ground truth, best labels), `default` (the documented defaults) or `hard`."""
+        """`clean` (ground truth, best labels), `default` (the documented defaults), `hard`, or a noise
+        family of `fmfusion_jax.simulation.zoo` (`FAMILY_PRESETS`) at severity 1."""
+        if name in FAMILY_PRESETS:
+            from fmfusion_jax.simulation.zoo import family_noise  # zoo imports this module
+
+            seed = changes.pop("seed", 0)
+            return family_noise(name, 1.0, seed, **changes)
         if name == "default":
             base = NoiseModel()
         elif name == "clean":
@@ -234,18 +305,19 @@ def perturb_border(mask: np.ndarray, rng: np.random.Generator, offset_std: float
 
 
 def cut_mask(mask: np.ndarray, rng: np.random.Generator, fraction: float,
-             waviness: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+             waviness: float = 0.08, theta: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Cuts the mask along a random wavy line into a part holding `fraction` of its pixels and the rest.
 
     The line has a uniformly random direction (so either side can be the kept part) and a sinusoidal
     wobble of amplitude up to `waviness` times the object's size, like the part boundaries SAM picks.
+    `theta` (radians, the direction from the kept part to the rest) fixes the direction instead.
     """
     v, u = np.nonzero(mask)
     if v.size < 2:
         return mask.copy(), np.zeros_like(mask)
     x, y = u - u.mean(), v - v.mean()
     extent = math.sqrt(v.size)
-    theta = rng.uniform(0.0, 2.0 * math.pi)
+    theta = rng.uniform(0.0, 2.0 * math.pi) if theta is None else float(theta)
     along = x * math.cos(theta) + y * math.sin(theta)
     across = -x * math.sin(theta) + y * math.cos(theta)
     amplitude = rng.uniform(0.0, waviness) * extent
@@ -257,6 +329,87 @@ def cut_mask(mask: np.ndarray, rng: np.random.Generator, fraction: float,
     first[v[keep], u[keep]] = True
     second[v[~keep], u[~keep]] = True
     return first, second
+
+
+def straight_cut_angle(rng: np.random.Generator, tilt_deg: float = 10.0) -> float:
+    """Direction of a straight part cut: horizontal or vertical within a small tilt.
+
+    Furniture parts meet along near axis-aligned lines in the image (a chair's seat and back, the two
+    doors of a cabinet), so SAM's part masks end there rather than at a random angle.
+    """
+    return float(rng.integers(4)) * 0.5 * math.pi + math.radians(float(rng.normal(0.0, tilt_deg)))
+
+
+def occlude_mask(mask: np.ndarray, rng: np.random.Generator, fraction: float) -> np.ndarray:
+    """The mask less an occluder-shaped region (a rotated rectangle or ellipse), keeping `fraction` of it.
+
+    The occluder is centred on a random pixel of the mask and grown, at a random aspect ratio, until it
+    covers `1 - fraction` of the mask: the kept part can be a frame around a hole or pieces on either side,
+    as when a chair stands in front of a table.
+    """
+    v, u = np.nonzero(mask)
+    if v.size < 2:
+        return mask.copy()
+    centre = int(rng.integers(v.size))
+    theta = rng.uniform(0.0, math.pi)
+    aspect = rng.uniform(0.3, 1.0)
+    dx, dy = u - u[centre], v - v[centre]
+    along = dx * math.cos(theta) + dy * math.sin(theta)
+    across = (-dx * math.sin(theta) + dy * math.cos(theta)) / aspect
+    if rng.random() < 0.5:
+        reach = np.maximum(np.abs(along), np.abs(across))      # rectangle
+    else:
+        reach = np.hypot(along, across)                          # ellipse
+    removed = reach < np.quantile(reach, 1.0 - fraction) if fraction < 1.0 else np.zeros(v.size, bool)
+    out = mask.copy()
+    out[v[removed], u[removed]] = False
+    return out
+
+
+def bleed_kernel(px: float, down: float = 2.0, up: float = 0.5) -> tuple[np.ndarray, tuple[int, int]]:
+    """`cv2.dilate` kernel and anchor that spread a mask `px` sideways, `down * px` below, `up * px` above.
+
+    The shape is two half ellipses: SAM masks of objects standing on the floor leak mostly onto the floor
+    in front of and below them, less onto the wall above.
+    """
+    rx, rd, ru = max(px, 1.0), max(down * px, 1.0), max(up * px, 1.0)
+    nx, nd, nu = int(math.ceil(rx)), int(math.ceil(rd)), int(math.ceil(ru))
+    dy, dx = np.mgrid[-nd:nu + 1, -nx:nx + 1]      # offsets source - target: dy < 0 spreads downwards
+    ry = np.where(dy < 0, rd, ru)
+    kernel = ((dx / rx) ** 2 + (dy / ry) ** 2 <= 1.0).astype(np.uint8)
+    return kernel, (nx, nd)
+
+
+def bleed_mask(mask: np.ndarray, passive: np.ndarray, rng: np.random.Generator, px: float) -> np.ndarray:
+    """The mask spread by ~N(px, px / 3) pixels (twice that downwards) onto `passive` pixels only.
+
+    `passive` marks what lies behind objects (walls, floor, unannotated clutter, no ground truth): a box
+    prompt's mask bleeds onto low-contrast background, not into the neighbouring objects SAM separates.
+    """
+    bbox = mask_bbox(mask)
+    if bbox is None or px <= 0:
+        return mask.copy()
+    reach = max(float(rng.normal(px, px / 3.0)), 1.0)
+    kernel, anchor = bleed_kernel(reach)
+    rows, cols = _padded_crop(mask.shape, bbox, max(kernel.shape) + 1)
+    grown = cv2.dilate(mask[rows, cols].astype(np.uint8), kernel, anchor=anchor).astype(bool)
+    out = mask.copy()
+    out[rows, cols] |= grown & passive[rows, cols]
+    return out
+
+
+def erode_mask(mask: np.ndarray, rng: np.random.Generator, px: float) -> np.ndarray:
+    """The mask shrunk by ~N(px, px / 3) pixels (at least half a pixel): a SAM mask that stops short of
+    the object's border, common on thin or low-contrast edges."""
+    bbox = mask_bbox(mask)
+    if bbox is None or px <= 0:
+        return mask.copy()
+    depth = max(float(rng.normal(px, px / 3.0)), 0.5)
+    rows, cols = _padded_crop(mask.shape, bbox, 1)
+    inside = cv2.distanceTransform(mask[rows, cols].astype(np.uint8), cv2.DIST_L2, 3)
+    out = np.zeros_like(mask)
+    out[rows, cols] = inside > depth
+    return out
 
 
 def random_blob(shape: tuple[int, int], center: tuple[int, int], rng: np.random.Generator,

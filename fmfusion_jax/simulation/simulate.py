@@ -7,16 +7,22 @@ scene frame by frame (`render.GroundTruthRenderer`), simulates, and writes the d
 authors' file format, plus a `simulation.json` recording the parameters.
 
 How one frame is made (each step draws from its own random stream spawned from the frame's generator,
-so turning one failure mode off leaves the draws of the others unchanged):
+so turning one failure mode off leaves the draws of the others unchanged; the failure modes of the noise
+zoo draw from further streams, only when on, so that `clean`/`default` frames are unchanged by them):
 1. objects: ground-truth instances of a closed class with at least `min_mask_pixels` pixels; adjacent
-   pairs may merge into one object (`merge_prob`);
-2. labels: each object draws its open-set labels and scores from its class's likelihood column;
+   pairs may merge into one object (`merge_prob`), an object may absorb a touching neighbour of any kind
+   (`merge_neighbor_prob`), and non-target objects may be taken for a class (`confuser_prob`);
+2. labels: each object draws its open-set labels and scores from its class's likelihood column (the
+   detector's own, perturbed one with `likelihood_perturbation`), with consistent mislabels and extra
+   confusions the published matrix lacks; false blobs on walls and floors (`blob_rate`);
 3. tagger: the labels present in the image form the tags, each missed with `missed_tag_prob`; the
    prompt is the tags plus, with prompt augmentation, the labels detected in the recent frames;
 4. detector: an object is missed (`miss_prob`, more when small); labels not in the prompt are lost and an
    object left without a label above the box threshold is relabelled with a prompt label or dropped;
-5. masks: partial segmentation or a split into two detections, then border noise;
-6. false detections on background objects or blobs, labelled with random prompt labels;
+5. masks: partial segmentation (wavy, straight or occluder cuts; large objects more) or a split into two
+   detections, bleeding onto the background or erosion, then border noise;
+6. false detections on background objects or blobs, labelled with random prompt labels; scores
+   miscalibrated (`score_miscalibration`);
 7. overlaps resolved (the smaller mask wins, as the authors' PNG mask format holds one detection per
    pixel), small and image-filling masks dropped, boxes from the masks.
 """
@@ -35,7 +41,8 @@ import numpy as np
 
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
-from fmfusion_jax.simulation.noise import NoiseModel, cut_mask, mask_box, perturb_border, random_blob
+from fmfusion_jax.simulation.noise import (NoiseModel, bleed_mask, cut_mask, erode_mask, mask_box, occlude_mask,
+                                           perturb_border, random_blob, straight_cut_angle)
 from fmfusion_jax.types import FrameDetections
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -63,13 +70,56 @@ EXTRA_LABEL_MIN_PROB = 0.03
 #: Share of false detections placed on a background (non-target) object when one is visible.
 FALSE_POSITIVE_ON_OBJECT = 0.5
 
+#: Confusions real detectors make that the published statistical matrix lacks (p(label | class) < 0.03):
+#: class -> open-set labels it is taken for under `extra_confusion_prob`. Mostly look-alike pairs: a table
+#: and a kitchen counter, a cabinet and a door, a window and a picture, a sink and a toilet.
+EXTRA_CONFUSIONS: dict[str, tuple[str, ...]] = {
+    "cabinet": ("door", "fridge", "side table"),
+    "bed": ("couch",),
+    "chair": ("side table", "table"),
+    "sofa": ("bed",),
+    "table": ("kitchen counter", "dresser"),
+    "door": ("wall", "window"),
+    "window": ("picture", "door"),
+    "picture": ("window",),
+    "counter": ("cabinet", "kitchen table"),
+    "desk": ("counter top", "side table"),
+    "curtain": ("wall", "door"),
+    "refrigerator": ("door",),
+    "shower curtain": ("glass door", "window"),
+    "toilet": ("sink", "bin"),
+    "sink": ("toilet bowl", "tub"),
+    "bathtub": ("sink",),
+    "otherfurniture": ("side table",),
+}
+#: Weight added to the `EXTRA_CONFUSIONS` labels of a class when drawing its consistent mislabel, and the
+#: floor weight of every other wrong label: plausible look-alikes are preferred, any wrong label can occur.
+MISLABEL_LOOKALIKE_WEIGHT = 0.05
+MISLABEL_FLOOR_WEIGHT = 0.002
+#: Share of the unit column mass that `likelihood_perturbation` = 1 moves onto labels a column lacks, and
+#: how many such labels per column receive it.
+PERTURBATION_NEW_MASS = 0.05
+PERTURBATION_NEW_LABELS = 3
+#: Classes a confuser (a non-target object: a box, a lamp, a bag) is taken for.
+CONFUSER_CLASSES = ("cabinet", "chair", "table", "bookshelf", "picture", "desk", "otherfurniture")
+#: Labels a false blob on a wall or the floor comes with: what GroundingDINO hallucinates on flat surfaces.
+BLOB_LABELS = {"wall": ("picture", "window", "door", "shelf", "cabinet", "curtain"),
+               "floor": ("carpet", "table", "bin", "chair")}
+#: A neighbour absorbed under `merge_neighbor_prob` is at most this many times the object's size.
+NEIGHBOR_MAX_AREA_RATIO = 3.0
+#: Upper end of the uniform score that `score_miscalibration` mixes in.
+MISCALIBRATED_SCORE_MAX = 0.8
+# Tags of the seed-only streams (one detector, one set of mislabels, one set of confusers per seed).
+_PERTURBATION_STREAM, _MISLABEL_STREAM, _CONFUSER_STREAM = 6101, 6113, 6121
+
 
 @dataclasses.dataclass
 class _Object:
     instances: tuple[int, ...]   # ground-truth instances making up the object (2 when merged)
-    key: int                     # the largest one: its class and persistent label are used
+    key: int                     # the largest one (or the absorbing one): its class and persistent label are used
     class_index: int
     area: int
+    fixed_labels: dict[str, float] | None = None   # a confuser's labels (the same object in every view)
 
 
 def _instance_areas(image: np.ndarray) -> dict[int, int]:
@@ -102,6 +152,50 @@ def adjacent_pairs(image: np.ndarray, gap: int = 3) -> dict[tuple[int, int], int
     return {(int(a), int(b)): int(c) for (a, b), c in zip(unique, counts)}
 
 
+def perturb_likelihood(columns: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    """A misspecified detector's label distributions: `columns` (each summing to 1) with every entry
+    scaled by a log-normal factor exp(N(0, sigma)) and `PERTURBATION_NEW_MASS * sigma` of mass put on a few
+    labels the column lacks, re-normalized. Depends on `seed` only: one detector per seed."""
+    rng = np.random.default_rng([int(seed), _PERTURBATION_STREAM])
+    factors = np.exp(sigma * rng.standard_normal(columns.shape))
+    out = columns * factors
+    out /= out.sum(axis=0, keepdims=True)
+    for j in range(out.shape[1]):
+        lacking = np.flatnonzero(columns[:, j] == 0)
+        chosen = rng.choice(lacking, size=min(PERTURBATION_NEW_LABELS, lacking.size), replace=False)
+        if chosen.size:
+            out[chosen, j] += PERTURBATION_NEW_MASS * sigma / chosen.size
+    return out / out.sum(axis=0, keepdims=True)
+
+
+def wrong_labels(columns: np.ndarray) -> np.ndarray:
+    """`(num_open, num_classes)` bool: label `l` is wrong for class `c` when the published matrix ascribes
+    it to another class (its row's largest entry is elsewhere), so fusing it pulls towards that class."""
+    return columns.argmax(axis=1)[:, None] != np.arange(columns.shape[1])[None, :]
+
+
+def consistent_mislabels(columns: np.ndarray, prob: float, seed: int,
+                         lookalikes: Mapping[int, list[int]]) -> dict[int, int]:
+    """Class -> the one wrong open label it is always named by, for the classes (per seed) drawn with `prob`.
+
+    Wrong labels are weighted by their published probability, look-alikes (`EXTRA_CONFUSIONS`) get
+    `MISLABEL_LOOKALIKE_WEIGHT` more and any wrong label at least `MISLABEL_FLOOR_WEIGHT`. Each class draws
+    its label whatever `prob` is, so raising `prob` only adds classes.
+    """
+    wrong = wrong_labels(columns)
+    out = {}
+    for c in range(columns.shape[1]):
+        rng = np.random.default_rng([int(seed), _MISLABEL_STREAM, c])
+        weights = columns[:, c] + MISLABEL_FLOOR_WEIGHT
+        weights[lookalikes.get(c, [])] += MISLABEL_LOOKALIKE_WEIGHT
+        weights = np.where(wrong[:, c], weights, 0.0)
+        hit = rng.random() < prob
+        label = int(rng.choice(columns.shape[0], p=weights / weights.sum()))
+        if hit:
+            out[c] = label
+    return out
+
+
 class _LabelModel:
     """Draws a detection's open-set labels and scores for a true closed class."""
 
@@ -113,10 +207,19 @@ class _LabelModel:
         sums = likelihood.sum(axis=0, keepdims=True)
         if np.any(sums <= 0):
             raise ValueError("every likelihood column needs a positive entry")
-        self.columns = likelihood / sums            # p(open label | class), each column sums to 1
+        self.published = likelihood / sums          # p(open label | class), each column sums to 1
+        # The detector's own distributions: the published ones unless the label model is misspecified.
+        self.columns = (perturb_likelihood(self.published, noise.likelihood_perturbation, noise.seed)
+                        if noise.likelihood_perturbation > 0 else self.published)
         self.best = self.columns.argmax(axis=0)     # most likely open label of each class
         self.noise = noise
         self.names = label_sets.open_labels
+        index = {name: i for i, name in enumerate(self.names)}
+        self.lookalikes = {label_sets.class_names.index(c): [index[name] for name in names if name in index]
+                           for c, names in EXTRA_CONFUSIONS.items() if c in label_sets.class_names}
+        self.mislabels = (consistent_mislabels(self.published, noise.consistent_mislabel_prob, noise.seed,
+                                               self.lookalikes)
+                          if noise.consistent_mislabel_prob > 0 else {})
 
     def persistent_label(self, class_index: int, instance: int) -> int:
         """The object's own label draw: fixed for a seed and instance, the same in every frame."""
@@ -133,6 +236,7 @@ class _LabelModel:
             main = self.persistent_label(class_index, instance)
         else:
             main = fresh
+        main = self.mislabels.get(class_index, main)
         score = float(np.clip(noise.score_mean + noise.score_std * rng.standard_normal(),
                               noise.box_threshold, 0.95))
         labels = {self.names[main]: score}
@@ -148,6 +252,34 @@ class _LabelModel:
                 if secondary >= noise.text_threshold:
                     labels[self.names[int(k)]] = secondary
         return labels
+
+    def confuse(self, rng: np.random.Generator, class_index: int, labels: dict[str, float]) -> dict[str, float]:
+        """With `extra_confusion_prob`, the main label replaced by a look-alike the published matrix lacks.
+
+        Classes under a consistent mislabel keep it (that mislabel is the point: it never varies).
+        """
+        partners = self.lookalikes.get(class_index, [])
+        fires = rng.random() < self.noise.extra_confusion_prob
+        if not fires or not partners or class_index in self.mislabels:
+            return labels
+        partner = self.names[partners[int(rng.integers(len(partners)))]]
+        main, score = next(iter(labels.items()))
+        return {partner: score, **{k: v for k, v in labels.items() if k not in (main, partner)}}
+
+    def score(self, rng: np.random.Generator) -> float:
+        """A normal main-label score, as a detection of a real object gets."""
+        return float(np.clip(self.noise.score_mean + self.noise.score_std * rng.standard_normal(),
+                             self.noise.box_threshold, 0.95))
+
+    def confuser(self, instance: int, class_names: list[str]) -> tuple[bool, int, str]:
+        """Whether non-target object `instance` is a confuser (per seed and object), the class it is taken
+        for, and its fixed label (drawn from that class's published column)."""
+        rng = np.random.default_rng([int(self.noise.seed), _CONFUSER_STREAM, int(instance) & 0x7FFFFFFF])
+        hit = rng.random() < self.noise.confuser_prob
+        candidates = [class_names.index(c) for c in CONFUSER_CLASSES if c in class_names]
+        class_index = candidates[int(rng.integers(len(candidates)))]
+        label = int(rng.choice(len(self.names), p=self.published[:, class_index]))
+        return hit, class_index, self.names[label]
 
     def relabel(self, rng: np.random.Generator, class_index: int, prompt: list[str]) -> dict[str, float] | None:
         """A false label measurement: the detector assigns the object to a label of the prompt.
@@ -177,6 +309,131 @@ def _prompt_filter(labels: dict[str, float], prompt: set[str]) -> dict[str, floa
 def _round_labels(labels: Mapping[str, float]) -> dict[str, float]:
     ordered = sorted(labels.items(), key=lambda item: (-item[1], item[0]))
     return {name: round(float(score), 4) for name, score in ordered}
+
+
+def _absorb_neighbours(objects: list[_Object], areas: Mapping[int, int], pairs: Mapping[tuple[int, int], int],
+                       instance_classes: Mapping[int, int], no_merge: set[int], rng: np.random.Generator,
+                       prob: float) -> list[_Object]:
+    """`merge_neighbor_prob`: each single object, with `prob`, absorbs one touching neighbour of any kind.
+
+    The neighbour (a target or a non-target object, never a wall or floor, at most
+    `NEIGHBOR_MAX_AREA_RATIO` times the object's size, shared border >= `MERGE_MIN_BORDER`) is chosen in
+    proportion to the shared border; the mask keeps the absorbing object's label, as a box prompt on a
+    table whose mask takes the chair in front of it. An absorbed target is no object of its own any more.
+    """
+    neighbours: dict[int, list[tuple[int, int]]] = collections.defaultdict(list)
+    for (a, b), border in sorted(pairs.items()):
+        if border >= MERGE_MIN_BORDER:
+            neighbours[a].append((b, border))
+            neighbours[b].append((a, border))
+    used = {m for o in objects if len(o.instances) > 1 for m in o.instances}
+    absorbed: dict[int, int] = {}          # object key -> the neighbour it absorbs
+    for obj in objects:
+        draw = rng.random()
+        own = obj.instances[0]
+        if draw >= prob or len(obj.instances) > 1 or own in used or obj.class_index in no_merge:
+            continue
+        candidates = [(n, border) for n, border in neighbours.get(own, ())
+                      if n not in used and instance_classes.get(n) not in no_merge
+                      and areas[n] <= NEIGHBOR_MAX_AREA_RATIO * areas[own]]
+        if not candidates:
+            continue
+        weights = np.array([border for _, border in candidates], np.float64)
+        neighbour = candidates[int(rng.choice(len(candidates), p=weights / weights.sum()))][0]
+        absorbed[own] = neighbour
+        used |= {own, neighbour}
+    out = []
+    gone = set(absorbed.values())
+    for obj in objects:
+        if obj.instances[0] in gone and len(obj.instances) == 1:
+            continue
+        neighbour = absorbed.get(obj.instances[0])
+        if neighbour is not None:
+            obj = dataclasses.replace(obj, instances=(obj.instances[0], neighbour), area=obj.area + areas[neighbour])
+        out.append(obj)
+    return out
+
+
+def _confuser_objects(model: _LabelModel, areas: Mapping[int, int], instance_classes: Mapping[int, int],
+                      objects: list[_Object], noise: NoiseModel, class_names: list[str],
+                      rng: np.random.Generator) -> list[_Object]:
+    """The visible non-target objects that are confusers (per seed and object), as objects of the class
+    they are taken for, each with its fixed label at a normal score."""
+    taken = {m for o in objects for m in o.instances}
+    out = []
+    for i in sorted(areas):
+        if i in instance_classes or i in taken or areas[i] < noise.min_mask_pixels:
+            continue
+        hit, class_index, label = model.confuser(i, class_names)
+        if hit:
+            out.append(_Object((i,), i, class_index, areas[i], {label: model.score(rng)}))
+    return out
+
+
+def _blobs(image: np.ndarray, instance_classes: Mapping[int, int], class_names: list[str], model: _LabelModel,
+           rng: np.random.Generator) -> list[tuple[np.ndarray, dict[str, float]]]:
+    """`blob_rate`: false blobs on a wall or the floor, each with a label such a surface is mistaken for
+    (`BLOB_LABELS`) at a normal score, clipped to the surface they lie on."""
+    count = int(rng.poisson(model.noise.blob_rate))
+    known = set(model.names)
+    surfaces = {i: class_names[c] for i, c in instance_classes.items()
+                if 0 <= c < len(class_names) and class_names[c] in BLOB_LABELS}
+    if not count or not surfaces:
+        return []
+    pixels = np.flatnonzero(np.isin(image, list(surfaces)).ravel())
+    if pixels.size == 0:
+        return []
+    height, width = image.shape
+    max_radius = min(70.0, 0.15 * min(height, width))
+    out = []
+    for _ in range(count):
+        pixel = int(pixels[rng.integers(pixels.size)])
+        instance = int(image.flat[pixel])
+        names = [name for name in BLOB_LABELS[surfaces[instance]] if name in known]
+        label = names[int(rng.integers(len(names)))]
+        blob = random_blob(image.shape, (pixel % width, pixel // width), rng, min(15.0, max_radius / 2), max_radius)
+        out.append((blob & (image == instance), {label: model.score(rng)}))
+    return out
+
+
+def _passive_pixels(image: np.ndarray, instance_classes: Mapping[int, int], no_merge: set[int]) -> np.ndarray:
+    """Pixels behind the objects: walls, floors, non-target objects and pixels without ground truth."""
+    active = [i for i, c in instance_classes.items() if c not in no_merge]
+    return ~np.isin(image, active)
+
+
+def _partial_cut(mask: np.ndarray, fraction: float, cut_rng: np.random.Generator, style_rng: np.random.Generator,
+                 noise: NoiseModel) -> np.ndarray:
+    """The part of the mask a partial segmentation keeps: a wavy cut (drawn from `cut_rng`, as the original
+    simulator), or with `partial_straight_share` / `partial_occluder_share` a straight part cut or an
+    occluder removed (drawn from `style_rng`)."""
+    if noise.partial_straight_share > 0 or noise.partial_occluder_share > 0:
+        style = style_rng.random()
+        if style < noise.partial_straight_share:
+            return cut_mask(mask, style_rng, fraction, waviness=0.0, theta=straight_cut_angle(style_rng))[0]
+        if style < noise.partial_straight_share + noise.partial_occluder_share:
+            return occlude_mask(mask, style_rng, fraction)
+    return cut_mask(mask, cut_rng, fraction)[0]
+
+
+def _bleed_or_erode(mask: np.ndarray, passive: np.ndarray | None, rng: np.random.Generator, noise: NoiseModel,
+                    is_surface: bool) -> np.ndarray:
+    """With `bleed_prob` the mask bleeds onto the passive pixels (not for walls and floors, which are the
+    background themselves), else with `erode_prob` it shrinks."""
+    draw = rng.random()
+    if draw < noise.bleed_prob:
+        return mask if is_surface or passive is None else bleed_mask(mask, passive, rng, noise.bleed_px)
+    if draw < noise.bleed_prob + noise.erode_prob:
+        return erode_mask(mask, rng, noise.erode_px)
+    return mask
+
+
+def _miscalibrate(labels: Mapping[str, float], rng: np.random.Generator, noise: NoiseModel) -> dict[str, float]:
+    """Each score mixed with a uniform draw in [box_threshold, 0.8] (share `score_miscalibration`), so it
+    says little about whether the label is right. Convex mixing keeps the detector thresholds."""
+    m, low = noise.score_miscalibration, noise.box_threshold
+    high = max(MISCALIBRATED_SCORE_MAX, low)
+    return {name: (1.0 - m) * score + m * float(rng.uniform(low, high)) for name, score in labels.items()}
 
 
 def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int, int], frame_name: str,
@@ -212,16 +469,20 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
     height, width = image.shape
     rng = rng if rng is not None else noise.frame_rng(frame_index)
     r_label, r_tag, r_detect, r_mask, r_false = rng.spawn(5)
+    # The failure modes beyond the paper's draw from streams of their own, and only when on: with them off
+    # a frame is exactly the original simulator's.
+    r_confusion, r_neighbor, r_style, r_large, r_edge, r_confuser, r_blob, r_score = rng.spawn(8)
     model = _LabelModel(noise, label_sets, likelihood)
+    class_names = list(label_sets.class_names)
+    no_merge = {class_names.index(name) for name in MERGE_EXCLUDED_CLASSES if name in class_names}
 
     # 1. Objects: visible target instances, adjacent pairs possibly merged.
     areas = _instance_areas(image)
     visible = {i: a for i, a in areas.items() if i in instance_classes and a >= noise.min_mask_pixels}
+    pairs = adjacent_pairs(image) if (noise.merge_prob > 0 or noise.merge_neighbor_prob > 0) else {}
     merged_into: dict[int, int] = {}
     if noise.merge_prob > 0 and len(visible) > 1:
-        no_merge = {label_sets.class_names.index(name) for name in MERGE_EXCLUDED_CLASSES
-                    if name in label_sets.class_names}
-        for (a, b), border in sorted(adjacent_pairs(image).items()):
+        for (a, b), border in sorted(pairs.items()):
             if a not in visible or b not in visible or border < MERGE_MIN_BORDER:
                 continue
             if instance_classes[a] in no_merge or instance_classes[b] in no_merge:
@@ -239,12 +500,23 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
         members = (i,) if partner is None else (i, partner)
         key = max(members, key=lambda m: (visible[m], -m))
         objects.append(_Object(members, key, int(instance_classes[key]), sum(visible[m] for m in members)))
+    if noise.merge_neighbor_prob > 0:
+        objects = _absorb_neighbours(objects, areas, pairs, instance_classes, no_merge, r_neighbor,
+                                     noise.merge_neighbor_prob)
+    # Confusers come last, so that the draws of the target objects do not depend on them.
+    real = len(objects)
+    if noise.confuser_prob > 0:
+        objects += _confuser_objects(model, areas, instance_classes, objects, noise, class_names, r_confuser)
 
     # 2. Labels each object would get from a detector that had every label in its prompt.
-    drawn = [model.draw(r_label, o.class_index, o.key) for o in objects]
+    drawn = [model.draw(r_label, o.class_index, o.key) for o in objects[:real]]
+    if noise.extra_confusion_prob > 0:
+        drawn = [model.confuse(r_confusion, o.class_index, labels) for o, labels in zip(objects[:real], drawn)]
+    drawn += [dict(o.fixed_labels) for o in objects[real:]]
+    blobs = _blobs(image, instance_classes, class_names, model, r_blob) if noise.blob_rate > 0 else []
 
     # 3. Tagger and prompt.
-    present = sorted({name for labels in drawn for name in labels})
+    present = sorted({name for labels in drawn for name in labels} | {name for _, labels in blobs for name in labels})
     tags = [name for name in present if r_tag.random() >= noise.missed_tag_prob]
     generic = []
     if noise.raw_extra_tags:
@@ -261,6 +533,7 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
     # 4-5. Detector and segmenter for each object.
     detections: list[tuple[np.ndarray, dict[str, float]]] = []
     span = max(noise.small_object_pixels - noise.min_mask_pixels, 1)
+    passive = _passive_pixels(image, instance_classes, no_merge) if noise.bleed_prob > 0 else None
     for obj, labels in zip(objects, drawn):
         small = np.clip((noise.small_object_pixels - obj.area) / span, 0.0, 1.0)
         missed = r_detect.random() < noise.miss_prob + noise.small_object_miss_prob * small
@@ -278,12 +551,18 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
             mask |= image == other
         mode = r_mask.random()
         if mode < noise.partial_prob:
-            mask, _ = cut_mask(mask, r_mask, r_mask.uniform(0.35, 0.85))
+            mask = _partial_cut(mask, r_mask.uniform(0.35, 0.85), r_mask, r_style, noise)
             parts = [(mask, labels)]
         elif mode < noise.partial_prob + noise.split_prob:
             first, second = cut_mask(mask, r_mask, r_mask.uniform(0.3, 0.7))
-            # The second part is a detection of its own: its labels are drawn again.
-            second_labels = _prompt_filter(model.draw(r_label, obj.class_index, obj.key), prompt_set)
+            # The second part is a detection of its own: its labels are drawn again (a confuser's are fixed).
+            if obj.fixed_labels is not None:
+                second_labels = _prompt_filter(obj.fixed_labels, prompt_set)
+            else:
+                second_labels = model.draw(r_label, obj.class_index, obj.key)
+                if noise.extra_confusion_prob > 0:
+                    second_labels = model.confuse(r_confusion, obj.class_index, second_labels)
+                second_labels = _prompt_filter(second_labels, prompt_set)
             if not second_labels or max(second_labels.values()) < noise.box_threshold:
                 # No label of its own reached the prompt: it shares the first part's, a bit less sure.
                 factor = r_mask.uniform(0.85, 1.0)
@@ -293,7 +572,14 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
             parts = [(first, labels), (second, second_labels)]
         else:
             parts = [(mask, labels)]
+        if noise.partial_large_prob > 0:
+            # Large objects are the ones occluders and part segmentation cut most (a table behind chairs).
+            cut, fraction = r_large.random() < noise.partial_large_prob, r_large.uniform(0.3, 0.8)
+            if cut and len(parts) == 1 and mode >= noise.partial_prob and obj.area >= noise.large_object_pixels:
+                parts = [(_partial_cut(mask, fraction, r_large, r_style, noise), labels)]
         for part, part_labels in parts:
+            if noise.bleed_prob > 0 or noise.erode_prob > 0:
+                part = _bleed_or_erode(part, passive, r_edge, noise, obj.class_index in no_merge)
             detections.append((perturb_border(part, r_mask, noise.border_offset_px, noise.border_jitter_px),
                                part_labels))
 
@@ -313,6 +599,12 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
                 mask = random_blob(image.shape, (pixel % width, pixel // width), r_false)
             detections.append((perturb_border(mask, r_false, noise.border_offset_px, noise.border_jitter_px),
                                {label: score}))
+    for mask, labels in blobs:
+        labels = _prompt_filter(labels, prompt_set)
+        if labels:
+            detections.append((perturb_border(mask, r_blob, noise.border_offset_px, noise.border_jitter_px), labels))
+    if noise.score_miscalibration > 0:
+        detections = [(mask, _miscalibrate(labels, r_score, noise)) for mask, labels in detections]
 
     # 7. Disjoint masks (smaller on top), size and box filters.
     return _assemble(frame_name, detections, (height, width), noise, raw_tags, tags, prompt)

@@ -6,11 +6,17 @@ failure that real Grounded-SAM detections show; `noise_zoo` gives one entry per 
 mixtures of them, reproducible from a seed.
 
     default      the documented noise model (`NoiseModel.preset("default")`)
-    label_model  labels drawn from a perturbed likelihood, with confusions the published matrix lacks
-    partial      partial masks: objects cut by occluders or segmented by part
-    merged       one mask over an object and its touching neighbour
+    label_model  labels drawn from a perturbed likelihood, with confusions the published matrix lacks and
+                 classes consistently named by one wrong label
+    partial      partial masks: objects cut by occluders or segmented by part, large objects most
+    merged       one mask over an object and its touching neighbour, of any kind but wall and floor
     border       dilated and eroded mask borders that bleed onto the floor and walls behind
     confusers    non-target objects detected as a class, false blobs, missed small objects, miscalibrated scores
+
+A family at severity `s` moves each of its parameters from the `default` value to `default + s * (dose -
+default)` (`FAMILY_DOSES`: severity 1 is the dose, 0 is `default`), probabilities clipped to [0, 1] and
+exclusive probabilities scaled down to sum to at most 1. `NoiseModel.preset(family)` is the family at
+severity 1, so `fmfusion simulate SCENE --out DIR --noise-preset border --set bleed_px=8` works.
 """
 
 from __future__ import annotations
@@ -21,10 +27,23 @@ from typing import Any
 import numpy as np
 
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.simulation.noise import NoiseModel
+from fmfusion_jax.simulation.noise import EXCLUSIVE_GROUPS, FAMILY_PRESETS, PROBABILITIES, NoiseModel
 
 #: The noise families, in report order.
-FAMILIES = ("default", "label_model", "partial", "merged", "border", "confusers")
+FAMILIES = ("default", *FAMILY_PRESETS)
+#: The parameters of each family at severity 1, on top of `default`: a clear, realistic dose of its failure mode.
+FAMILY_DOSES: dict[str, dict[str, float]] = {
+    "default": {},
+    "label_model": {"likelihood_perturbation": 0.7, "extra_confusion_prob": 0.25,
+                    "consistent_mislabel_prob": 0.3, "label_persistence": 0.5},
+    "partial": {"partial_large_prob": 0.5, "partial_prob": 0.35, "split_prob": 0.15,
+                "partial_straight_share": 0.4, "partial_occluder_share": 0.3},
+    "merged": {"merge_neighbor_prob": 0.3, "merge_prob": 0.2},
+    "border": {"bleed_prob": 0.5, "bleed_px": 8.0, "erode_prob": 0.2, "erode_px": 3.0,
+               "border_offset_px": 2.5, "border_jitter_px": 3.0},
+    "confusers": {"confuser_prob": 0.5, "blob_rate": 0.8, "small_object_miss_prob": 0.5,
+                  "score_miscalibration": 0.6},
+}
 #: The family name of a random combination of the families.
 MIXED = "mixed"
 
@@ -44,22 +63,30 @@ class ZooEntry:
     noise: NoiseModel
 
 
+def _fit(params: dict[str, Any]) -> dict[str, Any]:
+    """Probabilities clipped to [0, 1]; exclusive ones (`EXCLUSIVE_GROUPS`) scaled down to sum to 1 at most."""
+    out = {k: min(max(v, 0.0), 1.0) if k in PROBABILITIES else v for k, v in params.items()}
+    base = NoiseModel()
+    for group in EXCLUSIVE_GROUPS:
+        if not any(name in out for name in group):
+            continue
+        total = sum(out.get(name, getattr(base, name)) for name in group)
+        if total > 1.0:
+            for name in group:
+                out[name] = out.get(name, getattr(base, name)) / total
+    return out
+
+
 def _family_changes(family: str, severity: float) -> dict[str, Any]:
-    """Noise parameters (on top of `default`) that make `family` the dominant failure mode."""
-    s = float(severity)
-    if family == "default":
-        return {}
-    if family == "label_model":
-        return {"label_persistence": min(1.0, 0.5 * s)}
-    if family == "partial":
-        return {"partial_prob": min(0.6, 0.35 * s), "split_prob": min(0.3, 0.15 * s)}
-    if family == "merged":
-        return {"merge_prob": min(1.0, 0.3 * s)}
-    if family == "border":
-        return {"border_offset_px": 4.0 * s, "border_jitter_px": 4.0 * s}
-    if family == "confusers":
-        return {"false_positive_rate": 1.0 * s, "small_object_miss_prob": min(1.0, 0.5 * s)}
-    raise UserError(f"unknown noise family {family!r}; choose one of {', '.join(FAMILIES)}")
+    """Noise parameters (on top of `default`) that make `family` the dominant failure mode.
+
+    Each parameter goes linearly from its `default` value (severity 0) to its dose (severity 1) and on.
+    """
+    if family not in FAMILY_DOSES:
+        raise UserError(f"unknown noise family {family!r}; choose one of {', '.join(FAMILIES)}")
+    s, base = float(severity), NoiseModel()
+    return _fit({name: getattr(base, name) + s * (dose - getattr(base, name))
+                 for name, dose in FAMILY_DOSES[family].items()})
 
 
 def family_noise(family: str, severity: float = 1.0, seed: int = 0, **changes: Any) -> NoiseModel:
@@ -91,8 +118,8 @@ def noise_zoo(mixed: int = 4, seed: int = 0, severity: float = 1.0) -> list[ZooE
         for family in sorted(chosen, key=candidates.index):
             for key, value in _family_changes(family, severity * rng.uniform(0.5, 1.5)).items():
                 params[key] = max(params.get(key, value), value)
-        entries.append(ZooEntry(f"{MIXED}-{i}", MIXED, NoiseModel.preset("default", seed=seed, **params)))
+        entries.append(ZooEntry(f"{MIXED}-{i}", MIXED, NoiseModel.preset("default", seed=seed, **_fit(params))))
     return entries
 
 
-__all__ = ["FAMILIES", "MIXED", "ZooEntry", "family_noise", "noise_zoo"]
+__all__ = ["FAMILIES", "FAMILY_DOSES", "MIXED", "ZooEntry", "family_noise", "noise_zoo"]
