@@ -488,8 +488,8 @@ def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
     """
     from fmfusion_jax.runner import prepare_output_dir
 
-    if mixed < 0:
-        raise UserError(f"--mixed must be >= 0 (got {mixed})")
+    if mixed < 0 or noise_seed < 0:
+        raise UserError(f"--mixed and --noise-seed must be >= 0 (got {mixed}, {noise_seed})")
     chosen = resolve_methods(methods or DEFAULT_METHODS)
     sources = scene_sources(real_scenes, generated)
     entries = list(entries) if entries is not None else noise_zoo(mixed=mixed, seed=noise_seed)
@@ -519,7 +519,9 @@ def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
             detections = {}
             for method in chosen:
                 if method.detections not in detections:
-                    report(f"{source.name} / {entry.name}: {method.detections} detections (cached in {cache_dir})")
+                    what = ("detections" if method.detections == DETECTIONS_DEFAULT
+                            else "detections without prompt augmentation")
+                    report(f"{source.name} / {entry.name}: {what} (simulated once, cached in {cache_dir})")
                     detections[method.detections] = entry_detections(opened, entry, method.detections, cache_dir,
                                                                       progress=False)
                 config = source.config(list(overrides) + list(method.overrides), real_max_frames)
