@@ -272,8 +272,8 @@ def robustness_markdown(entries: Sequence[ZooEntry], scores: dict, summary: dict
         "# Robustness to detection noise",
         "",
         f"Methods: {', '.join(f'`{m.name}` ({m.title})' for m in methods)}. Zoo: {len(entries)} noise models "
-        f"(`simulation.zoo.noise_zoo`, seed {noise_seed}), detections simulated on every frame of each of "
-        f"{len(scenes)} scenes. Per entry the runs are pooled over the scenes by the ScanNet benchmark; "
+        f"(`simulation.zoo.noise_zoo`, seed {noise_seed}), detections simulated on every frame of "
+        f"{len(scenes)} scene{'' if len(scenes) == 1 else 's'}. Per entry the runs are pooled over the scenes by the ScanNet benchmark; "
         "AP in %.",
         "",
         "## Scores per zoo entry",
