@@ -1,5 +1,5 @@
 """`fmfusion experiment`: the Kimera-style baseline, the ablations and FM-Fusion on a set of scenes, scored
-in the layout of the paper's Tables I and II."""
+in the layout of the paper's Tables I and II; with `--robustness`, the methods against the noise zoo."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ def register(subparsers) -> None:
     from fmfusion_jax.experiments import (DEFAULT_GENERATED, DEFAULT_GENERATED_FRAMES, DEFAULT_GENERATED_OBJECTS,
                                           DEFAULT_METHODS, DEFAULT_OUT, METHODS, QUICK_GENERATED, QUICK_REAL_FRAMES)
 
+    from fmfusion_jax import robustness
+
     methods = "; ".join(f"{m.name}: {m.title}" for m in METHODS.values())
     parser = subparsers.add_parser(
         "experiment", help="baseline (Kimera + Cluster-All) and ablations vs FM-Fusion on several scenes",
@@ -22,31 +24,46 @@ def register(subparsers) -> None:
                     "all scenes with the ScanNet benchmark. Writes OUT/experiment.md (Table I: AP50 per class; "
                     "Table II: mAP, mAP50, mAP25), OUT/experiment.json (every number, per scene too, configs, "
                     "noise, timings) and OUT/runs/<scene>/<method>/ (run.json, benchmark predictions). "
+                    "With --robustness: every method against every noise model of the noise zoo instead "
+                    "(OUT/robustness.md, .json, .png; runs in OUT/runs/<scene>/<zoo entry>/<method>/). "
                     f"Methods: {methods}.")
     parser.add_argument("--scenes", nargs="*", type=Path, default=None, metavar="PATH",
                         help="real scenes (ScanNet layout, with ground truth); default: "
                              "../shared/data/scannet/scene0000_00 when present (not with --quick); "
                              "`--scenes` alone: none")
     parser.add_argument("--generated", type=int, default=None, metavar="N",
-                        help=f"generated rooms, seeds 1..N (default {DEFAULT_GENERATED}; "
-                             f"--quick: {QUICK_GENERATED['count']})")
+                        help=f"generated rooms, seeds 1..N (default {DEFAULT_GENERATED}, with --robustness "
+                             f"{robustness.DEFAULT_GENERATED}; --quick: {QUICK_GENERATED['count']})")
     parser.add_argument("--generated-frames", type=int, default=None, metavar="N",
                         help=f"frames of each generated room (default {DEFAULT_GENERATED_FRAMES}; "
                              f"--quick: {QUICK_GENERATED['num_frames']})")
     parser.add_argument("--generated-objects", type=int, default=None, metavar="N",
                         help=f"objects in each generated room (default {DEFAULT_GENERATED_OBJECTS}; "
                              f"--quick: {QUICK_GENERATED['num_objects']})")
-    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), metavar="NAME",
-                        help=f"methods to run, some of: {', '.join(METHODS)} (default: {' '.join(DEFAULT_METHODS)})")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated detections (default 0)")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
+    parser.add_argument("--methods", nargs="+", default=None, metavar="NAME",
+                        help=f"methods to run, some of: {', '.join(METHODS)} (default: {' '.join(DEFAULT_METHODS)}; "
+                             f"with --robustness: {' '.join(robustness.DEFAULT_METHODS)})")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of the simulated detections (default 0; with --robustness use --noise-seed)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help=f"output folder (default {DEFAULT_OUT}; with --robustness {robustness.DEFAULT_OUT})")
+    parser.add_argument("--robustness", action="store_true",
+                        help="robustness evaluation: each method on each scene crossed with the noise zoo "
+                             "(one noise model per failure family plus --mixed random mixtures), scored per zoo "
+                             "entry, summarized per family, mean and worst entry")
+    parser.add_argument("--mixed", type=int, default=None, metavar="N",
+                        help=f"with --robustness: random mixtures of the noise families in the zoo (default "
+                             f"{robustness.DEFAULT_MIXED}; --quick: {robustness.QUICK_MIXED})")
+    parser.add_argument("--noise-seed", type=int, default=None, metavar="S",
+                        help="with --robustness: seed of the zoo's mixtures and of every simulated detection "
+                             "(default 0)")
     parser.add_argument("--cache", type=Path, default=None,
                         help="folder of the generated scenes and simulated detections, reused between experiments "
                              "(default: OUT/cache)")
     parser.add_argument("--quick", action="store_true",
                         help=f"smoke test: generated rooms of {QUICK_GENERATED['num_frames']} frames at "
                              f"{QUICK_GENERATED['width']}x{QUICK_GENERATED['height']}, real scenes (only those named) "
-                             f"cut to {QUICK_REAL_FRAMES} frames")
+                             f"cut to {QUICK_REAL_FRAMES} frames; with --robustness also a zoo of one mixture")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value for every method, e.g. --set detections.every=2 "
                              "(repeatable; a method's own setting, such as ablation A's likelihood, wins)")
@@ -55,13 +72,27 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from fmfusion_jax import robustness
     from fmfusion_jax.experiments import (DEFAULT_GENERATED, DEFAULT_GENERATED_FRAMES, DEFAULT_GENERATED_OBJECTS,
-                                          QUICK_GENERATED, QUICK_REAL_FRAMES, default_real_scenes, generated_specs,
-                                          resolve_methods, run_experiment)
+                                          DEFAULT_OUT, QUICK_GENERATED, QUICK_REAL_FRAMES, default_real_scenes,
+                                          generated_specs, resolve_methods, run_experiment)
 
-    resolve_methods(args.methods)  # an unknown name fails before anything is made
-    quick = QUICK_GENERATED if args.quick else {}
-    count = args.generated if args.generated is not None else quick.get("count", DEFAULT_GENERATED)
+    if args.robustness:
+        if args.seed is not None:
+            raise UserError("--seed is the plain experiment's; with --robustness the zoo's seed is --noise-seed")
+        if args.mixed is not None and args.mixed < 0:
+            raise UserError(f"--mixed must be >= 0 (got {args.mixed})")
+        if args.noise_seed is not None and args.noise_seed < 0:
+            raise UserError(f"--noise-seed must be >= 0 (got {args.noise_seed})")
+    else:
+        given = [flag for flag, value in (("--mixed", args.mixed), ("--noise-seed", args.noise_seed))
+                 if value is not None]
+        if given:
+            raise UserError(f"{' and '.join(given)}: only with --robustness")
+    resolve_methods(args.methods or (robustness.DEFAULT_METHODS if args.robustness else None))  # fail early
+    quick = (robustness.QUICK_GENERATED if args.robustness else QUICK_GENERATED) if args.quick else {}
+    default_count = robustness.DEFAULT_GENERATED if args.robustness else DEFAULT_GENERATED
+    count = args.generated if args.generated is not None else quick.get("count", default_count)
     frames = args.generated_frames or quick.get("num_frames", DEFAULT_GENERATED_FRAMES)
     objects = args.generated_objects or quick.get("num_objects", DEFAULT_GENERATED_OBJECTS)
     if args.generated_frames is not None and args.generated_frames < 2:
@@ -73,8 +104,17 @@ def run(args: argparse.Namespace) -> int:
         real = [] if args.quick else default_real_scenes()
     else:
         real = args.scenes
-    result = run_experiment(args.out, real_scenes=real, generated=specs, methods=args.methods, seed=args.seed,
-                            cache_dir=args.cache, overrides=args.overrides,
+    if args.robustness:
+        mixed = args.mixed if args.mixed is not None else (robustness.QUICK_MIXED if args.quick
+                                                           else robustness.DEFAULT_MIXED)
+        result = robustness.run_robustness(
+            args.out or robustness.DEFAULT_OUT, real_scenes=real, generated=specs, methods=args.methods,
+            noise_seed=args.noise_seed or 0, mixed=mixed, cache_dir=args.cache, overrides=args.overrides,
+            real_max_frames=QUICK_REAL_FRAMES if args.quick else None, progress=not args.no_progress)
+        print(result.text)
+        return 0
+    result = run_experiment(args.out or DEFAULT_OUT, real_scenes=real, generated=specs, methods=args.methods,
+                            seed=args.seed or 0, cache_dir=args.cache, overrides=args.overrides,
                             real_max_frames=QUICK_REAL_FRAMES if args.quick else None,
                             progress=not args.no_progress)
     print(result.text)

@@ -1,0 +1,591 @@
+"""`fmfusion experiment --robustness`: every method against every noise model of the zoo.
+
+The maps were developed against one simulator setting; this evaluation judges them on many
+(`simulation.zoo`: one entry per failure family plus seeded random mixtures). For each zoo entry the
+detections of every scene are simulated on every frame (the fusion's own schedule picks the frames it
+uses) and cached under a name holding a hash of the full noise model, so a changed family definition is
+simulated again. Each method maps each (scene, entry); per entry the runs are pooled over the scenes by
+the ScanNet benchmark (as `fmfusion experiment` does). Per method the entries are then summarized: per
+family, the mean over all entries, and the worst entry.
+
+Outputs, under OUT:
+
+    robustness.md     scores per zoo entry (AP, AP50, AP25 per method), AP50 per family with the best in
+                      bold, the verdict line, scenes and the noise parameters of each entry
+    robustness.json   every number (pooled per entry, AP50 per scene and entry, the summaries), zoo, timings
+    robustness.png    AP50 per zoo entry and method, with the mean and the worst (cv2: no matplotlib)
+    runs/<scene>/<entry>/<method>/   run.json, config.yaml, instances.json, benchmark/ (as `fmfusion experiment`)
+    cache/            (default --cache) generated scenes and simulated detections
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import shutil
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.experiments import (DETECTIONS_DEFAULT, DETECTIONS_NO_AUGMENTATION, REAL_SCENE_CONFIG, RUN_RECORD,
+                                      Method, RunOutcome, SceneSource, _check_config, _markdown_table,
+                                      _replace_run_dir, _stderr_report, resolve_methods, run_method, scene_sources,
+                                      score_methods)
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
+from fmfusion_jax.simulation.zoo import FAMILIES, MIXED, ZooEntry, noise_zoo
+
+log = logging.getLogger(__name__)
+
+DEFAULT_OUT = Path("outputs/robustness")
+#: Methods compared by default: the baseline, the map before the robustness work, and the current one.
+DEFAULT_METHODS = ("kimera", "previous", "full")
+#: Default generated rooms (seeds 1..2, the demo's room and sequence) and random mixtures of the zoo.
+DEFAULT_GENERATED = 2
+DEFAULT_MIXED = 2
+#: `--quick`: one tiny generated room and one mixture.
+QUICK_GENERATED = dict(count=1, num_frames=30, num_objects=5, width=320, height=240)
+QUICK_MIXED = 1
+#: Benchmark scores summarized, as (name in the tables, `BenchmarkResult` attribute).
+METRICS = (("AP", "mAP"), ("AP50", "mAP50"), ("AP25", "mAP25"))
+#: Decoded frames of a scene are kept in memory across its runs below this size.
+FRAME_CACHE_BYTES = 2 << 30
+#: The demo's image area: noise pixel counts are meant for it (`demo.demo_noise`).
+_REFERENCE_AREA = 640 * 480
+
+
+# --------------------------------------------------------------------------------------------------
+# Noise of each (scene, zoo entry), and its cache name.
+
+def scale_noise_to_image(noise, width: int, height: int):
+    """`noise` with its pixel-count parameters scaled from 640x480 to `width x height`, as `demo.demo_noise`
+    scales the default model's (generated rooms may be rendered smaller)."""
+    area_scale = (width * height) / _REFERENCE_AREA
+    return noise.replace(min_mask_pixels=max(10, round(noise.min_mask_pixels * area_scale)),
+                         small_object_pixels=max(20, round(noise.small_object_pixels * area_scale)))
+
+
+def entry_noise(source: SceneSource, entry: ZooEntry, variant: str = DETECTIONS_DEFAULT):
+    """The noise model of `entry` on `source` (scaled to a generated scene's images; without prompt
+    augmentation for ablation B's variant)."""
+    noise = entry.noise if source.kind == "real" else scale_noise_to_image(entry.noise, source.spec.width,
+                                                                            source.spec.height)
+    return noise.replace(prompt_augmentation=False) if variant == DETECTIONS_NO_AUGMENTATION else noise
+
+
+def detections_tag(entry_name: str, noise) -> str:
+    """Cache name of an entry's detections: the entry and a hash of every noise parameter, so that a changed
+    family definition gets a new folder (and old results are never read for it)."""
+    digest = hashlib.sha1(json.dumps(noise.to_dict(), sort_keys=True).encode()).hexdigest()[:10]
+    return f"zoo-{entry_name}-{digest}"
+
+
+# --------------------------------------------------------------------------------------------------
+# Summaries (pure functions of the pooled scores).
+
+def family_order(entries: Sequence[ZooEntry]) -> list[str]:
+    """The families present, in report order (`FAMILIES`, then `MIXED`, then any other)."""
+    present = list(dict.fromkeys(e.family for e in entries))
+    known = [*FAMILIES, MIXED]
+    return sorted(present, key=lambda f: known.index(f) if f in known else len(known))
+
+
+def _finite(values) -> list[float]:
+    return [float(v) for v in values if v is not None and not math.isnan(v)]
+
+
+def _mean(values) -> float | None:
+    values = _finite(values)
+    return sum(values) / len(values) if values else None
+
+
+def _worst(named: dict[str, float | None]) -> dict:
+    """`{"value", "entry"}` of the least score (None when none is a number)."""
+    finite = {k: float(v) for k, v in named.items() if v is not None and not math.isnan(v)}
+    if not finite:
+        return {"value": None, "entry": None}
+    entry = min(finite, key=finite.get)
+    return {"value": finite[entry], "entry": entry}
+
+
+def summarize(entries: Sequence[ZooEntry], scores: dict, methods: Sequence[str]) -> dict:
+    """Per method: per family the mean and worst over its entries (one entry: its score), and over the
+    whole zoo the mean and the worst entry, of each metric.
+
+    Args:
+      entries: the zoo, in order.
+      scores: entry name -> method name -> metric name ("AP", "AP50", "AP25") -> fraction (None: no score).
+      methods: method names.
+
+    Returns:
+      method -> {"families": family -> {"entries", "mean": metric -> v, "worst": metric -> {"value",
+      "entry"}}, "mean": metric -> v, "worst": metric -> {"value", "entry"}}.
+    """
+    metrics = [name for name, _ in METRICS]
+    out = {}
+    for method in methods:
+        families = {}
+        for family in family_order(entries):
+            names = [e.name for e in entries if e.family == family]
+            families[family] = {
+                "entries": names,
+                "mean": {m: _mean(scores[n][method][m] for n in names) for m in metrics},
+                "worst": {m: _worst({n: scores[n][method][m] for n in names}) for m in metrics},
+            }
+        out[method] = {
+            "families": families,
+            "mean": {m: _mean(scores[e.name][method][m] for e in entries) for m in metrics},
+            "worst": {m: _worst({e.name: scores[e.name][method][m] for e in entries}) for m in metrics},
+        }
+    return out
+
+
+def best_methods(values: dict[str, float | None]) -> list[str]:
+    """The methods with the highest score (all of them on a tie; none when no score is a number)."""
+    finite = {k: v for k, v in values.items() if v is not None and not math.isnan(v)}
+    if not finite:
+        return []
+    top = max(finite.values())
+    return [k for k, v in finite.items() if v == top]
+
+
+def family_rows(summary: dict, methods: Sequence[str], metric: str = "AP50") -> list[tuple[str, dict]]:
+    """Rows of the per-family table: (title, method -> value) per family (a family of several entries,
+    such as `mixed`, gives its mean and its worst), then the zoo's mean and worst."""
+    first = summary[methods[0]]["families"]
+    rows = []
+    for family, info in first.items():
+        if len(info["entries"]) > 1:
+            rows.append((f"{family} (mean of {len(info['entries'])})",
+                         {m: summary[m]["families"][family]["mean"][metric] for m in methods}))
+            rows.append((f"{family} (worst)", {m: summary[m]["families"][family]["worst"][metric]["value"]
+                                               for m in methods}))
+        else:
+            rows.append((family, {m: summary[m]["families"][family]["mean"][metric] for m in methods}))
+    rows.append(("mean", {m: summary[m]["mean"][metric] for m in methods}))
+    rows.append(("worst", {m: summary[m]["worst"][metric]["value"] for m in methods}))
+    return rows
+
+
+def verdict(summary: dict, methods: Sequence[str], metric: str = "AP50", new: str = "full",
+            old: str = "previous") -> dict:
+    """Who wins on the mean, on the worst entry and on each family (`metric`), and whether `new` beats
+    `old` (strictly) on every family; `where_not` lists the families where it does not."""
+    def winners(get):
+        return best_methods({m: get(m) for m in methods})
+
+    record = {"metric": metric,
+              "mean": winners(lambda m: summary[m]["mean"][metric]),
+              "worst": winners(lambda m: summary[m]["worst"][metric]["value"]),
+              "families": {f: winners(lambda m, f=f: summary[m]["families"][f]["mean"][metric])
+                           for f in summary[methods[0]]["families"]}}
+    if new in methods and old in methods:
+        where_not = []
+        for family in summary[new]["families"]:
+            a = summary[new]["families"][family]["mean"][metric]
+            b = summary[old]["families"][family]["mean"][metric]
+            if a is None or b is None or not a > b:
+                where_not.append({"family": family, new: a, old: b})
+        record["beats"] = {"new": new, "old": old, "every_family": not where_not, "where_not": where_not}
+    return record
+
+
+# --------------------------------------------------------------------------------------------------
+# Reports.
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None or math.isnan(value) else f"{100 * value:.1f}"
+
+
+def entries_table(entries: Sequence[ZooEntry], scores: dict, summary: dict, methods: Sequence[Method]) -> str:
+    """Rows: the zoo entries grouped by family, then the mean and the worst (with its entry); columns:
+    each method's AP, AP50 and AP25 (%)."""
+    header = ["Family", "Entry"] + [f"{m.name} {metric}" for m in methods for metric, _ in METRICS]
+    rows = []
+    for family in family_order(entries):
+        for i, entry in enumerate(e for e in entries if e.family == family):
+            rows.append([family if i == 0 else "", entry.name]
+                        + [_pct(scores[entry.name][m.name][metric]) for m in methods for metric, _ in METRICS])
+    rows.append(["**mean**", ""] + [_pct(summary[m.name]["mean"][metric]) for m in methods for metric, _ in METRICS])
+    worst = [summary[m.name]["worst"][metric] for m in methods for metric, _ in METRICS]
+    rows.append(["**worst**", ""] + [f"{_pct(w['value'])} ({w['entry']})" if w["entry"] else "-" for w in worst])
+    return _markdown_table(header, rows)
+
+
+def family_table(summary: dict, methods: Sequence[Method], metric: str = "AP50") -> str:
+    """AP50 (%) per family (rows, then mean and worst) and method (columns); the best of each row in bold."""
+    names = [m.name for m in methods]
+    rows = []
+    for title, values in family_rows(summary, names, metric):
+        best = best_methods(values)
+        rows.append([title] + [f"**{_pct(values[n])}**" if n in best else _pct(values[n]) for n in names])
+    return _markdown_table(["Family", *names], rows)
+
+
+def verdict_lines(record: dict) -> list[str]:
+    """The verdict as sentences."""
+    metric = record["metric"]
+    join = lambda names: " = ".join(names) if names else "-"  # noqa: E731 - ties are shown as equals
+    lines = [f"- Best {metric} on the mean over the zoo: {join(record['mean'])}; on the worst entry: "
+             f"{join(record['worst'])}.",
+             "- Best per family: " + ", ".join(f"{f}: {join(w)}" for f, w in record["families"].items()) + "."]
+    beats = record.get("beats")
+    if beats:
+        new, old = beats["new"], beats["old"]
+        line = f"- {new} beats {old} on every family ({metric}): {'yes' if beats['every_family'] else 'no'}"
+        if beats["where_not"]:
+            line += ", where not: " + ", ".join(f"{w['family']} ({_pct(w[new])} vs {_pct(w[old])})"
+                                                 for w in beats["where_not"])
+        lines.append(line + ".")
+    return lines
+
+
+def noise_table(entries: Sequence[ZooEntry]) -> str:
+    """The parameters of each entry that differ from the `default` preset (generated scenes' pixel counts
+    are scaled to their images: see each scene's record in robustness.json)."""
+    from fmfusion_jax.simulation.noise import NoiseModel
+
+    default = NoiseModel.preset("default", seed=entries[0].noise.seed).to_dict() if entries else {}
+    changed = [k for k in default if any(e.noise.to_dict()[k] != default[k] for e in entries)]
+    header = ["Parameter", "default preset", *(e.name for e in entries)]
+    show = lambda v: f"{v:.3g}" if isinstance(v, float) else str(v)  # noqa: E731
+    rows = [[k, show(default[k]), *(show(e.noise.to_dict()[k]) for e in entries)] for k in changed]
+    return _markdown_table(header, rows) if rows else "(every entry is the default preset)"
+
+
+def robustness_markdown(entries: Sequence[ZooEntry], scores: dict, summary: dict, verdict_record: dict,
+                        methods: Sequence[Method], scenes: Sequence[dict], noise_seed: int,
+                        seconds: float, runs: int) -> str:
+    """robustness.md."""
+    scene_lines = []
+    for s in scenes:
+        what = ("real ScanNet scene" if s["kind"] == "real"
+                else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
+                     f"{s['spec']['width']}x{s['spec']['height']}")
+        scene_lines.append(f"- `{s['name']}`: {what}, {s['frames']} frames, config {s['config']}")
+    return "\n".join([
+        "# Robustness to detection noise",
+        "",
+        f"Methods: {', '.join(f'`{m.name}` ({m.title})' for m in methods)}. Zoo: {len(entries)} noise models "
+        f"(`simulation.zoo.noise_zoo`, seed {noise_seed}), detections simulated on every frame of "
+        f"{len(scenes)} scene{'' if len(scenes) == 1 else 's'}. Per entry the runs are pooled over the scenes by the ScanNet benchmark; "
+        "AP in %.",
+        "",
+        "## Scores per zoo entry",
+        "",
+        entries_table(entries, scores, summary, methods),
+        "",
+        "## AP50 per family (best in bold)",
+        "",
+        family_table(summary, methods),
+        "",
+        *verdict_lines(verdict_record),
+        "",
+        "## Scenes and noise models",
+        "",
+        *scene_lines,
+        "",
+        "<details><summary>Noise parameters of each zoo entry (those differing from the default preset)"
+        "</summary>",
+        "",
+        noise_table(entries),
+        "",
+        "</details>",
+        "",
+        f"{runs} runs in {seconds:.0f} s ({seconds / max(runs, 1):.1f} s per run with simulation and scoring; "
+        "timings per run in robustness.json).",
+        "",
+    ])
+
+
+# Colours (BGR) of the bars, one per method in order.
+_PALETTE = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140))
+
+
+def bar_chart(groups: Sequence[str], series: dict[str, Sequence[float | None]], title: str,
+              height: int = 420, separator_before: int | None = None) -> np.ndarray:
+    """`(H, W, 3)` uint8 BGR grouped bar chart: one group per name of `groups`, one bar per series (values
+    fractions in [0, 1], shown in %; None: no bar), with a 0-100 % axis and a legend; a vertical line
+    before group `separator_before` (the summaries)."""
+    import cv2
+
+    font, names = cv2.FONT_HERSHEY_SIMPLEX, list(series)
+    bar_w, gap, left, right, top, bottom = 14, 16, 50, 20, 50, 80
+    group_w = bar_w * len(names) + gap
+    width = max(left + right + group_w * len(groups), 420)
+    image = np.full((height, width, 3), 255, np.uint8)
+    plot_h = height - top - bottom
+    y_of = lambda v: int(round(top + plot_h * (1.0 - v)))  # noqa: E731
+    for tick in range(0, 101, 20):
+        y = y_of(tick / 100)
+        cv2.line(image, (left, y), (width - right, y), (220, 220, 220), 1)
+        cv2.putText(image, f"{tick}", (8, y + 4), font, 0.4, (60, 60, 60), 1, cv2.LINE_AA)
+    for g, group in enumerate(groups):
+        x0 = left + gap // 2 + g * group_w
+        for s, name in enumerate(names):
+            value = series[name][g]
+            if value is None or math.isnan(value):
+                continue
+            x = x0 + s * bar_w
+            cv2.rectangle(image, (x, y_of(min(max(value, 0.0), 1.0))), (x + bar_w - 2, y_of(0.0)),
+                          _PALETTE[s % len(_PALETTE)], -1)
+        # group names written at a slant would need rotation; two lines of short text read well enough
+        label, second = (group, "") if len(group) <= 10 else (group[:10], group[10:20])
+        cv2.putText(image, label, (x0, height - bottom + 16), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+        if second:
+            cv2.putText(image, second, (x0, height - bottom + 30), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    if separator_before is not None:
+        x = left + separator_before * group_w
+        cv2.line(image, (x, top), (x, y_of(0.0)), (150, 150, 150), 1)
+    cv2.line(image, (left, y_of(0.0)), (width - right, y_of(0.0)), (0, 0, 0), 1)
+    cv2.putText(image, title, (left, 22), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    x = left
+    for s, name in enumerate(names):
+        cv2.rectangle(image, (x, height - 28), (x + 12, height - 16), _PALETTE[s % len(_PALETTE)], -1)
+        cv2.putText(image, name, (x + 16, height - 17), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        x += 24 + 10 * len(name)
+    return image
+
+
+def robustness_chart(entries: Sequence[ZooEntry], scores: dict, summary: dict, methods: Sequence[str]) -> np.ndarray:
+    """AP50 per zoo entry and method, then the zoo's mean and worst."""
+    groups = [e.name for e in entries] + ["mean", "worst"]
+    series = {m: [scores[e.name][m]["AP50"] for e in entries]
+              + [summary[m]["mean"]["AP50"], summary[m]["worst"]["AP50"]["value"]] for m in methods}
+    return bar_chart(groups, series, "AP50 (%) per noise model of the zoo", separator_before=len(entries))
+
+
+# --------------------------------------------------------------------------------------------------
+# Running.
+
+def cache_frames(scene, max_bytes: int = FRAME_CACHE_BYTES) -> bool:
+    """Decodes every frame of `scene` once and serves later reads from memory (read-only arrays, so a
+    caller writing into a frame fails loudly instead of corrupting the next run); False, and nothing
+    changed, when the frames would take more than `max_bytes`."""
+    h, w = scene.intrinsics.height, scene.intrinsics.width
+    if len(scene) * h * w * (4 + 3) > max_bytes:
+        return False
+    depths, colors = [], []
+    for i in range(len(scene)):
+        depth, color = scene.read_depth(i), scene.read_color(i)
+        depth.setflags(write=False)
+        color.setflags(write=False)
+        depths.append(depth)
+        colors.append(color)
+    scene.read_depth, scene.read_color = depths.__getitem__, colors.__getitem__  # instance attributes win
+    return True
+
+
+@dataclasses.dataclass
+class OpenedScene:
+    """A scene ready for its runs: the opened scene (frames possibly cached), ground truth and its record."""
+
+    source: SceneSource
+    scene: object
+    gt: object
+    gt_ids: np.ndarray
+    record: dict
+
+
+def open_source(source: SceneSource, cache_dir: Path, config, progress: bool) -> OpenedScene:
+    """Makes (or finds) a generated scene, opens the scene with the config's dataset settings, reads its
+    ground truth and caches its decoded frames when they fit."""
+    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.simulation.scene_sets import generated_scene
+
+    scene_dir = source.path if source.kind == "real" else generated_scene(source.spec, cache_dir, progress)
+    dataset = config.dataset
+    scene = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
+                       depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
+    gt = load_scannet_ground_truth(scene_dir)
+    cached = cache_frames(scene)
+    record = {"name": source.name, "kind": source.kind, "scene_dir": str(scene_dir), "frames": len(scene),
+              "gt_vertices": int(gt.num_vertices), "frames_cached": cached,
+              "spec": dataclasses.asdict(source.spec) if source.spec else None,
+              "config": REAL_SCENE_CONFIG if source.kind == "real" else "demo (scaled to the scene)",
+              "detections": {}}
+    return OpenedScene(source, scene, gt, gt.benchmark_ids(), record)
+
+
+def entry_detections(opened: OpenedScene, entry: ZooEntry, variant: str, cache_dir: Path, progress: bool) -> Path:
+    """The (cached) detections of `entry` on the scene, simulated on every frame of the scene folder."""
+    from fmfusion_jax.simulation.scene_sets import prepare_generated, prepare_real
+
+    source = opened.source
+    noise = entry_noise(source, entry, variant)
+    tag = detections_tag(entry.name, noise)
+    if source.kind == "real":
+        prepared = prepare_real(source.path, cache_dir, noise, 1, tag, progress)
+    else:
+        prepared = prepare_generated(source.spec, cache_dir, noise, 1, tag, progress)
+    opened.record["detections"][f"{entry.name}/{variant}"] = {"dir": str(prepared.detections_dir),
+                                                              "noise": noise.to_dict()}
+    return prepared.detections_dir
+
+
+def _copy_run(outcome: RunOutcome, method: Method, same_as: str, src: Path, dst: Path) -> RunOutcome:
+    """The outcome of an identical run (same mapper, config and detections) under another method's name."""
+    _replace_run_dir(dst)
+    shutil.rmtree(dst)
+    shutil.copytree(src, dst)
+    summary = {**outcome.summary, "method": method.name, "title": method.title,
+               "overrides": list(method.overrides), "same_run_as": same_as}
+    (dst / RUN_RECORD).write_text(json.dumps(summary, indent=1, default=float))
+    return RunOutcome(outcome.predictions, summary, outcome.score)
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 60}m{seconds % 60:02d}s" if seconds >= 60 else f"{seconds}s"
+
+
+@dataclasses.dataclass
+class RobustnessResult:
+    """What `run_robustness` made: the folder, the zoo, the scores (entry -> method -> metric -> fraction),
+    the summaries, the verdict, robustness.md's text and robustness.json's content."""
+
+    out_dir: Path
+    entries: list
+    methods: tuple
+    scores: dict
+    summary: dict
+    verdict: dict
+    markdown: str
+    record: dict
+
+    @property
+    def text(self) -> str:
+        """What the command prints: the per-family table, the verdict and where the files are."""
+        return "\n".join([family_table(self.summary, self.methods), "", *verdict_lines(self.verdict), "",
+                          f"written: {self.out_dir / 'robustness.md'}, {self.out_dir / 'robustness.json'}, "
+                          f"{self.out_dir / 'robustness.png'}, runs in {self.out_dir / 'runs'}"])
+
+
+def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str | Path] = (),
+                   generated: Sequence[GeneratedSceneSpec] = (), methods: Sequence[str] | None = None,
+                   entries: Sequence[ZooEntry] | None = None, noise_seed: int = 0, mixed: int = DEFAULT_MIXED,
+                   cache_dir: str | Path | None = None, overrides: Sequence[str] = (),
+                   real_max_frames: int | None = None, progress: bool = True,
+                   report: Callable[[str], None] | None = None) -> RobustnessResult:
+    """Runs every method on every (scene, zoo entry), scores and summarizes them, and writes the reports.
+
+    Args:
+      out_dir: output folder (run folders of an earlier evaluation there are replaced).
+      real_scenes, generated: the scenes (as `experiments.run_experiment`).
+      methods: names of `experiments.METHODS` (default `DEFAULT_METHODS`).
+      entries: the zoo (default `noise_zoo(mixed, noise_seed)`).
+      noise_seed, mixed: the zoo's seed and number of random mixtures, when `entries` is not given.
+      cache_dir: generated scenes and simulated detections (default OUT/cache).
+      overrides: config overrides for every method (a method's own win).
+      real_max_frames: use only the first frames of real scenes (smoke tests).
+      progress: one line per run with the running total and an ETA (`report`, default stderr).
+    """
+    from fmfusion_jax.runner import prepare_output_dir
+
+    if mixed < 0 or noise_seed < 0:
+        raise UserError(f"--mixed and --noise-seed must be >= 0 (got {mixed}, {noise_seed})")
+    chosen = resolve_methods(methods or DEFAULT_METHODS)
+    sources = scene_sources(real_scenes, generated)
+    entries = list(entries) if entries is not None else noise_zoo(mixed=mixed, seed=noise_seed)
+    if not entries:
+        raise UserError("the noise zoo is empty")
+    names = [e.name for e in entries]
+    if len(set(names)) != len(names):
+        raise UserError(f"zoo entry names repeat: {names}")
+    report = report or (_stderr_report if progress else log.info)
+    for method in chosen:  # bad overrides fail before anything is made
+        for kind in sorted({s.kind for s in sources}):
+            _check_config(kind, sources, list(overrides) + list(method.overrides), real_max_frames)
+    out_dir = prepare_output_dir(out_dir)
+    cache_dir = Path(cache_dir) if cache_dir is not None else out_dir / "cache"
+
+    start = time.perf_counter()
+    total, done = len(sources) * len(entries) * len(chosen), 0
+    runs: dict = {e.name: {} for e in entries}  # entry -> scene -> method -> RunOutcome
+    gt_ids, scene_records, timings = {}, [], {}
+    for source in sources:
+        opened = open_source(source, cache_dir, source.config(overrides, real_max_frames), progress=False)
+        gt_ids[source.name] = opened.gt_ids
+        timings[source.name] = {}
+        for entry in entries:
+            outcomes, seen = {}, {}
+            runs[entry.name][source.name] = outcomes
+            detections = {}
+            for method in chosen:
+                if method.detections not in detections:
+                    what = ("detections" if method.detections == DETECTIONS_DEFAULT
+                            else "detections without prompt augmentation")
+                    report(f"{source.name} / {entry.name}: {what} (simulated once, cached in {cache_dir})")
+                    detections[method.detections] = entry_detections(opened, entry, method.detections, cache_dir,
+                                                                      progress=False)
+                config = source.config(list(overrides) + list(method.overrides), real_max_frames)
+                run_dir = out_dir / "runs" / source.name / entry.name / method.name
+                key = (method.baseline, method.detections, config.to_yaml())
+                if key in seen:  # the same mapper on the same inputs: the same map
+                    other = seen[key]
+                    outcome = _copy_run(outcomes[other], method, other, run_dir.parent / other, run_dir)
+                else:
+                    outcome = run_method(method, opened.scene, detections[method.detections], config, opened.gt,
+                                         run_dir, progress=False)
+                    seen[key] = method.name
+                outcomes[method.name] = outcome
+                timings[source.name][f"{entry.name}/{method.name}"] = outcome.summary["seconds"]["total"]
+                done += 1
+                elapsed = time.perf_counter() - start
+                what = (f"{outcome.summary['seconds']['total']:.1f} s" if seen[key] == method.name
+                        else f"same config and detections as {seen[key]}, map copied")
+                report(f"[{done}/{total}] {source.name} / {entry.name} / {method.name}: {what}, "
+                       f"mAP50 {_pct(outcome.score.mAP50)} %; elapsed {_duration(elapsed)}, "
+                       f"ETA {_duration(elapsed / done * (total - done))}")
+        scene_records.append(opened.record)
+        del opened  # its frames and ground truth are not needed any more
+
+    scene_names = tuple(s.name for s in sources)
+    scores, pooled_json, per_scene_ap50 = {}, {}, {}
+    for entry in entries:
+        pooled, per_scene = score_methods(chosen, scene_names, gt_ids, runs[entry.name])
+        scores[entry.name] = {m.name: {metric: _as_fraction(getattr(pooled[m.name], attr)) for metric, attr in METRICS}
+                              for m in chosen}
+        pooled_json[entry.name] = {m.name: pooled[m.name].to_json_dict() for m in chosen}
+        per_scene_ap50[entry.name] = {s: {m.name: _as_fraction(per_scene[s][m.name].mAP50) for m in chosen}
+                                      for s in scene_names}
+    method_names = [m.name for m in chosen]
+    summary = summarize(entries, scores, method_names)
+    verdict_record = verdict(summary, method_names)
+    seconds = round(time.perf_counter() - start, 1)
+    record = {
+        "noise_seed": entries[0].noise.seed, "mixed": sum(e.family == MIXED for e in entries),
+        "overrides": list(overrides), "real_max_frames": real_max_frames,
+        "methods": {m.name: dataclasses.asdict(m) for m in chosen},
+        "zoo": [{"name": e.name, "family": e.family, "noise": e.noise.to_dict()} for e in entries],
+        "scenes": scene_records,
+        "scores": scores, "per_scene_ap50": per_scene_ap50, "pooled": pooled_json,
+        "summary": summary, "verdict": verdict_record,
+        "timings_s": timings, "runs": total, "total_seconds": seconds,
+        "units": "AP as fractions in [0, 1] (null: no score); robustness.md gives them in %",
+    }
+    markdown = robustness_markdown(entries, scores, summary, verdict_record, chosen, scene_records,
+                                   entries[0].noise.seed, seconds, total)
+    write_reports(out_dir, markdown, record, robustness_chart(entries, scores, summary, method_names))
+    log.info("robustness evaluation written into %s (%.1f s)", out_dir, seconds)
+    return RobustnessResult(out_dir, entries, chosen, scores, summary, verdict_record, markdown, record)
+
+
+def _as_fraction(value: float) -> float | None:
+    return None if value is None or math.isnan(value) else float(value)
+
+
+def write_reports(out_dir: Path, markdown: str, record: dict, chart: np.ndarray) -> None:
+    """robustness.md, robustness.json and robustness.png into `out_dir`."""
+    import cv2
+
+    (out_dir / "robustness.md").write_text(markdown)
+    (out_dir / "robustness.json").write_text(json.dumps(record, indent=1, default=float))
+    if not cv2.imwrite(str(out_dir / "robustness.png"), chart):
+        raise UserError(f"cannot write {out_dir / 'robustness.png'}")
