@@ -74,9 +74,10 @@ def run(args: argparse.Namespace) -> int:
                         "or a folder of them")
     sources = _find_ground_truth(args.gt)
     if args.export_gt is not None:
-        if predictions or args.explain is not None:
-            raise UserError("--export-gt writes ground truth as predictions; do not pass predictions or --explain "
-                            "with it")
+        if predictions:
+            raise UserError("--export-gt writes ground truth as predictions; do not pass predictions with it")
+        if args.explain is not None:
+            raise UserError("--explain explains predictions; it does not go with --export-gt")
         return _export_ground_truth(sources, args.export_gt, args.labels_tsv)
     if not predictions:
         raise UserError("nothing to evaluate: pass prediction <scene>.txt files or folders (PRED), "
