@@ -2,7 +2,7 @@
 
 Two panels over the same view of the ground-truth mesh vertices (ceiling cut away, as in overview.png):
 left, the objects coloured by status; right, the evaluated predictions coloured by kind over the
-mesh, with the objects outlined. Numbers are the objects' ids (`gt id % 1000`, left) and the
+mesh, with the objects outlined. Numbers are the objects' benchmark ids (left) and the
 predictions' rows (right), as in the tables of explain.md. cv2 and NumPy only.
 """
 
@@ -171,7 +171,7 @@ def _object_labels(explanation: SceneExplanation, instance_ids: np.ndarray, vert
     for g in explanation.ground_truth:
         on = vertex_object == position[g.gt_id]
         if on.any():
-            labels.append((str(g.gt_id % 1000), (int(u[on].mean()), int(v[on].mean())), STATUS_COLORS[g.status]))
+            labels.append((str(g.gt_id), (int(u[on].mean()), int(v[on].mean())), STATUS_COLORS[g.status]))
     return labels
 
 
