@@ -351,3 +351,16 @@ def test_demo_run_writes_explain_beside_report(tmp_path):
     explained = json.loads((demo.out_dir / "explain.json").read_text())
     assert run["benchmark"]["explain"]["objects"] == explained["counts"]["objects"]
     assert "explain.md" in demo.text
+
+
+def test_no_predictions_and_no_objects(tmp_path):
+    gt_ids = ground_truth(SCENE)
+    e = explain_scene(gt_ids, InstancePredictions.empty(V))
+    assert [g.status for g in e.ground_truth] == ["missed"] * 5 and e.predictions == ()
+    walls = np.where(gt_ids // 1000 == WALL, gt_ids, 0)  # no object at all
+    nothing = explain_scene(walls, predictions(PREDICTIONS))
+    assert nothing.ground_truth == () and {p.kind for p in nothing.predictions} == {"no_object"}
+    for name, explanation, ids, preds in (("a", e, gt_ids, InstancePredictions.empty(V)),
+                                          ("b", nothing, walls, predictions(PREDICTIONS))):
+        written = write_explanation(tmp_path / name, explanation, ids, preds, grid_vertices(gt_ids))
+        assert cv2.imread(str(written[-1])) is not None
