@@ -29,6 +29,10 @@ examples:
 """
 
 
+#: `--explain` without DIR (a distinct object, so that an explicit DIR is never mistaken for it).
+_EXPLAIN_DEFAULT = Path("<default>")
+
+
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "eval", help="score instance predictions with the ScanNet benchmark (AP, AP50, AP25)",
@@ -87,10 +91,6 @@ def run(args: argparse.Namespace) -> int:
     if explain_dir is _EXPLAIN_DEFAULT:
         explain_dir = args.json.parent if args.json is not None else Path("explain")
     return _evaluate(pairs, args.labels_tsv, args.json, explain_dir)
-
-
-#: `--explain` without DIR (a distinct object, so that an explicit DIR is never mistaken for it).
-_EXPLAIN_DEFAULT = Path("<default>")
 
 
 def _evaluate(pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | None, json_path: Path | None,
