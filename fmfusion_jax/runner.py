@@ -49,7 +49,8 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
 
     Outputs: config.yaml, instances.json, semantic.ply, instances.ply, instances/*.ply, mesh.ply,
     map_state.npz (the map, for `load_map`; unless `save_state` is False), overview.png, run.json, and
-    with ground truth the benchmark prediction files and report.json.
+    with ground truth the benchmark prediction files, report.json and the error analysis explain.md,
+    explain.json, explain.png.
     """
     from fmfusion_jax.engine import extraction
 
@@ -201,12 +202,27 @@ def _export_and_score(instances, gt, scene: Scene, result: FusionResult, out_dir
     """Benchmark prediction files over the scene's mesh vertices, and the score against its GT."""
     from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
 
-    predictions, score = score_instances(instances, gt, scene.name, result.config, label_sets)
+    gt_ids = gt.benchmark_ids()
+    predictions, score = score_instances(instances, gt, scene.name, result.config, label_sets, gt_ids=gt_ids)
     txt = write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
     report = score.to_json_dict()
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     return {"predictions": str(txt), "mAP": score.mAP, "mAP50": score.mAP50, "mAP25": score.mAP25,
-            "table": score.to_table()}
+            "table": score.to_table(), "explain": _explain(gt, gt_ids, predictions, scene.name, out_dir)}
+
+
+def _explain(gt, gt_ids, predictions, scene_name: str, out_dir: Path) -> dict:
+    """The error analysis beside report.json (explain.md, explain.json, explain.png); its counts for run.json.
+
+    It reads the predictions already scored; it does not run the benchmark again.
+    """
+    from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
+
+    start = time.perf_counter()
+    explanation = explain_scene(gt_ids, predictions, gt.vertices, scene_name=scene_name)
+    write_explanation(out_dir, explanation, gt_ids, predictions, gt.vertices, gt.faces)
+    return {"objects": explanation.status_counts(), "predictions": explanation.kind_counts(),
+            "seconds": round(time.perf_counter() - start, 3)}
 
 
 def prepare_output_dir(out_dir: str | Path) -> Path:
@@ -256,5 +272,6 @@ def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: 
     elif "error" in benchmark:
         lines.append(f"not scored: {benchmark['error']}")
     lines.append(f"outputs in {out_dir}: overview.png, instances.json, semantic.ply, instances.ply, mesh.ply, "
-                 f"{MAP_STATE_FILE}, run.json" + (", report.json" if "table" in benchmark else ""))
+                 f"{MAP_STATE_FILE}, run.json"
+                 + (", report.json, explain.md/.json/.png" if "table" in benchmark else ""))
     return "\n".join(lines)

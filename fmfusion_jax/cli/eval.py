@@ -18,14 +18,19 @@ line per mesh vertex) or a folder of them. GT is a ScanNet scene folder (<scene>
 aggregation json; labels tsv in it or its parent), a benchmark ground-truth <scene>.txt (one
 nyu40*1000+instance id per vertex), or a folder of either. Predictions and ground truth are paired by scene
 name; a single PRED with a single GT is paired whatever the names. --gt and --pred take several
-paths, so list positional PREDs before them.
+paths (and --explain an optional DIR), so list positional PREDs before them.
 
 examples:
   fmfusion eval OUT/benchmark/scene0000_00.txt --gt ../shared/data/scannet/scene0000_00
   fmfusion eval OUT/benchmark --gt ../shared/data/scannet --json scores.json
+  fmfusion eval OUT/benchmark/scene0000_00.txt --gt ../shared/data/scannet/scene0000_00 --explain /tmp/why
   fmfusion eval --gt ../shared/data/scannet/scene0000_00 --export-gt /tmp/gt_as_pred
   fmfusion eval /tmp/gt_as_pred --gt ../shared/data/scannet/scene0000_00    # scores 1.000 everywhere
 """
+
+
+#: `--explain` without DIR (a distinct object, so that an explicit DIR is never mistaken for it).
+_EXPLAIN_DEFAULT = Path("<default>")
 
 
 def register(subparsers) -> None:
@@ -46,6 +51,12 @@ def register(subparsers) -> None:
                         help="raw label -> nyu40 tsv for scene folders (default: scannetv2-labels.combined.tsv or "
                              "scannet-labels.combined.tsv in the scene folder, then its parent)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores to this JSON file")
+    parser.add_argument("--explain", nargs="?", const=_EXPLAIN_DEFAULT, type=Path, metavar="DIR",
+                        help="also write an error analysis (each ground-truth object's status, each prediction's "
+                             "kind: docs/error-analysis.md) as explain.md, explain.json and explain.png (the "
+                             "picture needs a scene folder as GT) into DIR, or DIR/<scene>/ for several scenes, "
+                             "and print its counts after the table; DIR defaults to the folder of the --json "
+                             "file, else ./explain")
     parser.add_argument("--export-gt", type=Path, metavar="OUT_DIR",
                         help="instead of evaluating, write each GT scene's instances as benchmark-format "
                              "predictions (confidence 1) into OUT_DIR, to check that ground truth scores 1.0")
@@ -69,21 +80,31 @@ def run(args: argparse.Namespace) -> int:
     if args.export_gt is not None:
         if predictions:
             raise UserError("--export-gt writes ground truth as predictions; do not pass predictions with it")
+        if args.explain is not None:
+            raise UserError("--explain explains predictions; it does not go with --export-gt")
         return _export_ground_truth(sources, args.export_gt, args.labels_tsv)
     if not predictions:
         raise UserError("nothing to evaluate: pass prediction <scene>.txt files or folders (PRED), "
                         "or --export-gt OUT_DIR to write the ground truth as predictions")
     pairs = _pair(_find_predictions(predictions), sources)
-    return _evaluate(pairs, args.labels_tsv, args.json)
+    explain_dir = args.explain
+    if explain_dir is _EXPLAIN_DEFAULT:
+        explain_dir = args.json.parent if args.json is not None else Path("explain")
+    return _evaluate(pairs, args.labels_tsv, args.json, explain_dir)
 
 
-def _evaluate(pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | None, json_path: Path | None) -> int:
+def _evaluate(pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | None, json_path: Path | None,
+              explain_dir: Path | None = None) -> int:
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
     from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
 
-    scenes, names = [], []
+    scenes, names, meshes = [], [], []
     for pred_path, source in pairs:
-        gt_ids = _load_ground_truth_ids(source, labels_tsv)
+        if explain_dir is not None:
+            gt_ids, mesh = _load_ground_truth_with_mesh(source, labels_tsv)
+            meshes.append(mesh)
+        else:
+            gt_ids = _load_ground_truth_ids(source, labels_tsv)
         preds = read_benchmark_predictions(pred_path, num_vertices=len(gt_ids))
         log.info("%s: %d predictions vs ground truth %s", pred_path, preds.num_instances, source.path)
         scenes.append((gt_ids, preds))
@@ -101,7 +122,28 @@ def _evaluate(pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | N
         except OSError as error:
             raise UserError(f"cannot write {json_path}: {error}") from error
         print(f"wrote {json_path}")
+    if explain_dir is not None:
+        _explain(scenes, names, meshes, explain_dir)
     return 0
+
+
+def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) -> None:
+    """The error analysis of each scene (`evaluation.explain`): files in `explain_dir` (one scene) or
+    `explain_dir/<scene>/`, and its counts printed."""
+    from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
+
+    print("error analysis (objects by status | predictions by kind; docs/error-analysis.md):")
+    for (gt_ids, preds), name, mesh in zip(scenes, names, meshes):
+        vertices, faces = mesh if mesh is not None else (None, None)
+        explanation = explain_scene(gt_ids, preds, vertices, scene_name=name)
+        out_dir = explain_dir if len(scenes) == 1 else explain_dir / name
+        try:
+            written = write_explanation(out_dir, explanation, gt_ids, preds, vertices, faces)
+        except OSError as error:
+            raise UserError(f"cannot write the error analysis into {out_dir}: {error}") from error
+        print(f"  {name}: {explanation.summary_line()}")
+        note = "" if mesh is not None else " (no explain.png: the ground truth has no mesh; pass its scene folder)"
+        print(f"  wrote {', '.join(str(p) for p in written)}{note}")
 
 
 def _export_ground_truth(sources: list[_GroundTruthSource], out_dir: Path, labels_tsv: Path | None) -> int:
@@ -117,6 +159,16 @@ def _export_ground_truth(sources: list[_GroundTruthSource], out_dir: Path, label
     gt_args = " ".join(str(s.path) for s in sources)
     print(f"check with: fmfusion eval {out_dir} --gt {gt_args}")
     return 0
+
+
+def _load_ground_truth_with_mesh(source: _GroundTruthSource, labels_tsv: Path | None):
+    """`(gt_ids, (vertices, faces))` of a scene folder; `(gt_ids, None)` of a benchmark gt .txt."""
+    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+
+    if source.kind == "txt":
+        return _load_ground_truth_ids(source, labels_tsv), None
+    gt = load_scannet_ground_truth(source.path, labels_tsv)
+    return gt.benchmark_ids(), (gt.vertices, gt.faces)
 
 
 def _load_ground_truth_ids(source: _GroundTruthSource, labels_tsv: Path | None):
