@@ -82,11 +82,16 @@ class RefinementConfig:
     remove_min_voxels: int = 500    # ... when smaller than this many voxels (SceneNN 8 / 2000)
     reunite_min_frames: int = 2     # reunite b with a once a's detections covered b this often and at least
                                     # as often as b was detected itself, whatever the labels (0: off)
+    separate_min_frames: int = 2    # never merge two instances that two detections of one frame showed apart
+                                    # this often and more often than one detection covered both (0: off)
 
 
 @dataclasses.dataclass
 class ExportConfig:
-    min_weight: float = 2.0         # instance voxels need this global TSDF weight to be exported
+    min_weight: float = 2.0         # exported instance voxels need this slot weight (Kimera baseline: TSDF weight)
+    min_slot_share: float = 0.5     # ... and this share of the voxel's strongest slot (0: any slot)
+    structure_claims_vertices: bool = True  # wall and floor take part in the vertex transfer (then dropped),
+                                    # so a floor vertex nearest to the floor is no object's
     post_merge_iou: float = 0.2     # post-processing merge: 3D IoU above this ...
     post_merge_similarity: float = 0.1  # ... and semantic similarity above this
     min_points: int = 200           # instances with fewer points are dropped
@@ -241,7 +246,8 @@ def validate_config(config: PipelineConfig) -> None:
          "detections.min_translation and min_rotation must be >= 0"),
         (config.instances.capacity >= 2 and config.instances.voxel_slots >= 1, "instance capacities too small"),
         (config.instances.contrary_vote_weight >= 0, "instances.contrary_vote_weight must be >= 0"),
-        (config.refinement.reunite_min_frames >= 0, "refinement.reunite_min_frames must be >= 0"),
+        (config.refinement.reunite_min_frames >= 0 and config.refinement.separate_min_frames >= 0,
+         "refinement.reunite_min_frames and separate_min_frames must be >= 0"),
         (config.tsdf.block_capacity >= 2 and config.tsdf.max_touched_blocks >= 1, "block capacities too small"),
     ]
     for ok, message in checks:

@@ -89,10 +89,11 @@ class Method:
 
 
 #: Config overrides that restore the map of v0.1 (before the robustness work): membership by hits alone, no
-#: reunion of fragments, confidence = class probability. (The motion schedule needs no override: the
+#: reunion of fragments, no veto of merges the detector contradicts, confidence = class probability. (The motion schedule needs no override: the
 #: experiments' configs fix the detection stride.)
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
-    "instances.contrary_vote_weight=0", "refinement.reunite_min_frames=0", "export.support_observations=0")
+    "instances.contrary_vote_weight=0", "refinement.reunite_min_frames=0", "refinement.separate_min_frames=0",
+    "export.support_observations=0", "export.min_slot_share=0", "export.structure_claims_vertices=false")
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("kimera", "Kimera + Cluster-All", baseline="kimera", likelihood="hard association (0.9)",

@@ -57,6 +57,7 @@ def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
         post_merge_similarity=config.export.post_merge_similarity,
         contrary_vote_weight=config.instances.contrary_vote_weight,
         reunite_min_frames=config.refinement.reunite_min_frames,
+        separate_min_frames=config.refinement.separate_min_frames,
     )
 
 
@@ -294,7 +295,9 @@ def extract_map_instances(result: FusionResult, label_sets: LabelSets | None = N
     label_sets = label_sets or load_label_sets()
     state = jax.device_get(result.state)
     distribution = np.asarray(step.class_distribution(result.state, result.fusion_config))
-    points = extraction.extract_instance_points(state, result.map_config, min_weight=result.config.export.min_weight)
+    export = result.config.export
+    points = extraction.extract_instance_points(state, result.map_config, min_weight=export.min_weight,
+                                                min_share=export.min_slot_share)
     table = state.instances
     instances = [
         MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[k], np.float32),

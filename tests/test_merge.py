@@ -326,3 +326,17 @@ def test_a_fragment_covered_by_the_whole_object_reunites_a_neighbour_does_not():
     assert pairs[0, 1] and pairs[1, 0]
     assert not pairs[0, 2] and not pairs[2, 0] and not pairs[0, 3]
     assert not np.asarray(M.reunion_pairs(covered, observations, valid, 0)).any()
+
+
+def test_separated_pairs_veto_what_the_detector_keeps_apart():
+    """a, b shown apart 4 times and covered as one once: never merged; c, d apart 2 times, covered 3 times:
+    free to merge; e, f apart once: below the minimum."""
+    separated = np.zeros((6, 6), np.int32)
+    covered = np.zeros((6, 6), np.int32)
+    for (i, j), n in {(0, 1): 4, (2, 3): 2, (4, 5): 1}.items():
+        separated[i, j] = separated[j, i] = n
+    covered[0, 1], covered[2, 3], covered[3, 2] = 1, 2, 1
+    apart = np.asarray(M.separated_pairs(separated, covered, 2))
+    assert apart[0, 1] and apart[1, 0]
+    assert not apart[2, 3] and not apart[4, 5]
+    assert not np.asarray(M.separated_pairs(separated, covered, 0)).any()

@@ -179,8 +179,11 @@ def sequential_merge(state, map_config, fusion, final: bool):
         return s._replace(instances=s.instances._replace(voxel_count=counts))
 
     def apply(s, rows, new_id):
+        table = s.instances
+        folded = {name: merge.fold_pair_counts(getattr(table, name), new_id, table.valid)
+                  for name in ("covered", "separated")}
         s = s._replace(blocks=iv.remap_instances(s.blocks, new_id, map_config),
-                       instances=s.instances._replace(**rows._asdict()))
+                       instances=table._replace(**rows._asdict(), **folded))
         return recount(s)
 
     if final:
@@ -202,13 +205,16 @@ def sequential_merge(state, map_config, fusion, final: bool):
     else:
         pairs = merge.merge_pairs(similarity, overlap, rows.voxel_count, rows.valid, fusion.merge_similarity,
                                   fusion.merge_overlap)
+    table = state.instances
+    pairs = pairs | merge.reunion_pairs(table.covered, rows.observations, rows.valid, fusion.reunite_min_frames)
+    pairs = pairs & ~merge.separated_pairs(table.separated, table.covered, fusion.separate_min_frames)
     merged = merge.merge_instance_table(rows, merge.merge_groups(pairs, rows.valid, rows.voxel_count),
                                         fusion.label_mode)
     return apply(state, merged.rows, merged.new_id)
 
 
-@pytest.mark.parametrize("ids_per_cell", [1, 4])
-def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, ids_per_cell):
+@pytest.mark.parametrize("ids_per_cell, separate", [(1, 0), (4, 0), (4, 2)])
+def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, ids_per_cell, separate):
     import dataclasses
 
     from fmfusion_jax.engine.instance_volume import instance_voxel_counts
@@ -235,7 +241,7 @@ def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, id
     counts = np.asarray(instance_voxel_counts(result.state.blocks, builder.map_config).counts)
     fusion = dataclasses.replace(builder.fusion_config, merge_similarity=0.02, merge_overlap=0.1,
                                  remove_min_voxels=int(np.median(counts[valid])), post_merge_iou=0.0,
-                                 post_merge_similarity=0.0)
+                                 post_merge_similarity=0.0, separate_min_frames=separate)
     fresh = lambda: jax.tree.map(jax.numpy.asarray, state)  # noqa: E731  (steps donate their state)
     got, stats = step.refine(fresh(), builder.map_config, fusion)
     expected = sequential_merge(fresh(), builder.map_config, fusion, final=False)
@@ -246,7 +252,7 @@ def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, id
         np.testing.assert_array_equal(np.asarray(leaf_got), np.asarray(leaf_expected))
     got, stats = step.finalize(jax.tree.map(jax.numpy.asarray, jax.device_get(got)), builder.map_config, fusion)
     expected = sequential_merge(expected, builder.map_config, fusion, final=True)
-    assert int(stats.merged) > 0 or ids_per_cell == 1
+    assert int(stats.merged) > 0 or ids_per_cell == 1 or separate  # the split halves are kept apart with it
     for leaf_got, leaf_expected in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
         np.testing.assert_array_equal(np.asarray(leaf_got), np.asarray(leaf_expected))
 
@@ -322,3 +328,13 @@ def test_count_covered_counts_candidates_mostly_inside_another_instances_detecti
     not_fused = np.asarray(step.count_covered(np.zeros((k, k), np.int32), matches, np.array([False, True]),
                                               candidates, 0.5))
     assert not not_fused.any()
+
+
+def test_count_separated_counts_each_pair_of_distinct_instances_once_per_frame():
+    k = 6
+    inst_for_det = np.array([2, 4, 2, -1, 5], np.int32)  # detections 0 and 2 both fused into 2
+    fused = np.array([True, True, True, False, False])
+    got = np.asarray(step.count_separated(np.zeros((k, k), np.int32), inst_for_det, fused))
+    expected = np.zeros((k, k), np.int32)
+    expected[2, 4] = expected[4, 2] = 2  # (det 0, det 1) and (det 2, det 1): two detection pairs
+    assert np.array_equal(got, expected)

@@ -160,7 +160,7 @@ class MapConfig:
         b, v, s, k = self.block_capacity, self.voxels_per_block, self.instance_slots, self.instance_capacity
         pool = b * v * (4 + 4 + 12 + 8 * s)  # tsdf, weight, colour (f32 x 3), instance id + weight per slot
         index = self.num_grid_blocks * 4 + b * 12
-        table = k * (1 + 4 * (self.num_classes + self.num_open_labels) + 6 * 4 + 4 * k)
+        table = k * (1 + 4 * (self.num_classes + self.num_open_labels) + 6 * 4 + 8 * k)
         return int(pool + index + table)
 
     def describe(self) -> str:

@@ -203,6 +203,7 @@ def extract_instance_points(
     on_surface: bool = False,
     surface_band: float | None = None,
     min_tsdf_weight: float = 1.0,
+    min_share: float = 0.0,
 ) -> dict[int, np.ndarray]:
     """Voxel centres of each instance's voxels.
 
@@ -210,6 +211,9 @@ def extract_instance_points(
       state: a `MapState` or `VoxelBlocks`.
       config: the map config.
       min_weight: minimum instance-slot weight for a voxel to belong to the instance.
+      min_share: a slot also needs at least this share of the voxel's strongest slot weight: where a
+        well-observed instance (the floor under a smear, a chair under a merged mask's table) holds the
+        voxel, a weakly supported second instance does not get it (0: every slot).
       on_surface: keep only voxels on the global surface: TSDF weight >= `min_tsdf_weight` and
         `|tsdf| * sdf_trunc <= surface_band` (default one voxel).
       surface_band: see `on_surface`, metres.
@@ -225,6 +229,9 @@ def extract_instance_points(
 
     ids, weights = host["instance_id"], host["instance_weight"]
     keep = (ids >= 0) & (weights >= min_weight)
+    if min_share > 0:
+        strongest = np.max(np.where(ids >= 0, weights, 0.0), axis=-1, keepdims=True)
+        keep &= weights >= min_share * strongest
     if on_surface:
         band = config.voxel_size if surface_band is None else surface_band
         surface = (host["weight"] >= min_tsdf_weight) & (np.abs(host["tsdf"]) * config.sdf_trunc <= band)

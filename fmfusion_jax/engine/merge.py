@@ -93,6 +93,20 @@ def reunion_pairs(covered: jax.Array, observations: jax.Array, valid: jax.Array,
 
 
 @jax.jit
+def separated_pairs(separated: jax.Array, covered: jax.Array, min_frames) -> jax.Array:
+    """`(K, K)` symmetric bool: pairs never to merge, because the detector keeps seeing two objects.
+
+    `separated[a, b]` counts the frames in which two different detections were fused into a and b;
+    `covered[a, b] + covered[b, a]` those in which one detection covered both. A pair is kept apart once it
+    was separated at least `min_frames` times and more often than it was covered: a chair that a merged
+    mask sometimes joins to its table, or a cabinet under a counter, stays its own object however much the
+    merged masks made their volumes overlap. `min_frames <= 0` turns the test off.
+    """
+    apart = (separated >= min_frames) & (separated > covered + covered.T) & (min_frames > 0)
+    return apart | apart.T
+
+
+@jax.jit
 def fold_pair_counts(counts: jax.Array, new_id: jax.Array, valid: jax.Array) -> jax.Array:
     """`(K, K)` pair counts after a merge or removal: rows and columns summed into each row's `new_id`
     (-1: dropped), the diagonal cleared. Skipped (one test) when no valid row changed its id."""

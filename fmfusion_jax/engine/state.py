@@ -64,6 +64,9 @@ class InstanceTable(NamedTuple):
     # was mostly inside the mask of a detection fused into a (the evidence that reunites fragments);
     # zero in the rows and columns of invalid instances
     covered: jax.Array
+    # int32[K, K] symmetric: detection frames in which a and b were fused from two different detections (the
+    # detector saw two objects: evidence against merging them); zero in the rows and columns of invalid ones
+    separated: jax.Array
     overflow: jax.Array  # int32[]: detections that found no free row (cumulative)
 
 
@@ -147,6 +150,7 @@ def init_instance_table(config: MapConfig) -> InstanceTable:
         created_frame=zeros_k(),
         last_seen_frame=zeros_k(),
         covered=jnp.zeros((k, k), jnp.int32),
+        separated=jnp.zeros((k, k), jnp.int32),
         overflow=jnp.zeros((), jnp.int32),
     )
 

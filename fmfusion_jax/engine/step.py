@@ -59,6 +59,9 @@ class FusionConfig:
     # Reunite instance b with a when b was covered by a's detections in at least this many detection frames
     # and in at least as many as b was detected itself (0: off, the paper's merge tests alone).
     reunite_min_frames: int = 0
+    # Never merge a and b once two different detections of one frame were fused into them in at least this
+    # many frames and more often than one detection covered both (0: off, the paper's merge tests alone).
+    separate_min_frames: int = 0
 
 
 class FrameInputs(NamedTuple):
@@ -193,8 +196,22 @@ def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array, 
         missed=maintenance.update_missed(rows.missed, table.valid, in_view, was_matched),
         last_seen_frame=maintenance.mark_seen(rows.last_seen_frame, was_matched, frame_index))
     covered = count_covered(table.covered, matches, fused_ok, in_view & ~was_matched, fusion.association_threshold)
-    table = table._replace(**rows._asdict(), covered=covered, overflow=table.overflow + assignment.overflow)
+    separated = count_separated(table.separated, inst_for_det, fused_ok)
+    table = table._replace(**rows._asdict(), covered=covered, separated=separated,
+                           overflow=table.overflow + assignment.overflow)
     return table, TableUpdate(fused_ok, in_view)
+
+
+def count_separated(separated: jax.Array, instance_for_detection: jax.Array, fused: jax.Array) -> jax.Array:
+    """`separated int32[K, K]` plus this frame: +1 at (a, b) and (b, a) for every two detections of the frame
+    fused (`fused bool[N]`) into different instances a and b. One scatter of N^2 updates."""
+    k = separated.shape[0]
+    inst = jnp.where(fused, instance_for_detection, -1)
+    a, b = inst[:, None], inst[None, :]
+    pair = (a >= 0) & (b >= 0) & (a != b)
+    rows = jnp.where(pair, a, k).reshape(-1)
+    cols = jnp.where(pair, b, k).reshape(-1)
+    return jnp.asarray(separated).at[rows, cols].add(pair.reshape(-1).astype(separated.dtype), mode="drop")
 
 
 def count_covered(covered: jax.Array, matches: Matches, fused: jax.Array, candidates: jax.Array,
@@ -271,6 +288,7 @@ class _MergeParams(NamedTuple):
     similarity: jax.Array  # float32[]: semantic similarity threshold
     overlap: jax.Array  # float32[]: overlap ratio (online) or 3D IoU (final) threshold
     reunite: jax.Array  # int32[]: `FusionConfig.reunite_min_frames` (0: off)
+    separate: jax.Array  # int32[]: `FusionConfig.separate_min_frames` (0: off)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "label_mode"), donate_argnames=("state",))
@@ -315,13 +333,17 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig,
     similarity = merge.semantic_similarity(label_fusion.class_distribution(rows.label_evidence, label_mode))
     test = (similarity, overlap, rows.voxel_count, rows.valid, params.similarity, params.overlap)
     pairs = jax.lax.cond(final, merge.post_merge_pairs, merge.merge_pairs, *test)
-    pairs = pairs | merge.reunion_pairs(state.instances.covered, rows.observations, rows.valid, params.reunite)
+    table = state.instances
+    pairs = pairs | merge.reunion_pairs(table.covered, rows.observations, rows.valid, params.reunite)
+    pairs = pairs & ~merge.separated_pairs(table.separated, table.covered, params.separate)
     representative = merge.merge_groups(pairs, rows.valid, rows.voxel_count)
     merged = merge.merge_instance_table(rows, representative, label_mode)
     # merged.new_id is -1 for the removed rows too: one renaming applies the removal and the merge
     blocks, voxel_count = _apply_new_ids(blocks, census, merged.new_id, config)
-    covered = merge.fold_pair_counts(state.instances.covered, merged.new_id, state.instances.valid)
-    table = state.instances._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered)
+    covered = merge.fold_pair_counts(table.covered, merged.new_id, table.valid)
+    separated = merge.fold_pair_counts(table.separated, merged.new_id, table.valid)
+    table = table._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered,
+                           separated=separated)
     stats = RefineStats(removed=jnp.sum(remove).astype(jnp.int32),
                         merged=(jnp.sum(rows.valid) - jnp.sum(table.valid)).astype(jnp.int32),
                         dropped_cells=census.dropped_cells + overfull)
@@ -342,7 +364,8 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
     params = _MergeParams(final=np.bool_(False), remove_missed=np.int32(fusion.remove_missed),
                           remove_min_voxels=np.int32(fusion.remove_min_voxels),
                           similarity=np.float32(fusion.merge_similarity), overlap=np.float32(fusion.merge_overlap),
-                          reunite=np.int32(fusion.reunite_min_frames))
+                          reunite=np.int32(fusion.reunite_min_frames),
+                          separate=np.int32(fusion.separate_min_frames))
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
 
 
@@ -367,7 +390,8 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
     state = fuse_geometry(state, config, fusion)
     params = _MergeParams(final=np.bool_(True), remove_missed=np.int32(np.iinfo(np.int32).max),
                           remove_min_voxels=np.int32(0), similarity=np.float32(fusion.post_merge_similarity),
-                          overlap=np.float32(fusion.post_merge_iou), reunite=np.int32(fusion.reunite_min_frames))
+                          overlap=np.float32(fusion.post_merge_iou), reunite=np.int32(fusion.reunite_min_frames),
+                          separate=np.int32(fusion.separate_min_frames))
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
 
 

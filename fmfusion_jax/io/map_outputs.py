@@ -102,17 +102,22 @@ def write_instances_json(path: Path, instances: list[MapInstance], label_sets: L
 
 
 def benchmark_predictions(instances: list[MapInstance], label_sets: LabelSets, vertices: np.ndarray,
-                          radius: float) -> InstancePredictions:
+                          radius: float, structure_claims_vertices: bool = False) -> InstancePredictions:
     """Instances transferred to mesh vertices by radius search, with nyu40 ids and confidences.
 
-    Wall and floor are not benchmark classes and are left out.
+    Wall and floor are not benchmark classes and are left out of the predictions. With
+    `structure_claims_vertices` they first take part in the transfer (each vertex goes to its nearest
+    instance point), so the floor vertices around an object's base go to the floor rather than to the
+    object's lowest points; a point held by an object and by the wall or floor stays the object's.
     """
     from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 
+    structure = [inst for inst in instances if label_sets.class_names[inst.class_index] in ("wall", "floor")]
     keep = [inst for inst in instances if label_sets.class_names[inst.class_index] not in ("wall", "floor")]
     if not keep:
         return InstancePredictions.empty(len(vertices))
-    masks = points_to_vertex_masks(vertices, [inst.points for inst in keep], radius=radius)
+    claimants = keep + (structure if structure_claims_vertices else [])
+    masks = points_to_vertex_masks(vertices, [inst.points for inst in claimants], radius=radius)[:len(keep)]
     return InstancePredictions(masks=masks,
                                nyu40_ids=np.array([label_sets.nyu40_ids[i.class_index] for i in keep], np.int32),
                                confidences=np.array([i.confidence for i in keep], np.float64))
