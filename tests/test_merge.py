@@ -330,7 +330,7 @@ def test_a_fragment_covered_by_the_whole_object_reunites_a_neighbour_does_not():
 
 def test_separated_pairs_veto_what_the_detector_keeps_apart():
     """a, b shown apart 4 times and covered as one once: never merged; c, d apart 2 times, covered 3 times:
-    free to merge; e, f apart once: below the minimum."""
+    free to merge; e, f apart once: below a minimum of 2, kept apart with a minimum of 1 (never covered)."""
     separated = np.zeros((6, 6), np.int32)
     covered = np.zeros((6, 6), np.int32)
     for (i, j), n in {(0, 1): 4, (2, 3): 2, (4, 5): 1}.items():
@@ -339,4 +339,9 @@ def test_separated_pairs_veto_what_the_detector_keeps_apart():
     apart = np.asarray(M.separated_pairs(separated, covered, 2))
     assert apart[0, 1] and apart[1, 0]
     assert not apart[2, 3] and not apart[4, 5]
+    assert np.asarray(M.separated_pairs(separated, covered, 1))[4, 5]
+    covered[4, 5] = 1  # covered as often as separated: still apart
+    assert np.asarray(M.separated_pairs(separated, covered, 1))[4, 5]
+    covered[5, 4] = 1  # covered more often: free to merge
+    assert not np.asarray(M.separated_pairs(separated, covered, 1))[4, 5]
     assert not np.asarray(M.separated_pairs(separated, covered, 0)).any()

@@ -97,12 +97,13 @@ def separated_pairs(separated: jax.Array, covered: jax.Array, min_frames) -> jax
     """`(K, K)` symmetric bool: pairs never to merge, because the detector keeps seeing two objects.
 
     `separated[a, b]` counts the frames in which two different detections were fused into a and b;
-    `covered[a, b] + covered[b, a]` those in which one detection covered both. A pair is kept apart once it
-    was separated at least `min_frames` times and more often than it was covered: a chair that a merged
-    mask sometimes joins to its table, or a cabinet under a counter, stays its own object however much the
-    merged masks made their volumes overlap. `min_frames <= 0` turns the test off.
+    `covered[a, b] + covered[b, a]` those in which one detection covered both. A pair is kept apart while it
+    was separated at least `min_frames` times and at least as often as it was covered: a chair that a
+    merged mask sometimes joins to its table, or a cabinet under a counter, stays its own object however
+    much the merged masks made their volumes overlap, while the halves of a split mask join once whole
+    masks have covered them more often. `min_frames <= 0` turns the test off.
     """
-    apart = (separated >= min_frames) & (separated > covered + covered.T) & (min_frames > 0)
+    apart = (separated >= min_frames) & (separated >= covered + covered.T) & (min_frames > 0)
     return apart | apart.T
 
 

@@ -59,8 +59,8 @@ class FusionConfig:
     # Reunite instance b with a when b was covered by a's detections in at least this many detection frames
     # and in at least as many as b was detected itself (0: off, the paper's merge tests alone).
     reunite_min_frames: int = 0
-    # Never merge a and b once two different detections of one frame were fused into them in at least this
-    # many frames and more often than one detection covered both (0: off, the paper's merge tests alone).
+    # Never merge a and b while two different detections of one frame were fused into them in at least this
+    # many frames and at least as often as one detection covered both (0: off, the paper's tests alone).
     separate_min_frames: int = 0
 
 
