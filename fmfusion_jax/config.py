@@ -98,6 +98,7 @@ class ExportConfig:
     support_observations: float = 3.0  # confidence = class probability x (1 - exp(-observations / this)),
                                     # so one-off instances rank low (0: class probability alone)
     transfer_radius: float = 0.08   # m; instance labels to mesh vertices by radius search
+    transfer_neighbours: int = 8    # a vertex takes the instance of most of its nearest points (1: nearest)
     shower_curtain_radius: float = 2.0  # m; a curtain this close to a toilet/bathtub is a shower curtain
 
 
@@ -246,6 +247,7 @@ def validate_config(config: PipelineConfig) -> None:
          "detections.min_translation and min_rotation must be >= 0"),
         (config.instances.capacity >= 2 and config.instances.voxel_slots >= 1, "instance capacities too small"),
         (config.instances.contrary_vote_weight >= 0, "instances.contrary_vote_weight must be >= 0"),
+        (config.export.transfer_neighbours >= 1, "export.transfer_neighbours must be >= 1"),
         (config.refinement.reunite_min_frames >= 0 and config.refinement.separate_min_frames >= 0,
          "refinement.reunite_min_frames and separate_min_frames must be >= 0"),
         (config.tsdf.block_capacity >= 2 and config.tsdf.max_touched_blocks >= 1, "block capacities too small"),

@@ -194,7 +194,8 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 
     predictions = map_outputs.benchmark_predictions(instances, label_sets, gt.vertices, config.export.transfer_radius,
-                                                    config.export.structure_claims_vertices)
+                                                    config.export.structure_claims_vertices,
+                                                    config.export.transfer_neighbours)
     gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
     return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
 

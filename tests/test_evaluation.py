@@ -451,3 +451,21 @@ def test_cli_help(cli_main, capsys):
     text = capsys.readouterr().out
     for option in ("PRED", "--pred", "--gt", "--labels-tsv", "--json", "--export-gt"):
         assert option in text
+
+
+def test_points_to_vertex_masks_by_neighbour_vote_keeps_interleaved_instances_whole():
+    """A dense instance with a sparse one interleaved over it: the nearest point alone speckles the vertices
+    between them, the vote of 8 neighbours gives them to the dense one; alone, the sparse one keeps its own."""
+    rng = np.random.default_rng(0)
+    vertices = np.stack(np.meshgrid(np.arange(0, 1, 0.02), np.arange(0, 1, 0.02), [0.0]), -1).reshape(-1, 3)
+    dense = rng.uniform(0, 1, (4000, 3)) * [1, 1, 0]
+    sparse = rng.uniform(0, 1, (800, 3)) * [1, 1, 0]
+    nearest = points_to_vertex_masks(vertices, [dense, sparse], radius=0.08)
+    voted = points_to_vertex_masks(vertices, [dense, sparse], radius=0.08, neighbours=8)
+    assert 0.05 < nearest[1].mean() < 0.35  # speckled
+    assert voted[0].mean() > 0.97 and voted[1].mean() < 0.03
+    assert not np.any(voted[0] & voted[1])
+    alone = points_to_vertex_masks(vertices, [np.zeros((0, 3)), sparse], radius=0.08, neighbours=8)
+    np.testing.assert_array_equal(alone[1], points_to_vertex_masks(vertices, [sparse], radius=0.08)[0])
+    far = points_to_vertex_masks(vertices + [0, 0, 1.0], [dense, sparse], radius=0.08, neighbours=8)
+    assert not far.any()

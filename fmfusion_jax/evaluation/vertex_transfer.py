@@ -8,8 +8,12 @@ import numpy as np
 
 
 def points_to_vertex_masks(vertices: np.ndarray, instance_points: Sequence[np.ndarray],
-                           radius: float = 0.08) -> np.ndarray:
-    """Vertex masks of instances: a vertex joins the instance of its nearest point closer than `radius`.
+                           radius: float = 0.08, neighbours: int = 1) -> np.ndarray:
+    """Vertex masks of instances: a vertex joins the instance of its nearest point closer than `radius`
+    (`neighbours` = 1), or the instance holding most of its `neighbours` nearest points within `radius`
+    (ties: the one with the nearest point). Voting keeps the masks whole where two instances' points
+    interleave (an object and a weakly supported instance over it): with the nearest point alone the
+    vertices alternate between them and both lose IoU.
 
     Tie rule: nearest instance wins, so the masks are disjoint like the benchmark's ground truth, where
     each vertex belongs to at most one instance. Letting every instance within `radius` claim a vertex
@@ -21,6 +25,7 @@ def points_to_vertex_masks(vertices: np.ndarray, instance_points: Sequence[np.nd
       vertices: `(V, 3)` mesh vertices.
       instance_points: `P` arrays `(N_i, 3)` in the mesh frame; an empty one gives an empty mask.
       radius: metres; a vertex at least this far from every point belongs to no instance.
+      neighbours: points that vote for each vertex (1: the nearest decides).
 
     Returns:
       `(P, V)` bool.
@@ -37,7 +42,18 @@ def points_to_vertex_masks(vertices: np.ndarray, instance_points: Sequence[np.nd
     # np.unique keeps the first occurrence of a repeated point: the lowest instance index owns it.
     points, first = np.unique(points, axis=0, return_index=True)
     owner = owner[first]
-    distances, nearest = cKDTree(points).query(vertices, k=1, distance_upper_bound=radius)
-    hit = np.isfinite(distances)
-    masks[owner[nearest[hit]], np.flatnonzero(hit)] = True
+    k = max(1, min(int(neighbours), len(points)))
+    distances, nearest = cKDTree(points).query(vertices, k=k, distance_upper_bound=radius)
+    distances, nearest = distances.reshape(len(vertices), k), nearest.reshape(len(vertices), k)
+    hit = np.isfinite(distances[:, 0])
+    if k == 1:
+        masks[owner[nearest[hit, 0]], np.flatnonzero(hit)] = True
+        return masks
+    vertex = np.flatnonzero(hit)
+    found = np.isfinite(distances[hit])  # (H, k), sorted nearest first
+    voter = np.where(found, owner[np.minimum(nearest[hit], len(points) - 1)], -1)
+    # votes per (vertex, candidate): each candidate counted over the row; the first column breaks ties
+    votes = (voter[:, :, None] == voter[:, None, :]).sum(axis=2) * (voter >= 0)
+    best = np.argmax(votes, axis=1)  # first maximum: the nearest among the most voted
+    masks[voter[np.arange(len(vertex)), best], vertex] = True
     return masks

@@ -102,13 +102,15 @@ def write_instances_json(path: Path, instances: list[MapInstance], label_sets: L
 
 
 def benchmark_predictions(instances: list[MapInstance], label_sets: LabelSets, vertices: np.ndarray,
-                          radius: float, structure_claims_vertices: bool = False) -> InstancePredictions:
+                          radius: float, structure_claims_vertices: bool = False,
+                          neighbours: int = 1) -> InstancePredictions:
     """Instances transferred to mesh vertices by radius search, with nyu40 ids and confidences.
 
     Wall and floor are not benchmark classes and are left out of the predictions. With
     `structure_claims_vertices` they first take part in the transfer (each vertex goes to its nearest
     instance point), so the floor vertices around an object's base go to the floor rather than to the
     object's lowest points; a point held by an object and by the wall or floor stays the object's.
+    `neighbours`: see `evaluation.vertex_transfer.points_to_vertex_masks`.
     """
     from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 
@@ -117,7 +119,8 @@ def benchmark_predictions(instances: list[MapInstance], label_sets: LabelSets, v
     if not keep:
         return InstancePredictions.empty(len(vertices))
     claimants = keep + (structure if structure_claims_vertices else [])
-    masks = points_to_vertex_masks(vertices, [inst.points for inst in claimants], radius=radius)[:len(keep)]
+    masks = points_to_vertex_masks(vertices, [inst.points for inst in claimants], radius=radius,
+                                   neighbours=neighbours)[:len(keep)]
     return InstancePredictions(masks=masks,
                                nyu40_ids=np.array([label_sets.nyu40_ids[i.class_index] for i in keep], np.int32),
                                confidences=np.array([i.confidence for i in keep], np.float64))
