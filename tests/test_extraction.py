@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -132,3 +133,20 @@ def test_integrated_room_mesh_lies_on_the_room():
     assert 0 < sum(len(p) for p in on_surface.values()) <= sum(len(p) for p in points.values())
     strong = extract_instance_points(state, config, min_weight=3.0)
     assert sum(len(p) for p in strong.values()) < sum(len(p) for p in points.values())
+
+
+def test_instance_points_with_a_slot_share_drop_weak_second_slots():
+    """Two slots per voxel: instance 0 strong everywhere, instance 1 strong in a few voxels and weak (a smear)
+    in others. With `min_share` the weak slots go; the strongest slot of a voxel always stays."""
+    blocks = sphere_blocks()
+    n = int(blocks.num_blocks)
+    ids = np.full(np.asarray(blocks.instance_id).shape, -1, np.int32)
+    weights = np.zeros(ids.shape, np.float32)
+    ids[:n, :, 0], weights[:n, :, 0] = 0, 10.0
+    ids[:n, :8, 1], weights[:n, :8, 1] = 1, 2.0   # weak beside 10
+    ids[:n, 8:12, 1], weights[:n, 8:12, 1] = 1, 6.0  # comparable
+    state = blocks._replace(instance_id=jnp.asarray(ids), instance_weight=jnp.asarray(weights))
+    every = extract_instance_points(state, SPHERE_CONFIG)
+    shared = extract_instance_points(state, SPHERE_CONFIG, min_share=0.5)
+    assert len(every[1]) == 12 * n and len(shared[1]) == 4 * n
+    assert len(shared[0]) == len(every[0]) == ids.shape[1] * n

@@ -30,3 +30,21 @@ def test_postprocessing_rules():
     assert len(floor.points) == 800
     for inst in out:
         assert np.isclose(inst.distribution.sum(), 1.0)
+
+
+def test_floor_claims_its_vertices_in_the_benchmark_transfer():
+    """Floor vertices around a table's lowest points go to the floor (then dropped) when the structure takes
+    part in the transfer; without it the table takes them."""
+    from fmfusion_jax.io.map_outputs import benchmark_predictions
+
+    label_sets = load_label_sets()
+    grid = np.stack(np.meshgrid(np.arange(0, 1, 0.02), np.arange(0, 1, 0.02), [0.0]), -1).reshape(-1, 3)
+    table_points = grid[(grid[:, 0] > 0.4) & (grid[:, 0] < 0.6)] + [0, 0, 0.05]
+    floor = MapInstance(0, np.eye(20)[label_sets.class_index("floor")], grid, 5, np.zeros(38))
+    table = MapInstance(1, np.eye(20)[label_sets.class_index("table")], table_points, 5, np.zeros(38))
+    vertices = grid  # the floor of the mesh
+    plain = benchmark_predictions([floor, table], label_sets, vertices, 0.08)
+    claimed = benchmark_predictions([floor, table], label_sets, vertices, 0.08, structure_claims_vertices=True)
+    assert plain.num_instances == claimed.num_instances == 1
+    assert plain.masks[0].sum() >= 0.25 * len(vertices)
+    assert claimed.masks[0].sum() == 0
