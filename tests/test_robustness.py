@@ -12,7 +12,7 @@ import pytest
 
 from fmfusion_jax import robustness
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.experiments import METHODS, SceneSource
+from fmfusion_jax.experiments import METHODS, PREVIOUS_MAP_OVERRIDES, SceneSource
 from fmfusion_jax.robustness import (best_methods, detections_tag, entry_noise, family_rows, robustness_markdown,
                                      run_robustness, scale_noise_to_image, summarize, verdict, verdict_lines,
                                      write_reports)
@@ -228,7 +228,10 @@ def test_tiny_evaluation_end_to_end(tmp_path):
             run = json.loads((out / "runs" / spec.name / entry["name"] / method / "run.json").read_text())
             assert run["method"] == method and run["frames"] == spec.num_frames
         full = json.loads((out / "runs" / spec.name / entry["name"] / "full" / "run.json").read_text())
-        assert full["same_run_as"] == "previous"  # PREVIOUS_MAP_OVERRIDES is empty: one map for both
+        previous = json.loads((out / "runs" / spec.name / entry["name"] / "previous" / "run.json").read_text())
+        # previous differs from full by PREVIOUS_MAP_OVERRIDES: two maps fused, neither copied
+        assert previous["overrides"] == list(PREVIOUS_MAP_OVERRIDES) and full["overrides"] == []
+        assert "same_run_as" not in full and "same_run_as" not in previous
     for method in METHOD_NAMES:
         summary = record["summary"][method]
         assert 0.0 <= summary["worst"]["AP50"]["value"] <= summary["mean"]["AP50"] <= 1.0

@@ -67,9 +67,11 @@ def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: i
     """A generated room with `objects` objects (its size grows with them, `procedural.default_room_size`),
     `frames` frames of `width x height` along a loop around it, and simulated detections on every frame.
 
-    Fused with the demo's config for these sizes (`demo.demo_config`), detections on every frame.
+    Fused with the demo's config for these sizes (`demo.demo_config`), detections on every frame and geometry
+    fusion at least twice.
     Everything lives in `cache_dir/synth-o<objects>-f<frames>-<W>x<H>-s<seed>` and is reused when there.
     """
+    from fmfusion_jax.config import load_config
     from fmfusion_jax.demo import demo_config, demo_noise
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
@@ -78,7 +80,11 @@ def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: i
     detections_dir = simulated_detections(scene_dir, folder / "detections", demo_noise(seed, width, height),
                                           every=1, progress=progress)
     room_size = tuple(float(x) for x in json.loads((scene_dir / "synthesis.json").read_text())["room_size"])
-    config = demo_config(frames, width, height, ["detections.every=1"], room_size=room_size)
+    # detections on every frame; geometry fusion at least twice however short the run, so its stage is timed
+    geometry_fusion_every = max(1, min(load_config("demo").refinement.geometry_fusion_every, frames // 2))
+    config = demo_config(frames, width, height, ["detections.every=1",
+                                                 f"refinement.geometry_fusion_every={geometry_fusion_every}"],
+                         room_size=room_size)
     config_path = folder / "config.yaml"
     config_path.write_text(config.to_yaml())
     return BenchScene(folder.name, "generated", scene_dir, detections_dir, config_path, frames, objects, room_size)
