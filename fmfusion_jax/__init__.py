@@ -1,3 +1,56 @@
-"""fmfusion-jax: instance-aware semantic mapping with open-set foundation-model detections, in JAX."""
+"""fmfusion-jax: instance-aware semantic mapping with open-set foundation-model detections, in JAX.
+
+    from fmfusion_jax import Mapper
+    mapper = Mapper("scannet")
+    mapper.integrate(frame, detections)      # per frame: an RGBDFrame, or depth/colour/pose/intrinsics arrays
+    instances = mapper.instances()           # a snapshot (class distribution, points, confidence)
+
+See `fmfusion_jax.mapper.Mapper` and docs/api.md. The names below are imported on first use, so
+`import fmfusion_jax` stays cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
+
+#: public name -> module that defines it
+_EXPORTS = {
+    "Mapper": "fmfusion_jax.mapper",
+    "PipelineConfig": "fmfusion_jax.config",
+    "load_config": "fmfusion_jax.config",
+    "RGBDFrame": "fmfusion_jax.types",
+    "CameraIntrinsics": "fmfusion_jax.types",
+    "FrameDetections": "fmfusion_jax.types",
+    "MapInstance": "fmfusion_jax.instances",
+    "FusionResult": "fmfusion_jax.pipeline",
+    "open_scene": "fmfusion_jax.io.scene",
+    "DetectionFolder": "fmfusion_jax.io.detections",
+    "UserError": "fmfusion_jax.errors",
+}
+
+__all__ = ["__version__", *_EXPORTS]
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
+    from fmfusion_jax.config import PipelineConfig, load_config
+    from fmfusion_jax.errors import UserError
+    from fmfusion_jax.instances import MapInstance
+    from fmfusion_jax.io.detections import DetectionFolder
+    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.mapper import Mapper
+    from fmfusion_jax.pipeline import FusionResult
+    from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'fmfusion_jax' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

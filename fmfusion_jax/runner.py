@@ -15,28 +15,36 @@ from fmfusion_jax.errors import UserError
 from fmfusion_jax.io import map_outputs
 from fmfusion_jax.io.scene import Scene
 from fmfusion_jax.labels import load_label_sets
-from fmfusion_jax.pipeline import (DetectionSource, FusionResult, MapBuilder, build_map_config,
-                                   extract_map_instances, fuse_sequence)
+from fmfusion_jax.pipeline import DetectionSource, FusionResult, MapBuilder, extract_map_instances
 
 log = logging.getLogger(__name__)
 
 
 def fuse_scene(scene: Scene, detection_source: DetectionSource, config: PipelineConfig,
                progress: bool = True) -> FusionResult:
-    """Fuses every frame of `scene` (bounds estimated from its poses and depth)."""
-    bounds_min, bounds_max = scene.bounds()
-    map_config = build_map_config(config, bounds_min, bounds_max, scene.intrinsics.height, scene.intrinsics.width)
-    log.info("map: %s", map_config.describe())
-    builder = MapBuilder(config, map_config)
+    """Fuses every frame of `scene` through a `Mapper` whose block index covers the scene's bounds
+    (estimated from its poses and depth); detections are read only for the frames the schedule fuses."""
+    from fmfusion_jax.mapper import Mapper
+
+    mapper = Mapper(config, bounds=scene.bounds())
+
+    def fuse(update=None) -> FusionResult:
+        for frame in scene.frames():
+            detections = detection_source(frame) if mapper.detection_due(frame.T_world_camera) else None
+            mapper.integrate(frame, detections)
+            if update:
+                update(1)
+        return mapper.finalize()
+
     if not progress:
-        return fuse_sequence(scene.frames(), detection_source, builder)
+        return fuse()
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     # Log lines (with -v) go above the bar instead of into it.
     with logging_redirect_tqdm(), tqdm(total=len(scene), desc=f"fusing {scene.name}", unit="frame",
                                        dynamic_ncols=True) as bar:
-        return fuse_sequence(scene.frames(), detection_source, builder, progress=bar.update)
+        return fuse(bar.update)
 
 
 def ground_truth_mesh_path(scene: Scene) -> Path | None:
@@ -83,7 +91,7 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
         "instances": len(instances), "counters": result.counters, "timings_ms": result.timings.summary(),
         "map": result.map_config.describe(), "capacity_used": capacity_used(result),
     }
-    gt = _load_ground_truth(scene)
+    gt = load_ground_truth(scene)
     if isinstance(gt, str):
         summary["benchmark"] = {"error": gt}
         gt = None
@@ -151,7 +159,7 @@ def resume_builder(path: str | Path) -> MapBuilder:
     return builder
 
 
-def _load_ground_truth(scene: Scene):
+def load_ground_truth(scene: Scene):
     """The scene's ground truth; None without a GT mesh; the error text when GT files are incomplete."""
     from fmfusion_jax.errors import DataError
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth

@@ -299,7 +299,7 @@ def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
 
     label_sets = load_label_sets()
     scene = open_scene(generated_scene)
-    gt = runner._load_ground_truth(scene)
+    gt = runner.load_ground_truth(scene)
     ids = gt.benchmark_ids()
     objects = [i for i in np.unique(ids) if i // 1000 in BENCHMARK_NYU40_IDS and np.sum(ids == i) >= 100]
     floor = gt.vertices[ids // 1000 == FLOOR]

@@ -55,14 +55,23 @@ def valid_depth(d, config: MapConfig):
     return (d >= config.depth_min) & (d <= config.depth_max)
 
 
+def lattice_floor(x, origin: float, step: float):
+    """int32 `floor((x - origin) / step)`, elementwise.
+
+    With `origin` a whole number of steps (`MapConfig.for_bounds` puts the index origin on whole blocks), it
+    is computed as `floor(x / step) - origin / step`: the floor sees `x / step` alone, so a point falls in the
+    same world cell whatever the index's origin, and a grown map equals one allocated at its final size.
+    """
+    cells = origin / step
+    if abs(cells - round(cells)) < 1e-9:
+        return jnp.floor(x / step).astype(jnp.int32) - int(round(cells))
+    return jnp.floor((x - origin) / step).astype(jnp.int32)
+
+
 def world_to_voxel(x, y, z, config: MapConfig):
-    """Integer global voxel coordinates of world points (floor)."""
+    """Integer global voxel coordinates of world points (floor; see `lattice_floor`)."""
     o, vs = config.grid_origin, config.voxel_size
-    return (
-        jnp.floor((x - o[0]) / vs).astype(jnp.int32),
-        jnp.floor((y - o[1]) / vs).astype(jnp.int32),
-        jnp.floor((z - o[2]) / vs).astype(jnp.int32),
-    )
+    return lattice_floor(x, o[0], vs), lattice_floor(y, o[1], vs), lattice_floor(z, o[2], vs)
 
 
 def locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):

@@ -67,9 +67,7 @@ def _find_touched_blocks(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
     offsets = np.linspace(-config.sdf_trunc, config.sdf_trunc, n) if n > 1 else np.zeros(1)
     z = d[None] + jnp.asarray(offsets, jnp.float32)[:, None, None]  # (n, Ha, Wa)
     x, y, z = geo.camera_to_world(T, xn[None] * z, yn[None] * z, z)
-    bx = jnp.floor((x - origin[0]) / length).astype(jnp.int32)
-    by = jnp.floor((y - origin[1]) / length).astype(jnp.int32)
-    bz = jnp.floor((z - origin[2]) / length).astype(jnp.int32)
+    bx, by, bz = (geo.lattice_floor(c, origin[a], length) for a, c in enumerate((x, y, z)))
     inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
     use = ok_pixel[None] & inside
     flat = jnp.where(use, (bx * sy + by) * sz + bz, num_grid).reshape(-1)
@@ -119,8 +117,10 @@ def block_voxel_centres(blocks: VoxelBlocks, slots, config: MapConfig):
     base = blocks.block_coords[slots] * config.block_size  # (M, 3)
     vs = config.voxel_size
     o = config.grid_origin
+    # (world voxel + 0.5) * vs with the origin's whole voxels added first (exact integers in float32): the
+    # same centre whatever the index's origin (see geo.lattice_floor)
     return tuple(
-        (base[:, a : a + 1] + jnp.asarray(offsets[:, a] + 0.5, jnp.float32)[None]) * vs + o[a] for a in range(3)
+        (base[:, a : a + 1] + jnp.asarray(offsets[:, a] + 0.5, jnp.float32)[None] + o[a] / vs) * vs for a in range(3)
     )
 
 

@@ -1,0 +1,384 @@
+"""`Mapper`: one map object with a few verbs, for notebooks and robot loops.
+
+    mapper = Mapper("scannet")                       # a packaged config, a YAML path, a dict or a PipelineConfig
+    for frame, detections in ...:                    # frames: RGBDFrame, or arrays (depth, colour, pose, K)
+        mapper.integrate(frame, detections)          # applies the detection schedule itself
+    mapper.instances()                               # a snapshot: the map goes on unchanged
+    mapper.finalize()                                # geometry fusion + post-merge, once
+    mapper.extract_mesh().export("mesh.ply"); mapper.save("map.npz"); Mapper.load("map.npz")
+
+Without `bounds`, the map grows as the camera explores: the block index, the voxel-block pool and the instance
+table start small and are enlarged (by doubling, so a handful of recompiles per run, each logged) before a
+frame that would not fit. The voxel lattice is fixed (origins on whole blocks), so a grown map equals one
+allocated at its final size. With `bounds` (as `fmfusion run` passes the scene's), the index is fixed and the
+pool and table have the config's capacities from the start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fmfusion_jax.config import PipelineConfig, load_config
+from fmfusion_jax.engine import extraction, growth, step
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.instances import MapInstance
+from fmfusion_jax.labels import LabelSets, load_label_sets
+from fmfusion_jax.pipeline import DetectionSchedule, FusionResult, MapBuilder, build_map_config, extract_map_instances
+from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
+
+log = logging.getLogger(__name__)
+
+#: Blocks (12.5 cm at the default voxel) of free index kept around what the frames have shown, on each side.
+INDEX_PAD_BLOCKS = 8
+#: Smallest voxel-block pool a growing map starts with, and smallest instance table.
+MIN_POOL_BLOCKS = 1024
+MIN_INSTANCE_ROWS = 64
+
+
+def as_config(config: "str | Path | Mapping[str, Any] | PipelineConfig | None") -> PipelineConfig:
+    """A `PipelineConfig` from a packaged name (`"scannet"`), a YAML path, a dict or a config (None: scannet).
+
+    A dict holds overrides of the scannet config, nested (`{"detections": {"every": 1}}`) or dotted
+    (`{"detections.every": 1}`); a `"base"` key names another config to start from.
+    """
+    if config is None:
+        return load_config("scannet")
+    if isinstance(config, PipelineConfig):
+        return config
+    if isinstance(config, (str, Path)):
+        return load_config(str(config))
+    if isinstance(config, Mapping):
+        values = dict(config)
+        base = values.pop("base", "scannet")
+        overrides = []
+        for key, value in values.items():
+            if isinstance(value, Mapping):
+                overrides += [f"{key}.{inner}={_yaml_value(v)}" for inner, v in value.items()]
+            else:
+                overrides.append(f"{key}={_yaml_value(value)}")
+        return load_config(base, overrides)
+    raise UserError(f"config: expected a config name, a YAML path, a dict or a PipelineConfig, got {type(config).__name__}")
+
+
+def _yaml_value(value: Any) -> str:
+    import json
+
+    return json.dumps(list(value) if isinstance(value, tuple) else value)
+
+
+def as_intrinsics(intrinsics: "CameraIntrinsics | np.ndarray | Sequence", height: int, width: int) -> CameraIntrinsics:
+    """`CameraIntrinsics` from itself, a 3x3 K matrix or `(fx, fy, cx, cy)`, for `height x width` images."""
+    if isinstance(intrinsics, CameraIntrinsics):
+        k = intrinsics
+    else:
+        values = np.asarray(intrinsics, np.float64)
+        if values.shape == (3, 3):
+            values = values[[0, 1, 0, 1], [0, 1, 2, 2]]
+        if values.shape != (4,):
+            raise UserError(f"intrinsics: expected a 3x3 K matrix or (fx, fy, cx, cy), got shape {values.shape}")
+        k = CameraIntrinsics(*(float(v) for v in values), width=width, height=height)
+    if (k.height, k.width) != (height, width):
+        raise UserError(f"intrinsics are for {k.width}x{k.height} images, the depth image is {width}x{height}")
+    if not (np.isfinite([k.fx, k.fy, k.cx, k.cy]).all() and k.fx > 0 and k.fy > 0):
+        raise UserError(f"intrinsics: focal lengths must be positive and finite, got fx={k.fx}, fy={k.fy}")
+    return k
+
+
+def as_frame(frame: RGBDFrame | None = None, *, depth=None, color=None, T_world_camera=None, intrinsics=None,
+             index: int = 0, name: str | None = None) -> RGBDFrame:
+    """An `RGBDFrame` from itself or from arrays: depth `(H, W)` metres, colour `(H, W, 3)` uint8 RGB (None:
+    grey), `T_world_camera` `(4, 4)` camera-to-world, intrinsics (see `as_intrinsics`). Wrong units, shapes and
+    non-rigid poses are UserErrors that say what to fix."""
+    if frame is not None:
+        if not isinstance(frame, RGBDFrame):
+            raise UserError(f"integrate: expected an RGBDFrame (or depth=..., T_world_camera=... arrays), got "
+                            f"{type(frame).__name__}")
+        return frame
+    if depth is None or T_world_camera is None or intrinsics is None:
+        raise UserError("integrate: give a frame, or depth=, T_world_camera= and intrinsics=")
+    name = name or f"frame-{index:06d}"
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise UserError(f"{name}: depth must be an (H, W) image, got shape {depth.shape}")
+    if not np.issubdtype(depth.dtype, np.floating):
+        raise UserError(f"{name}: depth is {depth.dtype}; give float metres (e.g. a ScanNet uint16 PNG / 1000.0)")
+    depth = depth.astype(np.float32)
+    valid = depth[np.isfinite(depth) & (depth > 0)]
+    if valid.size and np.median(valid) > 50.0:
+        raise UserError(f"{name}: median depth {np.median(valid):.0f}: depth must be in metres, not millimetres")
+    depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+    height, width = depth.shape
+    if color is None:
+        color = np.full((height, width, 3), 128, np.uint8)
+    color = np.asarray(color)
+    if color.shape != (height, width, 3) or color.dtype != np.uint8:
+        raise UserError(f"{name}: colour must be ({height}, {width}, 3) uint8 RGB, got {color.shape} {color.dtype}")
+    pose = np.asarray(T_world_camera, np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise UserError(f"{name}: T_world_camera must be a finite 4x4 matrix, got shape {pose.shape}")
+    rotation = pose[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
+        raise UserError(f"{name}: T_world_camera's rotation is not a rotation (check the pose's convention and "
+                        "that it maps camera to world)")
+    return RGBDFrame(index=index, name=name, color=color, depth=depth, T_world_camera=pose,
+                     intrinsics=as_intrinsics(intrinsics, height, width))
+
+
+def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
+    """int64 `(N, 3)`: the distinct blocks (world lattice, origin 0) that the engine's block finder would
+    touch for this frame, from the same strided depth samples over `[d - trunc, d + trunc]`."""
+    stride, trunc = map_config.alloc_pixel_stride, map_config.sdf_trunc
+    k = frame.intrinsics
+    d = frame.depth[::stride, ::stride]
+    v, u = np.mgrid[0:frame.depth.shape[0]:stride, 0:frame.depth.shape[1]:stride]
+    ok = (d >= map_config.depth_min) & (d <= map_config.depth_max)
+    if not ok.any():
+        return np.zeros((0, 3), np.int64)
+    x, y, z = (u[ok] - k.cx) / k.fx, (v[ok] - k.cy) / k.fy, d[ok]
+    offsets = np.linspace(-trunc, trunc, map_config.alloc_depth_samples) if map_config.alloc_depth_samples > 1 else [0.0]
+    zs = np.concatenate([z + o for o in offsets])
+    camera = np.stack([np.tile(x, len(offsets)) * zs, np.tile(y, len(offsets)) * zs, zs], axis=1)
+    world = camera @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
+    keys = np.floor(world / map_config.block_length).astype(np.int64)
+    return np.unique(keys, axis=0)
+
+
+def _next_power_of_two(n: int) -> int:
+    return 1 << max(0, int(np.ceil(np.log2(max(n, 1)))))
+
+
+class Mapper:
+    """An instance-aware semantic map, fused frame by frame.
+
+    Args:
+      config: a packaged config name (`"scannet"`, `"scannet-subsampled"`, `"scenenn"`, `"demo"`), a YAML path,
+        a dict of overrides, or a `PipelineConfig` (None: scannet).
+      intrinsics: the camera, used for frames given as arrays without their own (`CameraIntrinsics`, 3x3 K
+        or `(fx, fy, cx, cy)`).
+      bounds: `(min xyz, max xyz)` world metres the map must cover: fixes the block index and allocates the
+        config's capacities up front. None: the map grows as the camera explores.
+      label_sets, likelihood: the label sets and the `(O, C)` likelihood (default: the config's).
+    """
+
+    def __init__(self, config: "str | Path | Mapping[str, Any] | PipelineConfig | None" = None,
+                 intrinsics: "CameraIntrinsics | np.ndarray | Sequence | None" = None, *,
+                 bounds: "tuple[Sequence[float], Sequence[float]] | None" = None,
+                 label_sets: LabelSets | None = None, likelihood: np.ndarray | None = None):
+        self.config = as_config(config)
+        self.label_sets = label_sets or load_label_sets()
+        self._likelihood = likelihood
+        self._intrinsics = intrinsics
+        self._bounds = None if bounds is None else (np.asarray(bounds[0], float), np.asarray(bounds[1], float))
+        self._builder: MapBuilder | None = None
+        self._schedule = DetectionSchedule(self.config)
+        self._result: FusionResult | None = None
+        #: how often the map's layout grew (each one recompiles the steps)
+        self.growths = 0
+
+    # ------------------------------------------------------------------------------------------------
+    # Fusing.
+
+    def integrate(self, frame: RGBDFrame | None = None, detections: FrameDetections | None = None, *,
+                  depth=None, color=None, T_world_camera=None, intrinsics=None, name: str | None = None) -> bool:
+        """Integrates one frame into the global TSDF and, when the detection schedule says the frame is due,
+        fuses its `detections`. Returns whether the detections were fused.
+
+        `frame` is an `RGBDFrame`, or give the arrays: `depth` `(H, W)` float metres, `color` `(H, W, 3)` uint8
+        RGB (optional), `T_world_camera` `(4, 4)` and `intrinsics` (default: the Mapper's). Detections of a
+        frame that is not due are ignored (ask `detection_due` first to skip running the detectors).
+        """
+        if self._result is not None:
+            raise UserError("this map is finalized: integrate frames before finalize(), or start a new Mapper")
+        frame = as_frame(frame, depth=depth, color=color, T_world_camera=T_world_camera,
+                         intrinsics=self._intrinsics if intrinsics is None else intrinsics,
+                         index=self.frames_integrated, name=name)
+        due = detections is not None and self.detection_due(frame.T_world_camera)
+        self._prepare(frame)
+        assert self._builder is not None
+        self._builder.add_frame(frame, detections if due else None)
+        if due:
+            self._schedule.fused(frame.T_world_camera)
+        return due
+
+    def detection_due(self, T_world_camera) -> bool:
+        """Whether the next frame, taken at this pose, would have its detections fused (the schedule)."""
+        return self._schedule.due(self.frames_integrated, np.asarray(T_world_camera, np.float64))
+
+    def finalize(self) -> FusionResult:
+        """Finalizes the map once (geometry fusion and post-processing merge, when refinement is on) and
+        returns it; later calls return the same result. No frames can be integrated afterwards."""
+        if self._result is None:
+            if self._builder is None:
+                raise UserError("the map is empty: integrate at least one frame first")
+            self._result = self._builder.result()
+        return self._result
+
+    # ------------------------------------------------------------------------------------------------
+    # Looking at the map.
+
+    @property
+    def frames_integrated(self) -> int:
+        return 0 if self._builder is None else self._builder.frames_integrated
+
+    @property
+    def detection_frames(self) -> int:
+        """Frames whose detections were fused."""
+        return 0 if self._builder is None else self._builder.detection_frames
+
+    @property
+    def map_config(self) -> MapConfig | None:
+        """The engine's current sizes (None before the first frame)."""
+        return None if self._builder is None else self._builder.map_config
+
+    @property
+    def state(self):
+        """The current `MapState` pytree (None before the first frame)."""
+        return None if self._builder is None else self._builder.state
+
+    def result(self) -> FusionResult:
+        """The map as a `FusionResult`: the finalized one after `finalize()`, else a finalized snapshot."""
+        if self._result is not None:
+            return self._result
+        builder = self._require_builder()
+        copy = jax.tree.map(jnp.copy, builder.state)  # finalize donates its input: never the live map
+        result = FusionResult(copy, builder.map_config, builder.fusion_config, builder.config, builder.timer,
+                              builder.frames_integrated, builder.detection_frames, dict(builder.counters))
+        if self.config.refinement.enabled:
+            state, _ = step.finalize(copy, builder.map_config, builder.fusion_config)
+            result = dataclasses.replace(result, state=state)
+        return result
+
+    def instances(self, postprocess: bool = True) -> list[MapInstance]:
+        """The map's instances (class distribution, points, observations), as the export sees them. Before
+        `finalize()` this is a snapshot, finalized on a copy: the map itself does not change."""
+        return extract_map_instances(self.result(), self.label_sets, postprocess)
+
+    def extract_mesh(self):
+        """The global TSDF's surface as a coloured `trimesh.Trimesh` (world metres)."""
+        import trimesh
+
+        vertices, faces, colors = extraction.extract_mesh(self._require_builder().state, self.map_config)
+        mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces), process=False)
+        if len(vertices):
+            mesh.visual.vertex_colors = np.concatenate([colors, np.full((len(colors), 1), 255, np.uint8)], axis=1)
+        return mesh
+
+    def extract_point_cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """`(points float32 (N, 3) world metres, colors uint8 (N, 3))` on the global TSDF's surface."""
+        return extraction.extract_surface_points(self._require_builder().state, self.map_config)
+
+    # ------------------------------------------------------------------------------------------------
+    # Saving and loading.
+
+    def save(self, path: str | Path) -> Path:
+        """Writes the map (state, configs, schedules) to an `.npz` file that `Mapper.load` continues."""
+        from fmfusion_jax.io.state_file import write_map_file
+
+        builder = self._require_builder()
+        last = self._schedule._last_pose
+        progress = {"frames_integrated": builder.frames_integrated, "detection_frames": builder.detection_frames,
+                    "counters": dict(builder.counters), "finalized": self._result is not None,
+                    "grows": self._bounds is None,
+                    "last_detection_pose": None if last is None else np.asarray(last).tolist()}
+        state = self._result.state if self._result is not None else builder.state
+        return write_map_file(path, state, builder.map_config, builder.config, progress)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Mapper":
+        """A Mapper that continues the map saved at `path` (by `save`, or a run's `map_state.npz`)."""
+        from fmfusion_jax.io.state_file import read_map_file
+
+        saved = read_map_file(path)
+        progress = saved.progress
+        lo, hi = saved.map_config.grid_bounds
+        mapper = cls(saved.config, bounds=None if progress.get("grows") else (lo, hi))
+        builder = MapBuilder(saved.config, saved.map_config, mapper.label_sets, state=saved.state)
+        builder.frames_integrated = int(progress.get("frames_integrated", 0))
+        builder.detection_frames = int(progress.get("detection_frames", 0))
+        builder.counters.update({k: int(v) for k, v in progress.get("counters", {}).items()})
+        mapper._builder = builder
+        if progress.get("last_detection_pose") is not None:
+            mapper._schedule.fused(np.asarray(progress["last_detection_pose"]))
+        if progress.get("finalized"):
+            mapper._result = FusionResult(builder.state, builder.map_config, builder.fusion_config, builder.config,
+                                          builder.timer, builder.frames_integrated, builder.detection_frames,
+                                          dict(builder.counters))
+        return mapper
+
+    # ------------------------------------------------------------------------------------------------
+    # Sizes.
+
+    def _require_builder(self) -> MapBuilder:
+        if self._builder is None:
+            raise UserError("the map is empty: integrate at least one frame first")
+        return self._builder
+
+    def _prepare(self, frame: RGBDFrame) -> None:
+        """Makes the map ready for `frame`: built on the first frame, grown when it would not fit."""
+        height, width = frame.depth.shape
+        if self._builder is not None:
+            if (height, width) != (self.map_config.image_height, self.map_config.image_width):
+                raise UserError(f"{frame.name}: image {width}x{height}, the map's frames are "
+                                f"{self.map_config.image_width}x{self.map_config.image_height}")
+            if self._bounds is None:
+                self._grow_for(frame)
+            return
+        if self._bounds is not None:
+            map_config = build_map_config(self.config, *self._bounds, height, width)
+        else:
+            layout = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
+            keys = frame_block_keys(frame, layout)
+            lo = keys.min(axis=0) - INDEX_PAD_BLOCKS if len(keys) else -INDEX_PAD_BLOCKS * np.ones(3, np.int64)
+            hi = keys.max(axis=0) + 1 + INDEX_PAD_BLOCKS if len(keys) else INDEX_PAD_BLOCKS * np.ones(3, np.int64)
+            map_config = dataclasses.replace(
+                growth.config_for_block_range(layout, lo, hi),
+                block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * len(keys) + 1))),
+                instance_capacity=min(layout.instance_capacity,
+                                      max(MIN_INSTANCE_ROWS, _next_power_of_two(2 * self.config.detections.max_detections))))
+        likelihood = self._likelihood
+        self._builder = MapBuilder(self.config, map_config, self.label_sets, likelihood)
+        log.info("map: %s", map_config.describe())
+
+    def _grow_for(self, frame: RGBDFrame) -> None:
+        """Enlarges the index, the pool or the table (by at least half / doubling) if `frame` might not fit."""
+        builder = self._require_builder()
+        old = builder.map_config
+        ceiling = build_map_config(self.config, np.zeros(3), np.ones(3), old.image_height, old.image_width)
+        keys = frame_block_keys(frame, old)
+        lo, hi = growth.bounds_block_range(old)
+        new_lo, new_hi = lo.copy(), hi.copy()
+        if len(keys):
+            need_lo, need_hi = keys.min(axis=0) - 1, keys.max(axis=0) + 2
+            extent = hi - lo
+            for axis in range(3):  # grow a side by at least half the extent: few recompiles
+                if need_lo[axis] < lo[axis]:
+                    new_lo[axis] = min(need_lo[axis] - INDEX_PAD_BLOCKS, lo[axis] - extent[axis] // 2)
+                if need_hi[axis] > hi[axis]:
+                    new_hi[axis] = max(need_hi[axis] + INDEX_PAD_BLOCKS, hi[axis] + extent[axis] // 2)
+        blocks_needed = int(builder.state.blocks.num_blocks) + len(keys) + 1
+        pool = old.block_capacity
+        if blocks_needed > pool and pool < ceiling.block_capacity:
+            pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(blocks_needed)))
+        rows = old.instance_capacity
+        if (int(builder.state.instances.valid.sum()) + self.config.detections.max_detections > rows
+                and rows < ceiling.instance_capacity):
+            rows = min(ceiling.instance_capacity, 2 * rows)
+        if (new_lo == lo).all() and (new_hi == hi).all() and pool == old.block_capacity and rows == old.instance_capacity:
+            return
+        new = dataclasses.replace(growth.config_for_block_range(old, new_lo, new_hi), block_capacity=pool,
+                                  instance_capacity=rows)
+        builder.state = growth.grow_state(builder.state, old, new)
+        builder.map_config = new
+        self.growths += 1
+        log.info("%s: the map grew (the steps recompile): %s", frame.name, new.describe())
+
+
+__all__ = ["Mapper", "as_config", "as_frame", "as_intrinsics", "frame_block_keys"]

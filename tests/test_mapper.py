@@ -1,0 +1,198 @@
+"""`fmfusion_jax.Mapper`: the Python API gives the map `fmfusion run` gives, snapshots leave the map alone,
+the map grows from a small allocation, saves and resumes, and bad inputs are clear errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import fmfusion_jax
+from fmfusion_jax.config import load_config
+from fmfusion_jax.demo import demo_config, demo_noise
+from fmfusion_jax.engine import growth
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.mapper import Mapper, as_config
+from fmfusion_jax.pipeline import build_map_config, extract_map_instances
+from fmfusion_jax.runner import fuse_scene
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fuse_with_mapper.py"
+SPEC = GeneratedSceneSpec(seed=5, num_objects=4, num_frames=16, width=320, height=240)
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """A generated room with simulated detections on every frame, and the config `fmfusion demo` would use."""
+    root = tmp_path_factory.mktemp("mapper")
+    scene_dir = generated_scene(SPEC, root)
+    detections = simulated_detections(scene_dir, root / "detections", demo_noise(0, SPEC.width, SPEC.height))
+    config = demo_config(SPEC.num_frames, SPEC.width, SPEC.height, ["refinement.geometry_fusion_every=3"])
+    return scene_dir, detections, config
+
+
+def _frames(scene_dir, config):
+    return list(open_scene(scene_dir, depth_max=config.dataset.depth_max).frames())
+
+
+def _key(instances):
+    return [(i.instance_id, i.class_index, i.observations, i.points.tobytes()) for i in
+            sorted(instances, key=lambda i: i.instance_id)]
+
+
+def _load_example():
+    spec = importlib.util.spec_from_file_location("fuse_with_mapper", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_top_level_exports():
+    assert fmfusion_jax.Mapper is Mapper and "Mapper" in dir(fmfusion_jax)
+    with pytest.raises(AttributeError):
+        fmfusion_jax.NotAThing  # noqa: B018
+
+
+def test_example_grows_the_same_map_as_fmfusion_run(room):
+    """The example's growing Mapper and `fmfusion run`'s map sized from the scene's bounds: identical instances."""
+    scene_dir, detections, config = room
+    mapper = _load_example().fuse(scene_dir, detections, config, progress=False)
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    folder = DetectionFolder(detections)
+    reference = fuse_scene(scene, lambda frame: folder.get(frame.name), config, progress=False)
+    expected = extract_map_instances(reference)
+    assert len(expected) >= 3
+    assert _key(mapper.instances()) == _key(expected)
+    assert mapper.detection_frames == reference.detection_frames and mapper.growths >= 1
+    # it grew from a small allocation: well under the fixed-size map of the same scene
+    assert mapper.map_config.memory_bytes() < reference.map_config.memory_bytes()
+    assert mapper.frames_integrated == SPEC.num_frames
+
+
+def test_snapshot_mid_sequence_leaves_the_map_unchanged(room):
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    frames = _frames(scene_dir, config)
+    plain, looked_at = Mapper(config), Mapper(config)
+    for position, frame in enumerate(frames):
+        plain.integrate(frame, folder.get(frame.name))
+        looked_at.integrate(frame, folder.get(frame.name))
+        if position in (4, 9):
+            snapshot = looked_at.instances()
+            assert snapshot and all(np.isclose(i.distribution.sum(), 1.0) for i in snapshot)
+    for a, b in zip(jax.tree.leaves(plain.state), jax.tree.leaves(looked_at.state)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert _key(plain.instances()) == _key(looked_at.instances())
+    plain.finalize()
+    with pytest.raises(UserError, match="finalized"):
+        plain.integrate(frames[0])
+
+
+def test_save_mid_sequence_and_resume(room, tmp_path):
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    frames = _frames(scene_dir, config)
+    whole, first = Mapper(config), Mapper(config)
+    for frame in frames:
+        whole.integrate(frame, folder.get(frame.name))
+    for frame in frames[:7]:
+        first.integrate(frame, folder.get(frame.name))
+    first.save(tmp_path / "map.npz")
+    resumed = Mapper.load(tmp_path / "map.npz")
+    assert resumed.frames_integrated == 7 and resumed.detection_frames == first.detection_frames
+    for frame in frames[7:]:
+        resumed.integrate(frame, folder.get(frame.name))
+    assert _key(resumed.instances()) == _key(whole.instances())
+    mesh = resumed.extract_mesh()
+    points, colors = resumed.extract_point_cloud()
+    assert len(mesh.vertices) > 1000 and len(mesh.faces) > 1000 and points.shape[1] == 3 and len(colors) == len(points)
+
+
+def test_arrays_are_a_frame(room):
+    """Depth/colour/pose/K arrays integrate exactly as the reader's RGBDFrame."""
+    scene_dir, detections, config = room
+    frames = _frames(scene_dir, config)[:3]
+    folder = DetectionFolder(detections)
+    by_frame, by_arrays = Mapper(config), Mapper(config, intrinsics=frames[0].intrinsics.matrix)
+    for frame in frames:
+        by_frame.integrate(frame, folder.get(frame.name))
+        fused = by_arrays.integrate(detections=folder.get(frame.name), depth=frame.depth, color=frame.color,
+                                    T_world_camera=frame.T_world_camera, name=frame.name)
+        assert fused
+    assert _key(by_frame.instances()) == _key(by_arrays.instances())
+
+
+def test_detection_schedule_is_applied(room):
+    """With the motion schedule, a frame taken where the last detections were fused is not due."""
+    scene_dir, detections, config = room
+    frame = _frames(scene_dir, config)[0]
+    detections_0 = DetectionFolder(detections).get(frame.name)
+    mapper = Mapper(as_config({"base": "demo", "detections": {"schedule": "motion"}}))
+    assert mapper.detection_due(frame.T_world_camera)
+    assert mapper.integrate(frame, detections_0)
+    assert not mapper.detection_due(frame.T_world_camera)
+    assert not mapper.integrate(frame, detections_0)  # same pose: ignored
+    assert mapper.detection_frames == 1 and mapper.frames_integrated == 2
+
+
+def test_bad_inputs_are_clear_errors(room):
+    scene_dir, _, config = room
+    frame = _frames(scene_dir, config)[0]
+    mapper = Mapper(config, intrinsics=frame.intrinsics)
+    with pytest.raises(UserError, match="float metres"):
+        mapper.integrate(depth=(frame.depth * 1000).astype(np.uint16), T_world_camera=frame.T_world_camera)
+    with pytest.raises(UserError, match="millimetres"):
+        mapper.integrate(depth=frame.depth * 1000, T_world_camera=frame.T_world_camera)
+    skewed = frame.T_world_camera.copy()
+    skewed[:3, :3] *= 2.0
+    with pytest.raises(UserError, match="not a rotation"):
+        mapper.integrate(depth=frame.depth, T_world_camera=skewed)
+    with pytest.raises(UserError, match="intrinsics are for"):
+        Mapper(config, intrinsics=frame.intrinsics).integrate(depth=frame.depth[:100], T_world_camera=frame.T_world_camera)
+    with pytest.raises(UserError, match="empty"):
+        Mapper(config).instances()
+    with pytest.raises(UserError):
+        as_config({"detections": {"no_such_knob": 1}})
+
+
+def test_config_from_a_dict():
+    nested = as_config({"detections": {"every": 3, "schedule": "every"}, "tsdf.max_weight": 100.0})
+    assert nested.detections.every == 3 and nested.detections.schedule == "every" and nested.tsdf.max_weight == 100.0
+    assert as_config(None) == load_config("scannet") and as_config("scenenn") == load_config("scenenn")
+
+
+def test_grow_state_keeps_every_voxel_and_row(room):
+    """A state copied into a wider index and bigger pool and table holds the same blocks and instances."""
+    scene_dir, detections, config = room
+    frames = _frames(scene_dir, config)[:4]
+    folder = DetectionFolder(detections)
+    mapper = Mapper(config)
+    for frame in frames:
+        mapper.integrate(frame, folder.get(frame.name))
+    old = mapper.map_config
+    lo, hi = growth.bounds_block_range(old)
+    new = growth.config_for_block_range(old, lo - np.array([3, 0, 1]), hi + np.array([0, 2, 0]))
+    new = dataclasses.replace(new, block_capacity=2 * old.block_capacity, instance_capacity=2 * old.instance_capacity)
+    grown = growth.grow_state(mapper.state, old, new)
+    state, n = mapper.state, int(mapper.state.blocks.num_blocks)
+    np.testing.assert_array_equal(np.asarray(grown.blocks.tsdf)[:n], np.asarray(state.blocks.tsdf)[:n])
+    np.testing.assert_array_equal(np.asarray(grown.blocks.block_coords)[:n],
+                                  np.asarray(state.blocks.block_coords)[:n] + np.array([3, 0, 1]))
+    index = np.asarray(grown.blocks.block_index)
+    assert sorted(index[index >= 0].tolist()) == list(range(n))
+    assert np.all(np.asarray(grown.blocks.weight)[n:] == 0) and np.all(np.asarray(grown.blocks.instance_id)[n:] == -1)
+    k = old.instance_capacity
+    np.testing.assert_array_equal(np.asarray(grown.instances.valid)[:k], np.asarray(state.instances.valid))
+    assert not np.asarray(grown.instances.valid)[k:].any()
+    with pytest.raises(ValueError, match="cannot shrink"):
+        growth.grow_state(grown, new, old)
+    shifted = dataclasses.replace(new, grid_origin=tuple(x + 0.001 for x in new.grid_origin))
+    with pytest.raises(ValueError, match="whole blocks"):
+        growth.block_offset(old, shifted)
+    assert build_map_config(config, np.zeros(3), np.ones(3), 240, 320).block_capacity == config.tsdf.block_capacity
