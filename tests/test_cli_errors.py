@@ -136,3 +136,12 @@ def test_run_refuses_a_detection_folder_that_matches_no_frame(tmp_path, capsys):
     code = cli.main(["run", str(scene), "--detections", str(empty), "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert code == 2 and "holds no detection files" in err and "Traceback" not in err
+
+
+def test_version_and_verbose_after_the_subcommand(capsys, tiny_scene):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["--version"])
+    assert exit_info.value.code == 0 and capsys.readouterr().out.strip().startswith("fmfusion 0.")
+    parser = cli.build_parser()
+    before, after = parser.parse_args(["-v", "info", str(tiny_scene)]), parser.parse_args(["info", "-vv", str(tiny_scene)])
+    assert before.verbose == 1 and after.verbose_after_command == 2

@@ -34,11 +34,26 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fmfusion",
         description="Instance-aware semantic mapping from RGB-D video with open-set foundation-model detections.",
     )
+    from fmfusion_jax import __version__
+
+    parser.add_argument("--version", action="version", version=f"fmfusion {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
         importlib.import_module(f"fmfusion_jax.cli.{name}").register(subparsers)
+    _accept_verbose_after_subcommands(parser)
     return parser
+
+
+def _accept_verbose_after_subcommands(parser: argparse.ArgumentParser) -> None:
+    """`fmfusion run -v ...` as well as `fmfusion -v run ...`: every (nested) subcommand takes -v too,
+    counted into its own field (a subparser's default would overwrite the top-level count)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in set(action.choices.values()):
+                sub.add_argument("-v", "--verbose", action="count", default=0, dest="verbose_after_command",
+                                 help="more logging (-v info, -vv debug)")
+                _accept_verbose_after_subcommands(sub)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -47,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    args.verbose += getattr(args, "verbose_after_command", 0)
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if args.verbose < 2:  # JAX's own INFO lines (backend probing) are noise unless debugging
