@@ -9,13 +9,26 @@ docs/detectors.md). Runtime needs numpy, onnxruntime and OpenCV only.
 """
 
 from detectors.contracts import CONTRACTS, GROUNDING, SAM_DECODER, SAM_ENCODER, TAGGER, ModelContract, TensorSpec
-from detectors.grounding import (GroundingDetector, GroundingResult, cxcywh_to_xyxy, grounding_input_size, nms,
-                                 postprocess_grounding, preprocess_grounding)
+from detectors.grounding import (
+                                 GroundingDetector,
+                                 GroundingResult,
+                                 cxcywh_to_xyxy,
+                                 grounding_input_size,
+                                 nms,
+                                 postprocess_grounding,
+                                 preprocess_grounding,
+)
 from detectors.onnx_runtime import ContractError, ModelNotFoundError, OnnxModel, resolve_providers
 from detectors.pipeline import DetectorConfig, FoundationModels
 from detectors.prompt import PromptAugmenter, PromptRecord
-from detectors.segmenter import ImageEmbedding, Segmenter, box_prompts, preprocess_sam, sam_resized_shape, \
-    upsample_low_res
+from detectors.segmenter import (
+                                 ImageEmbedding,
+                                 Segmenter,
+                                 box_prompts,
+                                 preprocess_sam,
+                                 sam_resized_shape,
+                                 upsample_low_res,
+)
 from detectors.tagger import ImageTagger, TagResult, filter_tags, preprocess_tagger
 from detectors.tokenizer import Caption, WordPieceTokenizer, build_caption, label_scores, text_self_attention
 

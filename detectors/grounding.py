@@ -18,16 +18,22 @@ Steps (FM-Fusion's detector settings; see the contract in `contracts.GROUNDING`)
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from detectors.contracts import GROUNDING, GROUNDING_MAX_TEXT_LEN
 from detectors.image_ops import check_rgb_image, normalize_chw, resize
 from detectors.onnx_runtime import ContractError, OnnxModel, require_file
-from detectors.tokenizer import PHRASE_BREAKS, Caption, WordPieceTokenizer, build_caption, label_scores, \
-    text_self_attention
+from detectors.tokenizer import (
+    PHRASE_BREAKS,
+    Caption,
+    WordPieceTokenizer,
+    build_caption,
+    label_scores,
+    text_self_attention,
+)
 
 VOCABULARY_FILE = GROUNDING.sidecars[0][0]
 

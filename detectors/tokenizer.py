@@ -21,8 +21,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import unicodedata
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

@@ -34,14 +34,17 @@ _EXPORTS = {
 __all__ = ["__version__", *_EXPORTS]
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
-    from fmfusion_jax.config import PipelineConfig, load_config
-    from fmfusion_jax.errors import UserError
-    from fmfusion_jax.instances import MapInstance
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.mapper import Mapper
-    from fmfusion_jax.pipeline import FusionResult
-    from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
+    from fmfusion_jax.config import PipelineConfig as PipelineConfig
+    from fmfusion_jax.config import load_config as load_config
+    from fmfusion_jax.errors import UserError as UserError
+    from fmfusion_jax.instances import MapInstance as MapInstance
+    from fmfusion_jax.io.detections import DetectionFolder as DetectionFolder
+    from fmfusion_jax.io.scene import open_scene as open_scene
+    from fmfusion_jax.mapper import Mapper as Mapper
+    from fmfusion_jax.pipeline import FusionResult as FusionResult
+    from fmfusion_jax.types import CameraIntrinsics as CameraIntrinsics
+    from fmfusion_jax.types import FrameDetections as FrameDetections
+    from fmfusion_jax.types import RGBDFrame as RGBDFrame
 
 
 def __getattr__(name: str) -> Any:

@@ -38,8 +38,8 @@ import os
 import shutil
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
@@ -89,8 +89,9 @@ class Method:
 
 
 #: Config overrides that restore the map of v0.1 (before the robustness work): membership by hits alone, no
-#: reunion of fragments, no veto of merges the detector contradicts, confidence = class probability. (The motion schedule needs no override: the
-#: experiments' configs fix the detection stride.)
+#: reunion of fragments, no veto of merges the detector contradicts, confidence = class probability, export of
+#: any slot by the nearest point. (The motion schedule needs no override: the experiments' configs fix the
+#: detection stride.)
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
     "instances.contrary_vote_weight=0", "refinement.reunite_min_frames=0", "refinement.separate_min_frames=0",
     "export.support_observations=0", "export.min_slot_share=0", "export.structure_claims_vertices=false",

@@ -60,7 +60,7 @@ class LabelSets:
         return dict(zip(self.class_names, (int(i) for i in self.nyu40_ids)))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_label_sets(path: str | None = None) -> LabelSets:
     """Reads `label_sets.yaml` (the packaged one unless `path` is given)."""
     file = Path(path) if path else labels_dir() / "label_sets.yaml"

@@ -27,16 +27,29 @@ import logging
 import math
 import shutil
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.experiments import (DETECTIONS_DEFAULT, DETECTIONS_NO_AUGMENTATION, REAL_SCENE_CONFIG, RUN_RECORD,
-                                      Method, RunOutcome, SceneSource, _check_config, _markdown_table,
-                                      _replace_run_dir, _stderr_report, resolve_methods, run_method, scene_sources,
-                                      score_methods)
+from fmfusion_jax.experiments import (
+    DETECTIONS_DEFAULT,
+    DETECTIONS_NO_AUGMENTATION,
+    REAL_SCENE_CONFIG,
+    RUN_RECORD,
+    Method,
+    RunOutcome,
+    SceneSource,
+    _check_config,
+    _markdown_table,
+    _replace_run_dir,
+    _stderr_report,
+    resolve_methods,
+    run_method,
+    scene_sources,
+    score_methods,
+)
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 from fmfusion_jax.simulation.zoo import FAMILIES, MIXED, ZooEntry, noise_zoo
 
@@ -273,7 +286,8 @@ def robustness_markdown(entries: Sequence[ZooEntry], scores: dict, summary: dict
         "",
         f"Methods: {', '.join(f'`{m.name}` ({m.title})' for m in methods)}. Zoo: {len(entries)} noise models "
         f"(`simulation.zoo.noise_zoo`, seed {noise_seed}), detections simulated on every frame of "
-        f"{len(scenes)} scene{'' if len(scenes) == 1 else 's'}. Per entry the runs are pooled over the scenes by the ScanNet benchmark; "
+        f"{len(scenes)} scene{'' if len(scenes) == 1 else 's'}. Per entry the runs are pooled over the scenes by the "
+        "ScanNet benchmark; "
         "AP in %.",
         "",
         "## Scores per zoo entry",

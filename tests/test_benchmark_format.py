@@ -7,8 +7,12 @@ import pytest
 
 from fmfusion_jax.errors import DataError
 from fmfusion_jax.io.benchmark_format import (
-    InstancePredictions, export_ground_truth_as_predictions, read_benchmark_predictions, read_mask_file,
-    write_benchmark_predictions)
+    InstancePredictions,
+    export_ground_truth_as_predictions,
+    read_benchmark_predictions,
+    read_mask_file,
+    write_benchmark_predictions,
+)
 
 
 def sample(num_vertices: int = 150) -> InstancePredictions:

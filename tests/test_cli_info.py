@@ -6,11 +6,11 @@ import time
 
 import numpy as np
 import pytest
+from test_scene_io import HEIGHT, WIDTH, make_scene, pose_at
 
 import fmfusion_jax.cli as cli
 from fmfusion_jax.io.detections import write_frame_detections
 from fmfusion_jax.types import FrameDetections
-from test_scene_io import HEIGHT, WIDTH, make_scene, pose_at
 
 
 @pytest.fixture(autouse=True)

@@ -11,8 +11,13 @@ import numpy as np
 import pytest
 
 from fmfusion_jax.errors import DataError, UserError
-from fmfusion_jax.io.detections import (DetectionFolder, list_detection_frames, read_frame_detections,
-                                        read_frame_labels, write_frame_detections)
+from fmfusion_jax.io.detections import (
+    DetectionFolder,
+    list_detection_frames,
+    read_frame_detections,
+    read_frame_labels,
+    write_frame_detections,
+)
 from fmfusion_jax.types import FrameDetections
 
 H, W = 12, 16
@@ -280,7 +285,8 @@ def test_read_frame_labels_skips_the_masks(tmp_path):
 
 def test_random_frames_round_trip_exactly(tmp_path):
     """Random masks (overlapping or not), labels, scores and boxes survive both formats bit for bit."""
-    from hypothesis import given, settings, strategies as st
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
 
     label_names = st.text(alphabet="abcdefgh xyz", min_size=1, max_size=8).map(str.strip).filter(bool)
     scores = st.floats(0.0, 1.0, allow_nan=False)

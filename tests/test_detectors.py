@@ -16,14 +16,39 @@ import pytest
 
 pytest.importorskip("onnx")
 
-import fmfusion_jax.cli as cli  # noqa: E402
 import onnx_models as om  # noqa: E402
-from detectors import (CONTRACTS, GROUNDING, SAM_ENCODER, TAGGER, ContractError,  # noqa: E402
-                       DetectorConfig, FoundationModels, GroundingDetector, ImageTagger, ModelNotFoundError,
-                       OnnxModel, PromptAugmenter, Segmenter, WordPieceTokenizer, box_prompts, build_caption,
-                       cxcywh_to_xyxy, grounding_input_size, label_scores, nms, postprocess_grounding,
-                       preprocess_grounding, preprocess_sam, preprocess_tagger, resolve_providers,
-                       sam_resized_shape, text_self_attention, upsample_low_res)
+
+import fmfusion_jax.cli as cli  # noqa: E402
+from detectors import (  # noqa: E402
+    CONTRACTS,
+    GROUNDING,
+    SAM_ENCODER,
+    TAGGER,
+    ContractError,
+    DetectorConfig,
+    FoundationModels,
+    GroundingDetector,
+    ImageTagger,
+    ModelNotFoundError,
+    OnnxModel,
+    PromptAugmenter,
+    Segmenter,
+    WordPieceTokenizer,
+    box_prompts,
+    build_caption,
+    cxcywh_to_xyxy,
+    grounding_input_size,
+    label_scores,
+    nms,
+    postprocess_grounding,
+    preprocess_grounding,
+    preprocess_sam,
+    preprocess_tagger,
+    resolve_providers,
+    sam_resized_shape,
+    text_self_attention,
+    upsample_low_res,
+)
 from detectors.contracts import markdown_table  # noqa: E402
 from detectors.tokenizer import basic_tokenize  # noqa: E402
 from fmfusion_jax.errors import UserError  # noqa: E402

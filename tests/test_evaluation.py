@@ -12,11 +12,17 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fmfusion_jax.errors import DataError
 from fmfusion_jax.evaluation.scannet_benchmark import (
-    OVERLAPS, average_precision, benchmark_class_names, evaluate_scenes, precision_recall_curve)
+    OVERLAPS,
+    average_precision,
+    benchmark_class_names,
+    evaluate_scenes,
+    precision_recall_curve,
+)
 from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 from fmfusion_jax.io.benchmark_format import InstancePredictions, export_ground_truth_as_predictions
 

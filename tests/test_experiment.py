@@ -9,8 +9,14 @@ import math
 import pytest
 
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.experiments import (CLASS_ABBREVIATIONS, DEFAULT_METHODS, METHODS, resolve_methods,
-                                      run_experiment, table_one)
+from fmfusion_jax.experiments import (
+    CLASS_ABBREVIATIONS,
+    DEFAULT_METHODS,
+    METHODS,
+    resolve_methods,
+    run_experiment,
+    table_one,
+)
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 
 TINY = GeneratedSceneSpec(seed=3, num_objects=4, num_frames=10, width=160, height=120)

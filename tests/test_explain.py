@@ -10,10 +10,10 @@ import types
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from fmfusion_jax.evaluation.explain import (GT_STATUSES, PREDICTION_KINDS, SHARE_NAMES, explain_scene,
-                                             write_explanation)
+from fmfusion_jax.evaluation.explain import GT_STATUSES, PREDICTION_KINDS, SHARE_NAMES, explain_scene, write_explanation
 from fmfusion_jax.evaluation.scannet_benchmark import OVERLAPS, match_scene, scene_class_detections
 from fmfusion_jax.io.benchmark_format import InstancePredictions, write_benchmark_predictions
 from fmfusion_jax.labels import BENCHMARK_NYU40_IDS

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from fmfusion_jax.errors import DataError
-from fmfusion_jax.io.ground_truth import (
-    load_benchmark_gt_txt, load_scannet_ground_truth, read_ply_mesh)
+from fmfusion_jax.io.ground_truth import load_benchmark_gt_txt, load_scannet_ground_truth, read_ply_mesh
 from fmfusion_jax.labels import BENCHMARK_NYU40_IDS
 
 TSV = "id\tcategory\tcount\tnyu40id\n1\tchair\t10\t5\n2\tcabinet\t10\t3\n3\tstorage\t4\t\n4\twall\t9\t1\n"

@@ -31,7 +31,7 @@ CONFIG = MapConfig.for_bounds(
 POSES = ref.orbit_poses(ROOM, 5, radius=0.8, height=1.3)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def frame(i: int):
     depth, color, labels = ROOM.render(POSES[i], K, H, W)
     return depth, color, POSES[i].astype(np.float32), labels
@@ -46,7 +46,7 @@ def noisy_labels(labels: np.ndarray, i: int) -> np.ndarray:
     return lab.astype(np.int32)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def integrated_map(n_frames: int = len(POSES)):
     blocks = init_voxel_blocks(CONFIG)
     for i in range(n_frames):

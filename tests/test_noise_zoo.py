@@ -3,7 +3,6 @@ room, `clean`/`default` frames are those of the original simulator, and the zoo 
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 
@@ -15,8 +14,16 @@ from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.simulation import noise as noise_module
 from fmfusion_jax.simulation.noise import NoiseModel, bleed_kernel, mask_box
-from fmfusion_jax.simulation.simulate import (BLOB_LABELS, CONFUSER_CLASSES, EXTRA_CONFUSIONS, _LabelModel,
-                                              consistent_mislabels, perturb_likelihood, simulate_frame, wrong_labels)
+from fmfusion_jax.simulation.simulate import (
+    BLOB_LABELS,
+    CONFUSER_CLASSES,
+    EXTRA_CONFUSIONS,
+    _LabelModel,
+    consistent_mislabels,
+    perturb_likelihood,
+    simulate_frame,
+    wrong_labels,
+)
 from fmfusion_jax.simulation.zoo import FAMILIES, FAMILY_DOSES, MIXED, family_noise, noise_zoo
 
 LABELS = load_label_sets()

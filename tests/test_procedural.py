@@ -18,9 +18,18 @@ from hypothesis import strategies as st
 import fmfusion_jax.cli as cli
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.simulation import raycast
-from fmfusion_jax.simulation.procedural import (CEILING_NYU40, OBJECT_KINDS, RAW_LABELS, add_object, build_mesh,
-                                                camera_trajectory, default_room_size, empty_room, generate_scene,
-                                                look_pose)
+from fmfusion_jax.simulation.procedural import (
+    CEILING_NYU40,
+    OBJECT_KINDS,
+    RAW_LABELS,
+    add_object,
+    build_mesh,
+    camera_trajectory,
+    default_room_size,
+    empty_room,
+    generate_scene,
+    look_pose,
+)
 from fmfusion_jax.simulation.scannet_writer import scene_intrinsics, write_scannet_scene
 
 SMALL = raycast.SCANNET_INTRINSICS.scaled(160, 120)

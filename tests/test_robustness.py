@@ -11,11 +11,20 @@ import numpy as np
 import pytest
 
 from fmfusion_jax import robustness
-from fmfusion_jax.errors import UserError
 from fmfusion_jax.experiments import METHODS, PREVIOUS_MAP_OVERRIDES, SceneSource
-from fmfusion_jax.robustness import (best_methods, detections_tag, entry_noise, family_rows, robustness_markdown,
-                                     run_robustness, scale_noise_to_image, summarize, verdict, verdict_lines,
-                                     write_reports)
+from fmfusion_jax.robustness import (
+    best_methods,
+    detections_tag,
+    entry_noise,
+    family_rows,
+    robustness_markdown,
+    run_robustness,
+    scale_noise_to_image,
+    summarize,
+    verdict,
+    verdict_lines,
+    write_reports,
+)
 from fmfusion_jax.simulation.noise import NoiseModel
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 from fmfusion_jax.simulation.zoo import ZooEntry, noise_zoo

@@ -31,7 +31,7 @@ CONFIG = MapConfig.for_bounds(
 POSES = ref.orbit_poses(ROOM, 5, radius=0.8, height=1.3)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def frame(i: int):
     depth, color, labels = ROOM.render(POSES[i], K, H, W)
     return depth, color, POSES[i].astype(np.float32)

@@ -45,7 +45,7 @@ import dataclasses
 import itertools
 import logging
 import time
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 

@@ -10,7 +10,7 @@ Ours and the Open3D peer are compared on the same frames: the peer's prefix (`--
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

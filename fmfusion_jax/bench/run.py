@@ -13,8 +13,8 @@ import shlex
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from fmfusion_jax.bench import report
 from fmfusion_jax.bench.scenes import BenchScene, prepare_generated_scene, prepare_real_scene

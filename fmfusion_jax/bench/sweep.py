@@ -27,7 +27,7 @@ import dataclasses
 import os
 import sys
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -151,8 +151,13 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     together: its pipelines are small)."""
     import importlib
 
-    from fmfusion_jax.bench.worker import (PEER_MODULE, _frames_with_detections, _open, peak_rss_mb,
-                                           peer_unavailable_reason)
+    from fmfusion_jax.bench.worker import (
+        PEER_MODULE,
+        _frames_with_detections,
+        _open,
+        peak_rss_mb,
+        peer_unavailable_reason,
+    )
     from fmfusion_jax.labels import load_label_sets, load_likelihood
 
     reason = peer_unavailable_reason()

@@ -14,6 +14,7 @@ import sys
 
 from fmfusion_jax.errors import UserError
 
+
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Adds "(default: X)" to an option's help unless the help already says its default, or there is
     none worth saying (None: "not given", the help explains what happens then; off flags; empty lists)."""

@@ -43,8 +43,9 @@ def register(subparsers) -> None:
                         help="image size of the generated rooms (default 640 480; --quick 160 120)")
     parser.add_argument("--no-peer", action="store_true", help="ours only (no Open3D)")
     parser.add_argument("--peer-frames", type=int, default=None, metavar="N",
-                        help="the Open3D per-instance pipeline (0.1-1 s per frame, growing with the map) runs on the first N frames of "
-                             "each scene; ours is compared with it on that same prefix (default: all frames; 0: all)")
+                        help="the Open3D per-instance pipeline (0.1-1 s per frame, growing with the map) runs on "
+                             "the first N frames of each scene; ours is compared with it on that same prefix "
+                             "(default: all frames; 0: all)")
     parser.add_argument("--sweep", type=int, nargs="*", default=None, metavar="K",
                         help="caps on the detections fused per frame for the per-object sweep on the main scene "
                              "(the real one, else the largest generated room): each frame keeps its K "
@@ -61,7 +62,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.bench.run import BenchOptions, QUICK_SIZES, run_bench
+    from fmfusion_jax.bench.run import QUICK_SIZES, BenchOptions, run_bench
     from fmfusion_jax.errors import UserError
 
     for name in ("frames", "generated_frames", "peer_frames", "sweep_frames"):

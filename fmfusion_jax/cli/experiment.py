@@ -10,10 +10,17 @@ from fmfusion_jax.errors import UserError
 
 
 def register(subparsers) -> None:
-    from fmfusion_jax.experiments import (DEFAULT_GENERATED, DEFAULT_GENERATED_FRAMES, DEFAULT_GENERATED_OBJECTS,
-                                          DEFAULT_METHODS, DEFAULT_OUT, METHODS, QUICK_GENERATED, QUICK_REAL_FRAMES)
-
     from fmfusion_jax import robustness
+    from fmfusion_jax.experiments import (
+        DEFAULT_GENERATED,
+        DEFAULT_GENERATED_FRAMES,
+        DEFAULT_GENERATED_OBJECTS,
+        DEFAULT_METHODS,
+        DEFAULT_OUT,
+        METHODS,
+        QUICK_GENERATED,
+        QUICK_REAL_FRAMES,
+    )
 
     methods = "; ".join(f"{m.name}: {m.title}" for m in METHODS.values())
     parser = subparsers.add_parser(
@@ -73,9 +80,18 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fmfusion_jax import robustness
-    from fmfusion_jax.experiments import (DEFAULT_GENERATED, DEFAULT_GENERATED_FRAMES, DEFAULT_GENERATED_OBJECTS,
-                                          DEFAULT_OUT, QUICK_GENERATED, QUICK_REAL_FRAMES, default_real_scenes,
-                                          generated_specs, resolve_methods, run_experiment)
+    from fmfusion_jax.experiments import (
+        DEFAULT_GENERATED,
+        DEFAULT_GENERATED_FRAMES,
+        DEFAULT_GENERATED_OBJECTS,
+        DEFAULT_OUT,
+        QUICK_GENERATED,
+        QUICK_REAL_FRAMES,
+        default_real_scenes,
+        generated_specs,
+        resolve_methods,
+        run_experiment,
+    )
 
     if args.robustness:
         if args.seed is not None:

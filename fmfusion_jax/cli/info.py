@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import collections
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 #: Depth images read for the depth statistics and the bounds (the rest of the scene is never decoded).
 SAMPLED_FRAMES = 30

@@ -82,7 +82,8 @@ def register(subparsers) -> None:
                     "softmax over the 38 labels and a dropped 'not detected' entry, so L >= 0 and columns sum "
                     "to <= 1), with the L2 pull toward the initial logits and the number of Adam steps chosen by "
                     "K-fold cross-validation over the training scenes unless given. Then fuses each held-out scene "
-                    "with the manual, statistical, summarized (from the training scenes) and calibrated matrices and reports label accuracy, loss and the ScanNet "
+                    "with the manual, statistical, summarized (from the training scenes) and calibrated matrices "
+                    "and reports label accuracy, loss and the ScanNet "
                     "benchmark (mAP50): report.md, report.json, calibrated.csv, heat maps.",
         formatter_class=HelpFormatter)
     calibrate.add_argument("--train", default="1-16", metavar="SEEDS", help="seeds of the generated training scenes")

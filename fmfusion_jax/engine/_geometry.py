@@ -6,9 +6,9 @@ Point transforms are written out as scalar multiply-adds over coordinate arrays:
 
 from __future__ import annotations
 
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import VoxelBlocks, local_voxel_index

@@ -9,7 +9,7 @@ every overflow is counted in the state instead.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

@@ -92,7 +92,7 @@ def local_voxel_index(x, y, z, block_size: int):
     return cell * 8 + (x % 2) * 4 + (y % 2) * 2 + (z % 2)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _voxel_offsets_cached(block_size: int) -> np.ndarray:
     grid = np.stack(np.meshgrid(*(np.arange(block_size),) * 3, indexing="ij"), -1).reshape(-1, 3)
     out = np.zeros((block_size**3, 3), np.int32)

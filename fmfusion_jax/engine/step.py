@@ -30,8 +30,7 @@ from fmfusion_jax.engine import association, detections, label_fusion, maintenan
 from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
-from fmfusion_jax.engine.instance_volume import (
-    fuse_instance_geometry, integrate_instances, pixel_instances)
+from fmfusion_jax.engine.instance_volume import fuse_instance_geometry, integrate_instances, pixel_instances
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 

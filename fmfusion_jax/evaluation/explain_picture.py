@@ -13,10 +13,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fmfusion_jax.evaluation.explain import (GT_STATUSES, PREDICTION_KINDS, SceneExplanation, vertex_categories)
+from fmfusion_jax.evaluation.explain import GT_STATUSES, PREDICTION_KINDS, SceneExplanation, vertex_categories
 from fmfusion_jax.io.benchmark_format import InstancePredictions
-from fmfusion_jax.io.map_outputs import (_height_cut, _put_fitted, _scale_bar, _view_rotation, mesh_spacing,
-                                         point_spacing)
+from fmfusion_jax.io.map_outputs import (
+    _height_cut,
+    _put_fitted,
+    _scale_bar,
+    _view_rotation,
+    mesh_spacing,
+    point_spacing,
+)
 
 #: RGB colours of the object statuses and prediction kinds.
 STATUS_COLORS = {"found": (50, 170, 60), "wrong_class": (150, 70, 200), "low_iou": (245, 150, 30),

@@ -7,8 +7,8 @@ be read at 100% zoom (a 38 x 20 likelihood gives about 1100 x 1150 pixels).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np

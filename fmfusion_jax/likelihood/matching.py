@@ -11,7 +11,7 @@ make an IoU above 0.5 unique on both sides, so the matching is one to one.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

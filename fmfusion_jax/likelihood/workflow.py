@@ -24,8 +24,8 @@ import dataclasses
 import json
 import logging
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -222,9 +222,10 @@ def _fmt(value: float | None, digits: int = 3) -> str:
 
 
 def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: str | Path,
-                          settings: CalibrationSettings = CalibrationSettings(), progress: bool = False,
+                          settings: CalibrationSettings | None = None, progress: bool = False,
                           say: Callable[[str], None] = print) -> dict:
     """The experiment of the module docstring; writes into `out_dir` and returns the report (report.json).
+    `settings`: default `CalibrationSettings()`.
 
     Files: summarized/ (the summary of the training cases: CSVs, heat maps, counts), calibrated.csv,
     calibrated.png, difference.png (calibrated - initial, absolute), loss.csv (the loss per step),
@@ -236,6 +237,7 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
     from fmfusion_jax.likelihood import calibrate as cal
     from fmfusion_jax.likelihood.summarize import estimate, write_summary
 
+    settings = settings or CalibrationSettings()
     if not train:
         raise UserError("calibration needs at least one training scene")
     label_sets = load_label_sets()

@@ -33,8 +33,7 @@ import numpy as np
 
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.simulation import raycast
-from fmfusion_jax.simulation.procedural import (CEILING_CLASS, CEILING_NYU40, RAW_LABELS, ProceduralScene,
-                                                build_mesh)
+from fmfusion_jax.simulation.procedural import CEILING_CLASS, CEILING_NYU40, RAW_LABELS, ProceduralScene, build_mesh
 
 logger = logging.getLogger(__name__)
 

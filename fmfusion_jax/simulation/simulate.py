@@ -34,15 +34,25 @@ import dataclasses
 import json
 import logging
 import time
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
-from fmfusion_jax.simulation.noise import (NoiseModel, bleed_mask, cut_mask, erode_mask, mask_box, occlude_mask,
-                                           perturb_border, random_blob, straight_cut_angle)
+from fmfusion_jax.simulation.noise import (
+    NoiseModel,
+    bleed_mask,
+    cut_mask,
+    erode_mask,
+    mask_box,
+    occlude_mask,
+    perturb_border,
+    random_blob,
+    straight_cut_angle,
+)
 from fmfusion_jax.types import FrameDetections
 
 if TYPE_CHECKING:  # pragma: no cover
