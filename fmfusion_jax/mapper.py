@@ -281,7 +281,7 @@ class Mapper:
 
     def save(self, path: str | Path) -> Path:
         """Writes the map (state, configs, schedules) to an `.npz` file that `Mapper.load` continues."""
-        from fmfusion_jax.io.state_file import write_map_file
+        from fmfusion_jax.map_file import write_map_file
 
         builder = self._require_builder()
         last = self._schedule._last_pose
@@ -295,7 +295,7 @@ class Mapper:
     @classmethod
     def load(cls, path: str | Path) -> "Mapper":
         """A Mapper that continues the map saved at `path` (by `save`, or a run's `map_state.npz`)."""
-        from fmfusion_jax.io.state_file import read_map_file
+        from fmfusion_jax.map_file import read_map_file
 
         saved = read_map_file(path)
         progress = saved.progress

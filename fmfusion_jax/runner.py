@@ -122,7 +122,7 @@ MAP_STATE_FILE = "map_state.npz"
 
 def save_map(path: str | Path, result: FusionResult) -> Path:
     """Saves a fused map (state, MapConfig, PipelineConfig, how far fusion got) to an `.npz` file."""
-    from fmfusion_jax.io.state_file import write_map_file
+    from fmfusion_jax.map_file import write_map_file
 
     progress = {"frames_integrated": result.frames_integrated, "detection_frames": result.detection_frames,
                 "counters": dict(result.counters)}
@@ -136,7 +136,7 @@ def load_map(path: str | Path):
     `MapBuilder(config, map_config, state=state)` (or use `resume_builder`, which also restores the
     schedules' frame counts). A wrong or damaged file is a DataError (a UserError) naming it.
     """
-    from fmfusion_jax.io.state_file import read_map_file
+    from fmfusion_jax.map_file import read_map_file
 
     saved = read_map_file(path)
     return saved.state, saved.map_config, saved.config
@@ -149,7 +149,7 @@ def resume_builder(path: str | Path) -> MapBuilder:
     A run's `map_state.npz` holds the finalized map (after the final geometry fusion and post-merge);
     `save_map` of a `FusionResult` built from a builder's current state saves it mid-sequence instead.
     """
-    from fmfusion_jax.io.state_file import read_map_file
+    from fmfusion_jax.map_file import read_map_file
 
     saved = read_map_file(path)
     builder = MapBuilder(saved.config, saved.map_config, state=saved.state)

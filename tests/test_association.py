@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from oracles import reference_semantics as R
 
 from fmfusion_jax.engine import association as A
 from fmfusion_jax.engine import detections as D
-from fmfusion_jax.engine import reference_semantics as R
 from fmfusion_jax.types import FrameDetections
 
 N, H, W, K, S, STRIDE = 6, 20, 28, 10, 2, 2

@@ -14,6 +14,7 @@ import math
 import jax
 import numpy as np
 import pytest
+from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 
 from fmfusion_jax.bench import report
 from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
@@ -23,7 +24,6 @@ from fmfusion_jax.cli import main
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step
 from fmfusion_jax.engine.detections import pack_detections
-from fmfusion_jax.engine.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.pipeline import build_fusion_config, build_map_config, frame_inputs

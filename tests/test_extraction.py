@@ -5,9 +5,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from oracles import reference as ref
 
 from fmfusion_jax.engine import instance_volume as iv
-from fmfusion_jax.engine import reference as ref
 from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.extraction import extract_instance_points, extract_mesh, extract_surface_points

@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from oracles import reference as ref
 
 from fmfusion_jax.engine import instance_volume as iv
-from fmfusion_jax.engine import reference as ref
 from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import init_voxel_blocks, local_voxel_index

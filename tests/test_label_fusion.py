@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from oracles import reference_semantics as R
 
 from fmfusion_jax.engine import label_fusion as LF
-from fmfusion_jax.engine import reference_semantics as R
 from fmfusion_jax.labels import load_likelihood
 
 N, K = 8, 12

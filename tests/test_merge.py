@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from oracles import reference_semantics as R
 
 from fmfusion_jax.engine import label_fusion as LF
 from fmfusion_jax.engine import maintenance as MT
 from fmfusion_jax.engine import merge as M
-from fmfusion_jax.engine import reference_semantics as R
 
 K, C, O = 16, 20, 38
 CHECK = settings(max_examples=30, deadline=None)

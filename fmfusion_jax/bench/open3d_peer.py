@@ -56,7 +56,6 @@ import numpy as np
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine.detections import pack_detections
 from fmfusion_jax.engine.label_fusion import DEFAULT_BAYES_EPS
-from fmfusion_jax.engine.reference_semantics import class_distribution
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
@@ -69,6 +68,20 @@ INSTALL_HINT = ('pip install -e ".[bench]" (open3d-cpu==0.19.0); on Debian/Ubunt
 
 #: A projected instance point is visible when the frame's depth at its pixel is within this of its own depth (m).
 VISIBILITY_TOLERANCE = 0.05
+
+
+def class_distribution(evidence: np.ndarray, mode: str, prior_weight: float = 1.0) -> np.ndarray:
+    """`(N, C)` class distributions of label evidence `(N, C)`, in NumPy: softmax of the log-evidence for
+    `bayes`, the evidence plus a uniform prior of `prior_weight`, normalized, for `additive` (the engine's
+    `label_fusion` rules, so that the peer fuses labels as the paper does)."""
+    e = np.asarray(evidence, np.float64)
+    c = e.shape[1]
+    if mode == "bayes":
+        x = np.exp(e - e.max(1, keepdims=True))
+        return x / x.sum(1, keepdims=True)
+    num = e + prior_weight / c
+    total = num.sum(1, keepdims=True)
+    return np.where(total > 0, num / np.where(total > 0, total, 1), 1.0 / c)
 
 
 def open3d_unavailable_reason() -> str | None:

@@ -1,0 +1,1 @@
+"""NumPy oracles of the jitted engine kernels and analytic test scenes (test code, not shipped)."""
