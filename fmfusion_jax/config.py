@@ -82,8 +82,9 @@ class RefinementConfig:
     remove_min_voxels: int = 500    # ... when smaller than this many voxels (SceneNN 8 / 2000)
     reunite_min_frames: int = 2     # reunite b with a once a's detections covered b this often and at least
                                     # as often as b was detected itself, whatever the labels (0: off)
-    separate_min_frames: int = 1    # never merge two instances while two detections of one frame showed them
-                                    # apart this often and as often as one detection covered both (0: off)
+    separate_min_frames: int = 0    # never merge two instances while two detections of one frame showed them
+                                    # apart this often and as often as one detection covered both (0: off;
+                                    # off by default: split masks make it veto the reunion of parts)
 
 
 @dataclasses.dataclass

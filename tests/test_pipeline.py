@@ -11,10 +11,10 @@ import chex
 import jax
 import numpy as np
 import pytest
+from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step
-from fmfusion_jax.engine.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.pipeline import MapBuilder, build_map_config, extract_map_instances, fuse_sequence
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
