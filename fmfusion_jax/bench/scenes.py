@@ -68,7 +68,7 @@ def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: i
     `frames` frames of `width x height` along a loop around it, and simulated detections on every frame.
 
     Fused with the demo's config for these sizes (`demo.demo_config`), detections on every frame and geometry
-    fusion at least twice.
+    fusion timed however short the run.
     Everything lives in `cache_dir/synth-o<objects>-f<frames>-<W>x<H>-s<seed>` and is reused when there.
     """
     from fmfusion_jax.config import load_config
@@ -80,8 +80,10 @@ def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: i
     detections_dir = simulated_detections(scene_dir, folder / "detections", demo_noise(seed, width, height),
                                           every=1, progress=progress)
     room_size = tuple(float(x) for x in json.loads((scene_dir / "synthesis.json").read_text())["room_size"])
-    # detections on every frame; geometry fusion at least twice however short the run, so its stage is timed
-    geometry_fusion_every = max(1, min(load_config("demo").refinement.geometry_fusion_every, frames // 2))
+    # detections on every frame; geometry fusion timed however short the run: in runs of under 10 frames on
+    # every frame, so that its compilation falls in the first frame, which the medians leave out
+    geometry_fusion_every = (1 if frames < 10 else
+                             min(load_config("demo").refinement.geometry_fusion_every, frames // 2))
     config = demo_config(frames, width, height, ["detections.every=1",
                                                  f"refinement.geometry_fusion_every={geometry_fusion_every}"],
                          room_size=room_size)
