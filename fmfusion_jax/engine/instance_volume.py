@@ -210,22 +210,25 @@ def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: Map
     ids_flat = blocks.instance_id.reshape(-1).at[entry].max(jnp.where(claim, instance, -1), mode="drop")
     # Pass 2, add: pixels whose instance holds the target slot vote +1, displaced ones vote -1.
     won = valid & ~decay & (ids_flat[safe_entry] == instance)
-    entries = [entry]
-    deltas = [jnp.where(won, 1.0, jnp.where(decay, -1.0, 0.0))]
-    lowered = [decay]
+    vote = jnp.where(won, 1.0, jnp.where(decay, -1.0, 0.0))
     if contrary_weight > 0.0 and detected is not None:
         # Contrary votes: a slot whose instance was detected in this frame loses `contrary_weight` for each
         # pixel that sees its voxel outside that detection (neutral pixels, inside a mask but cut by its
-        # depth filter, say nothing).
+        # depth filter, say nothing). One scatter entry per (pixel, slot) carries both kinds of vote.
         k = detected.shape[0]
         speaks = seen if neutral is None else seen & ~jnp.asarray(neutral, bool).reshape(-1)
+        entries, deltas, lowered = [], [], []
         for s in range(num_slots):
             against = speaks & (ids[s] >= 0) & (ids[s] != instance) & detected[jnp.clip(ids[s], 0, k - 1)]
-            entries.append(jnp.where(against, base + s, n_entries))
-            deltas.append(jnp.where(against, -contrary_weight, 0.0))
-            lowered.append(against)
-    entries, lowered = jnp.concatenate(entries), jnp.concatenate(lowered)
-    w_flat = blocks.instance_weight.reshape(-1).at[entries].add(jnp.concatenate(deltas), mode="drop")
+            mine = valid & (target == s)
+            delta = jnp.where(mine, vote, 0.0) - jnp.where(against, contrary_weight, 0.0)
+            entries.append(jnp.where(mine | against, base + s, n_entries))
+            deltas.append(delta)
+            lowered.append(against | (mine & decay))
+        entries, deltas, lowered = jnp.concatenate(entries), jnp.concatenate(deltas), jnp.concatenate(lowered)
+    else:
+        entries, deltas, lowered = entry, vote, decay
+    w_flat = blocks.instance_weight.reshape(-1).at[entries].add(deltas, mode="drop")
     # Slots voted down to zero are emptied.
     cleared_entry = jnp.where(lowered & (w_flat[jnp.minimum(entries, n_entries - 1)] <= 0.0), entries, n_entries)
     ids_flat = ids_flat.at[cleared_entry].set(-1, mode="drop")
