@@ -7,9 +7,11 @@ that the saved map loads back exactly, and that a seed gives the same map twice.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import jax
+import jsonschema
 import numpy as np
 import pytest
 import trimesh
@@ -38,8 +40,11 @@ def test_demo_writes_every_output(demo):
     run = json.loads((out / "run.json").read_text())
     assert run["frames"] == TINY["num_frames"] and run["instances"] > 0
     assert 0.0 <= run["benchmark"]["mAP25"] <= 1.0
-    instances = json.loads((out / "instances.json").read_text())["instances"]
+    document = json.loads((out / "instances.json").read_text())
+    jsonschema.validate(document, json.loads((Path(__file__).parents[1] / "docs" / "instances.schema.json").read_text()))
+    instances = document["instances"]
     assert len(instances) == run["instances"] == len(list((out / "instances").glob("*.ply")))
+    assert document["version"] == 2 and all(record["voxel_count"] >= 1 for record in instances)
     assert "AP" in demo.text and str(out / "overview.png") in demo.text
     # the config used: demo.yaml scaled to 12 frames of 160x120
     assert (out / "config.yaml").read_text() == demo.fusion.config.to_yaml()

@@ -91,14 +91,25 @@ def instances_json(instances: list[MapInstance], label_sets: LabelSets) -> list[
             "distribution": {name: round(float(p), 6) for name, p in zip(label_sets.class_names, inst.distribution)},
             "observations": inst.observations,
             "open_label_histogram": dict(sorted(histogram.items(), key=lambda kv: -kv[1])),
-            "points": int(len(inst.points)),
+            "voxel_count": int(len(inst.points)),
             "oriented_box": oriented_box(inst.points),
         })
     return records
 
 
+#: `schema` and `version` of instances.json (docs/instances.schema.json describes every field).
+INSTANCES_SCHEMA = "fmfusion-jax instances"
+INSTANCES_SCHEMA_VERSION = 2
+
+
 def write_instances_json(path: Path, instances: list[MapInstance], label_sets: LabelSets) -> None:
-    path.write_text(json.dumps({"instances": instances_json(instances, label_sets)}, indent=1))
+    """instances.json: a header saying what the numbers mean, then one record per instance."""
+    document = {
+        "schema": INSTANCES_SCHEMA, "version": INSTANCES_SCHEMA_VERSION, "units": "metres",
+        "frame": "world: the frame the camera poses map into (T_world_camera); ScanNet's world is z up",
+        "instances": instances_json(instances, label_sets),
+    }
+    path.write_text(json.dumps(document, indent=1))
 
 
 def benchmark_predictions(instances: list[MapInstance], label_sets: LabelSets, vertices: np.ndarray,
