@@ -181,6 +181,7 @@ class Mapper:
         self._builder: MapBuilder | None = None
         self._schedule = DetectionSchedule(self.config)
         self._result: FusionResult | None = None
+        self._ceiling: MapConfig | None = None  # the config's capacities: how far a growing map may grow
         #: how often the map's layout grew (each one recompiles the steps)
         self.growths = 0
 
@@ -249,13 +250,10 @@ class Mapper:
         if self._result is not None:
             return self._result
         builder = self._require_builder()
-        copy = jax.tree.map(jnp.copy, builder.state)  # finalize donates its input: never the live map
-        result = FusionResult(copy, builder.map_config, builder.fusion_config, builder.config, builder.timer,
-                              builder.frames_integrated, builder.detection_frames, dict(builder.counters))
+        state = jax.tree.map(jnp.copy, builder.state)  # finalize donates its input: never the live map
         if self.config.refinement.enabled:
-            state, _ = step.finalize(copy, builder.map_config, builder.fusion_config)
-            result = dataclasses.replace(result, state=state)
-        return result
+            state, _ = step.finalize(state, builder.map_config, builder.fusion_config)
+        return builder.snapshot(state)
 
     def instances(self, postprocess: bool = True) -> list[MapInstance]:
         """The map's instances (class distribution, points, observations), as the export sees them. Before
@@ -285,11 +283,10 @@ class Mapper:
 
         builder = self._require_builder()
         last = self._schedule._last_pose
-        progress = {"frames_integrated": builder.frames_integrated, "detection_frames": builder.detection_frames,
-                    "counters": dict(builder.counters), "finalized": self._result is not None,
+        state = self._result.state if self._result is not None else builder.state
+        progress = {**builder.snapshot(state).progress(), "finalized": self._result is not None,
                     "grows": self._bounds is None,
                     "last_detection_pose": None if last is None else np.asarray(last).tolist()}
-        state = self._result.state if self._result is not None else builder.state
         return write_map_file(path, state, builder.map_config, builder.config, progress)
 
     @classmethod
@@ -302,16 +299,13 @@ class Mapper:
         lo, hi = saved.map_config.grid_bounds
         mapper = cls(saved.config, bounds=None if progress.get("grows") else (lo, hi))
         builder = MapBuilder(saved.config, saved.map_config, mapper.label_sets, state=saved.state)
-        builder.frames_integrated = int(progress.get("frames_integrated", 0))
-        builder.detection_frames = int(progress.get("detection_frames", 0))
-        builder.counters.update({k: int(v) for k, v in progress.get("counters", {}).items()})
+        builder.restore_progress(progress)
         mapper._builder = builder
+        mapper._ceiling = mapper._capacity_ceiling(saved.map_config)
         if progress.get("last_detection_pose") is not None:
             mapper._schedule.fused(np.asarray(progress["last_detection_pose"]))
         if progress.get("finalized"):
-            mapper._result = FusionResult(builder.state, builder.map_config, builder.fusion_config, builder.config,
-                                          builder.timer, builder.frames_integrated, builder.detection_frames,
-                                          dict(builder.counters))
+            mapper._result = builder.snapshot(builder.state)
         return mapper
 
     # ------------------------------------------------------------------------------------------------
@@ -321,6 +315,10 @@ class Mapper:
         if self._builder is None:
             raise UserError("the map is empty: integrate at least one frame first")
         return self._builder
+
+    def _capacity_ceiling(self, map_config: MapConfig) -> MapConfig:
+        """The config's capacities for frames of `map_config`'s size (the ceiling of growth)."""
+        return build_map_config(self.config, np.zeros(3), np.ones(3), map_config.image_height, map_config.image_width)
 
     def _prepare(self, frame: RGBDFrame) -> None:
         """Makes the map ready for `frame`: built on the first frame, grown when it would not fit."""
@@ -332,10 +330,12 @@ class Mapper:
             if self._bounds is None:
                 self._grow_for(frame)
             return
+        # the config's capacities for these frames: a fixed map's sizes, a growing map's ceiling
+        layout = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
+        self._ceiling = layout
         if self._bounds is not None:
             map_config = build_map_config(self.config, *self._bounds, height, width)
         else:
-            layout = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
             keys = frame_block_keys(frame, layout)
             lo = keys.min(axis=0) - INDEX_PAD_BLOCKS if len(keys) else -INDEX_PAD_BLOCKS * np.ones(3, np.int64)
             hi = keys.max(axis=0) + 1 + INDEX_PAD_BLOCKS if len(keys) else INDEX_PAD_BLOCKS * np.ones(3, np.int64)
@@ -344,15 +344,14 @@ class Mapper:
                 block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * len(keys) + 1))),
                 instance_capacity=min(layout.instance_capacity,
                                       max(MIN_INSTANCE_ROWS, _next_power_of_two(2 * self.config.detections.max_detections))))
-        likelihood = self._likelihood
-        self._builder = MapBuilder(self.config, map_config, self.label_sets, likelihood)
+        self._builder = MapBuilder(self.config, map_config, self.label_sets, self._likelihood)
         log.info("map: %s", map_config.describe())
 
     def _grow_for(self, frame: RGBDFrame) -> None:
         """Enlarges the index, the pool or the table (by at least half / doubling) if `frame` might not fit."""
         builder = self._require_builder()
-        old = builder.map_config
-        ceiling = build_map_config(self.config, np.zeros(3), np.ones(3), old.image_height, old.image_width)
+        old, ceiling = builder.map_config, self._ceiling
+        assert ceiling is not None
         keys = frame_block_keys(frame, old)
         lo, hi = growth.bounds_block_range(old)
         new_lo, new_hi = lo.copy(), hi.copy()

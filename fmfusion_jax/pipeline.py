@@ -153,6 +153,11 @@ class FusionResult:
     detection_frames: int
     counters: dict[str, int]
 
+    def progress(self) -> dict:
+        """How far fusion got (what a saved map keeps so that `MapBuilder.restore_progress` continues it)."""
+        return {"frames_integrated": self.frames_integrated, "detection_frames": self.detection_frames,
+                "counters": dict(self.counters)}
+
 
 class MapBuilder:
     """Incremental fusion of one sequence: `add_frame` per frame, then `result()`.
@@ -219,14 +224,24 @@ class MapBuilder:
         if removed or merged:
             log.info("%s: refinement removed %d and merged %d instances", where, removed, merged)
 
+    def snapshot(self, state: MapState) -> FusionResult:
+        """`state` (this builder's, or a copy of it) with the builder's configs, timings and counts."""
+        return FusionResult(state, self.map_config, self.fusion_config, self.config, self.timer,
+                            self.frames_integrated, self.detection_frames, dict(self.counters))
+
+    def restore_progress(self, progress: dict) -> None:
+        """Continues the counts of a saved map (`FusionResult.progress`): frames, detection frames, counters."""
+        self.frames_integrated = int(progress.get("frames_integrated", 0))
+        self.detection_frames = int(progress.get("detection_frames", 0))
+        self.counters.update({k: int(v) for k, v in progress.get("counters", {}).items()})
+
     def result(self) -> FusionResult:
         """Finalizes (geometry fusion and post-merge when refinement is on) and returns the map."""
         if self.config.refinement.enabled:
             self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.map_config,
                                                self.fusion_config)
             self._count_refinement("final", stats)
-        return FusionResult(self.state, self.map_config, self.fusion_config, self.config, self.timer,
-                            self.frames_integrated, self.detection_frames, dict(self.counters))
+        return self.snapshot(self.state)
 
 
 def camera_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> tuple[float, float]:

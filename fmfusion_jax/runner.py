@@ -124,9 +124,7 @@ def save_map(path: str | Path, result: FusionResult) -> Path:
     """Saves a fused map (state, MapConfig, PipelineConfig, how far fusion got) to an `.npz` file."""
     from fmfusion_jax.map_file import write_map_file
 
-    progress = {"frames_integrated": result.frames_integrated, "detection_frames": result.detection_frames,
-                "counters": dict(result.counters)}
-    return write_map_file(path, result.state, result.map_config, result.config, progress)
+    return write_map_file(path, result.state, result.map_config, result.config, result.progress())
 
 
 def load_map(path: str | Path):
@@ -153,9 +151,7 @@ def resume_builder(path: str | Path) -> MapBuilder:
 
     saved = read_map_file(path)
     builder = MapBuilder(saved.config, saved.map_config, state=saved.state)
-    builder.frames_integrated = int(saved.progress.get("frames_integrated", 0))
-    builder.detection_frames = int(saved.progress.get("detection_frames", 0))
-    builder.counters.update({k: int(v) for k, v in saved.progress.get("counters", {}).items()})
+    builder.restore_progress(saved.progress)
     return builder
 
 
