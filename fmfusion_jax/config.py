@@ -101,6 +101,8 @@ class ExportConfig:
     transfer_radius: float = 0.08   # m; instance labels to mesh vertices by radius search
     transfer_neighbours: int = 8    # a vertex takes the instance of most of its nearest points (1: nearest)
     shower_curtain_radius: float = 2.0  # m; a curtain this close to a toilet/bathtub is a shower curtain
+    curtain_by_context: bool = True  # ... and a shower curtain farther from them is a curtain (the matrix
+                                    # cannot tell the two apart; false: the reference's first direction only)
 
 
 @dataclasses.dataclass

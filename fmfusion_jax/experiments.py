@@ -95,7 +95,7 @@ class Method:
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
     "instances.contrary_vote_weight=0", "refinement.reunite_min_frames=0", "refinement.separate_min_frames=0",
     "export.support_observations=0", "export.min_slot_share=0", "export.structure_claims_vertices=false",
-    "export.transfer_neighbours=1")
+    "export.transfer_neighbours=1", "export.curtain_by_context=false")
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("kimera", "Kimera + Cluster-All", baseline="kimera", likelihood="hard association (0.9)",

@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from fmfusion_jax.config import ExportConfig
 from fmfusion_jax.labels import LabelSets
 
 
@@ -59,29 +60,32 @@ def drop_small_instances(instances: list[MapInstance], min_points: int) -> list[
     return [inst for inst in instances if len(inst.points) >= min_points]
 
 
-def apply_shower_curtain_rule(instances: list[MapInstance], label_sets: LabelSets,
-                              radius: float) -> list[MapInstance]:
-    """A curtain whose centre lies within `radius` of a toilet's or bathtub's centre is a shower curtain.
+def apply_shower_curtain_rule(instances: list[MapInstance], label_sets: LabelSets, radius: float,
+                              both_ways: bool = True) -> list[MapInstance]:
+    """Curtain or shower curtain by the bathroom context: a curtain whose centre lies within `radius` of a
+    toilet's or bathtub's centre is a shower curtain; with `both_ways`, a shower curtain farther than that
+    from every toilet and bathtub (or in a room without one) is a curtain.
 
-    Open-set detectors rarely say "shower curtain"; the bathroom context is the reliable cue
-    (reference post-processing). The distribution's curtain mass moves to shower curtain.
+    Open-set detectors rarely say "shower curtain", and the published likelihood matrix gives the label
+    "curtain" the same weight under both classes (0.665 vs 0.663), so the fused distribution cannot tell
+    them apart: a stray "shower curtain" label tips any curtain over. The context decides instead (the
+    reference applies the first direction only). The losing class's mass moves to the winning one.
     """
     curtain = label_sets.class_index("curtain")
     shower = label_sets.class_index("shower curtain")
     anchors = [label_sets.class_index("toilet"), label_sets.class_index("bathtub")]
-    anchor_centres = [inst.points.mean(axis=0) for inst in instances
-                      if inst.class_index in anchors and len(inst.points)]
-    if not anchor_centres:
-        return instances
-    anchor_centres = np.asarray(anchor_centres)
+    anchor_centres = np.asarray([inst.points.mean(axis=0) for inst in instances
+                                 if inst.class_index in anchors and len(inst.points)]).reshape(-1, 3)
     out = []
     for inst in instances:
-        if inst.class_index == curtain and len(inst.points):
-            distance = np.linalg.norm(anchor_centres - inst.points.mean(axis=0), axis=1).min()
-            if distance < radius:
+        if inst.class_index in (curtain, shower) and len(inst.points):
+            near = bool(len(anchor_centres)) and \
+                np.linalg.norm(anchor_centres - inst.points.mean(axis=0), axis=1).min() < radius
+            source, target = (curtain, shower) if near else (shower, curtain)
+            if inst.class_index == source and (near or both_ways):
                 distribution = inst.distribution.copy()
-                distribution[shower] += distribution[curtain]
-                distribution[curtain] = 0.0
+                distribution[target] += distribution[source]
+                distribution[source] = 0.0
                 inst = dataclasses.replace(inst, distribution=distribution)
         out.append(inst)
     return out
@@ -104,10 +108,11 @@ def merge_same_class(instances: list[MapInstance], class_index: int) -> list[Map
     return [inst for inst in instances if inst.class_index != class_index] + [merged]
 
 
-def postprocess_instances(instances: list[MapInstance], label_sets: LabelSets, min_points: int,
-                          shower_curtain_radius: float) -> list[MapInstance]:
+def postprocess_instances(instances: list[MapInstance], label_sets: LabelSets,
+                          export: ExportConfig) -> list[MapInstance]:
     """The reference's export post-processing, in its order."""
-    instances = drop_small_instances(instances, min_points)
-    instances = apply_shower_curtain_rule(instances, label_sets, shower_curtain_radius)
+    instances = drop_small_instances(instances, export.min_points)
+    instances = apply_shower_curtain_rule(instances, label_sets, export.shower_curtain_radius,
+                                          both_ways=export.curtain_by_context)
     instances = merge_same_class(instances, label_sets.class_index("floor"))
     return sorted(instances, key=lambda inst: inst.instance_id)

@@ -322,6 +322,5 @@ def extract_map_instances(result: FusionResult, label_sets: LabelSets | None = N
         for k in np.flatnonzero(np.asarray(table.valid)) if k in points
     ]
     if postprocess:
-        instances = postprocess_instances(instances, label_sets, result.config.export.min_points,
-                                          result.config.export.shower_curtain_radius)
+        instances = postprocess_instances(instances, label_sets, result.config.export)
     return instances

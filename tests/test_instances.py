@@ -1,5 +1,8 @@
+import dataclasses
+
 import numpy as np
 
+from fmfusion_jax.config import ExportConfig
 from fmfusion_jax.instances import MapInstance, postprocess_instances
 from fmfusion_jax.labels import load_label_sets
 
@@ -22,14 +25,26 @@ def test_postprocessing_rules():
         make_instance(3, "floor", [0, 0, -1]),
         make_instance(4, "floor", [3, 0, -1], n_points=500),
         make_instance(5, "chair", [2, 2, 0], n_points=50),  # too small
+        make_instance(6, "shower curtain", [0, 1, 0]),  # near the toilet: stays
+        make_instance(7, "shower curtain", [0, 6, 0]),  # far: a curtain (by context)
     ]
-    out = postprocess_instances(instances, LABELS, min_points=200, shower_curtain_radius=2.0)
+    export = ExportConfig(min_points=200, shower_curtain_radius=2.0)
+    out = postprocess_instances(instances, LABELS, export)
     classes = {inst.instance_id: LABELS.class_names[inst.class_index] for inst in out}
-    assert classes == {0: "toilet", 1: "shower curtain", 2: "curtain", 4: "floor"}
+    assert classes == {0: "toilet", 1: "shower curtain", 2: "curtain", 4: "floor", 6: "shower curtain",
+                       7: "curtain"}
+    reference = postprocess_instances(instances, LABELS, dataclasses.replace(export, curtain_by_context=False))
+    assert {inst.instance_id: LABELS.class_names[inst.class_index] for inst in reference}[7] == "shower curtain"
     floor = next(inst for inst in out if inst.instance_id == 4)
     assert len(floor.points) == 800
     for inst in out:
         assert np.isclose(inst.distribution.sum(), 1.0)
+
+
+def test_a_room_without_toilet_or_bathtub_has_no_shower_curtain():
+    instances = [make_instance(0, "shower curtain", [0, 0, 0]), make_instance(1, "curtain", [3, 0, 0])]
+    out = postprocess_instances(instances, LABELS, ExportConfig(min_points=200))
+    assert [LABELS.class_names[inst.class_index] for inst in out] == ["curtain", "curtain"]
 
 
 def test_floor_claims_its_vertices_in_the_benchmark_transfer():

@@ -441,7 +441,7 @@ class KimeraMapper:
         component, num_components = cluster_all(keys, labels, grid_dims(self.map_config))
         instances = component_instances(keys, probabilities, counts.sum(axis=1), component, self.map_config,
                                         export.min_points, self.label_sets.num_open)
-        instances = postprocess_instances(instances, self.label_sets, export.min_points, export.shower_curtain_radius)
+        instances = postprocess_instances(instances, self.label_sets, export)
         self.seconds["export"] = time.perf_counter() - start
         counters = dict(self.counters, surface_voxels=len(surface), labelled_surface_voxels=len(keys),
                         components=num_components, instances=len(instances))

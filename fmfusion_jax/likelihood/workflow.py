@@ -179,8 +179,7 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     unprocessed = extract_map_instances(result, label_sets, postprocess=False)
     raw = drop_small_instances(unprocessed, config.export.min_points)
     matched = match_instances(raw, gt, case.name, label_sets, config.export.transfer_radius)
-    exported = postprocess_instances(unprocessed, label_sets, config.export.min_points,
-                                     config.export.shower_curtain_radius)
+    exported = postprocess_instances(unprocessed, label_sets, config.export)
     gt_ids = gt.benchmark_ids()
     predictions, score = score_instances(exported, gt, case.name, config, label_sets, gt_ids=gt_ids)
     return RunOutcome(case.name, str(likelihood), matched, predictions, gt_ids,
