@@ -17,6 +17,7 @@ import pytest
 import trimesh
 
 from fmfusion_jax.demo import MARKER, demo_config, run_demo
+from fmfusion_jax.io.ground_truth import read_ply_vertices
 from fmfusion_jax.runner import MAP_STATE_FILE, load_map
 
 TINY = dict(seed=3, num_objects=4, num_frames=12, width=160, height=120, progress=False)
@@ -60,6 +61,15 @@ def test_ply_files_open_with_points_and_colours(demo):
         assert colors.shape == (len(cloud.vertices), 4) and colors[:, :3].std() >= 0, path
     semantic = np.asarray(trimesh.load(out / "semantic.ply").colors)[:, :3]
     assert len(np.unique(semantic, axis=0)) >= 2  # several classes
+    # ScanNet-style label and instance vertex properties, the same as instances.json says
+    records = json.loads((out / "instances.json").read_text())["instances"]
+    for name in ("semantic.ply", "instances.ply"):
+        vertex = read_ply_vertices(out / name)
+        assert len(vertex["label"]) == len(vertex["x"]) == sum(r["voxel_count"] for r in records)
+        for record in records:
+            mine = vertex["instance"] == record["id"]
+            assert mine.sum() == record["voxel_count"]
+            assert set(np.unique(vertex["label"][mine])) == {record["nyu40_id"]}
     mesh = trimesh.load(out / "mesh.ply", process=False)
     assert len(mesh.vertices) > 100 and len(mesh.faces) > 100
     assert np.asarray(mesh.visual.vertex_colors).shape[0] == len(mesh.vertices)

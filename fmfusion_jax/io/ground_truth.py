@@ -287,6 +287,21 @@ def read_ply_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray 
     return vertices, faces, colors
 
 
+def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
+    """The vertex properties of a PLY file by name (`x`, `y`, `z`, `red`, ..., `label`, `instance`)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise DataError(f"{path}: cannot read the PLY file ({error.strerror or error})") from None
+    fmt, elements, body = _parse_ply_header(data, path)
+    arrays = _read_ply_ascii(body, elements, path) if fmt == "ascii" else \
+        _read_ply_binary(body, elements, "<" if fmt == "binary_little_endian" else ">", path)
+    if "vertex" not in arrays:
+        raise DataError(f"{path}: no 'vertex' element")
+    return dict(arrays["vertex"])
+
+
 def _parse_ply_header(data: bytes, path: Path) -> tuple[str, list[_PlyElement], bytes]:
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:

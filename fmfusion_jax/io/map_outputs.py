@@ -26,10 +26,31 @@ def instance_colors(num: int, seed: int = 7) -> np.ndarray:
     return (np.clip(rgb, 0, 1) * 200 + 40).astype(np.uint8)
 
 
-def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
-    """A PLY point cloud with RGB colours (opens in MeshLab, CloudCompare, Open3D, trimesh)."""
-    rgba = np.concatenate([colors.astype(np.uint8), np.full((len(colors), 1), 255, np.uint8)], axis=1)
-    trimesh.PointCloud(np.asarray(points, np.float64), colors=rgba).export(str(path))
+def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, label: np.ndarray | None = None,
+                      instance: np.ndarray | None = None) -> None:
+    """A binary PLY point cloud with RGB colours (opens in MeshLab, CloudCompare, Open3D, trimesh).
+
+    Args:
+      points: `(N, 3)` world points, metres.
+      colors: `(N, 3)` uint8.
+      label: optional `(N,)` NYU40 ids, written as the `ushort label` vertex property of ScanNet's
+        `*_vh_clean_2.labels.ply`.
+      instance: optional `(N,)` instance ids, written as an `int instance` vertex property.
+    """
+    columns = [(axis, "<f4", "float", np.asarray(points, np.float32)[:, i]) for i, axis in enumerate("xyz")]
+    columns += [(channel, "u1", "uchar", np.asarray(colors, np.uint8)[:, i])
+                for i, channel in enumerate(("red", "green", "blue"))]
+    if label is not None:
+        columns.append(("label", "<u2", "ushort", label))
+    if instance is not None:
+        columns.append(("instance", "<i4", "int", instance))
+    vertex = np.empty(len(points), np.dtype([(name, code) for name, code, _, _ in columns]))
+    for name, _, _, values in columns:
+        vertex[name] = values
+    header = ["ply", "format binary_little_endian 1.0", "comment written by fmfusion-jax",
+              f"element vertex {len(points)}", *(f"property {ply_type} {name}" for name, _, ply_type, _ in columns),
+              "end_header"]
+    path.write_bytes(("\n".join(header) + "\n").encode("ascii") + vertex.tobytes())
 
 
 def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
@@ -41,17 +62,24 @@ def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.n
 
 
 def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_sets: LabelSets) -> None:
-    """`semantic.ply` (coloured by class), `instances.ply` (per instance) and one PLY per instance."""
+    """`semantic.ply` (coloured by class), `instances.ply` (per instance) and one PLY per instance.
+
+    The two whole-map clouds carry `label` (NYU40 id, as ScanNet's `*_vh_clean_2.labels.ply`) and `instance`
+    (the instance id of instances.json) vertex properties.
+    """
     if not instances:
         return
     points = np.concatenate([inst.points for inst in instances])
+    label = np.concatenate([np.full(len(inst.points), label_sets.nyu40_ids[inst.class_index], np.uint16)
+                            for inst in instances])
+    instance = np.concatenate([np.full(len(inst.points), inst.instance_id, np.int32) for inst in instances])
     class_colors = np.concatenate([np.repeat(label_sets.class_colors[inst.class_index][None], len(inst.points), 0)
                                    for inst in instances])
     palette = instance_colors(len(instances))
     per_instance = np.concatenate([np.repeat(palette[i][None], len(inst.points), 0)
                                    for i, inst in enumerate(instances)])
-    write_point_cloud(out_dir / "semantic.ply", points, class_colors)
-    write_point_cloud(out_dir / "instances.ply", points, per_instance)
+    write_point_cloud(out_dir / "semantic.ply", points, class_colors, label, instance)
+    write_point_cloud(out_dir / "instances.ply", points, per_instance, label, instance)
     folder = out_dir / "instances"
     folder.mkdir(exist_ok=True)
     for i, inst in enumerate(instances):
