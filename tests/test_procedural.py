@@ -343,7 +343,7 @@ def only_synth(monkeypatch):
 def test_cli_synth(only_synth, tmp_path, capsys):
     out = tmp_path / "cli_00"
     code = cli.main(["synth", str(out), "--seed", "3", "--objects", "5", "--frames", "4", "--size", "64x48",
-                     "--room", "4x4x2.5", "--no-noise", "--quiet"])
+                     "--room", "4x4x2.5", "--no-noise", "--no-progress"])
     assert code == 0
     assert "5 objects" in capsys.readouterr().out
     params = json.loads((out / "synthesis.json").read_text())

@@ -51,7 +51,8 @@ def register(subparsers) -> None:
                         help="m; depth farther than this from the ground-truth mesh stays unlabelled (default 0.05)")
     parser.add_argument("--layout", default="auto", choices=("auto", "scannet"), help="default: auto")
     parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     parser.set_defaults(func=run)
 
 
@@ -97,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     gt = load_scannet_ground_truth(scene.path)
     summary = simulate_scene(scene, gt, args.out, noise, render_stride=args.render_stride, every=args.every,
                              max_frames=args.max_frames, mask_format=args.mask_format,
-                             max_distance=args.max_distance, progress=not args.quiet)
+                             max_distance=args.max_distance, progress=not (args.quiet or args.no_progress))
     if not args.quiet:
         frames = len(summary.frame_names)
         rate = frames / summary.seconds if summary.seconds > 0 else float("inf")

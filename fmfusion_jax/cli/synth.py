@@ -45,7 +45,7 @@ def register(subparsers) -> None:
     parser.add_argument("--no-noise", action="store_true",
                         help="exact depth (no sensor noise, holes or grazing-angle dropouts)")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty OUT_DIR")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
 
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(error)) from None
     print(f"scene   {scene.summary()}")
     path = write_scannet_scene(scene, out, num_frames=args.frames, width=int(width), height=int(height),
-                               depth_noise=not args.no_noise, progress=not args.quiet, overwrite=args.overwrite)
+                               depth_noise=not args.no_noise, progress=not args.no_progress, overwrite=args.overwrite)
     print(f"wrote   {path}  ({args.frames} frames {int(width)}x{int(height)}, "
           f"{time.perf_counter() - started:.1f} s)")
     return 0
