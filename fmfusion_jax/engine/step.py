@@ -195,7 +195,9 @@ def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array, 
         missed=maintenance.update_missed(rows.missed, table.valid, in_view, was_matched),
         last_seen_frame=maintenance.mark_seen(rows.last_seen_frame, was_matched, frame_index))
     covered = count_covered(table.covered, matches, fused_ok, in_view & ~was_matched, fusion.association_threshold)
-    separated = count_separated(table.separated, inst_for_det, fused_ok)
+    # the separation counts only serve the cannot-link veto: not kept (and not costed) while it is off
+    separated = count_separated(table.separated, inst_for_det, fused_ok) if fusion.separate_min_frames > 0 \
+        else table.separated
     table = table._replace(**rows._asdict(), covered=covered, separated=separated,
                            overflow=table.overflow + assignment.overflow)
     return table, TableUpdate(fused_ok, in_view)
@@ -290,9 +292,9 @@ class _MergeParams(NamedTuple):
     separate: jax.Array  # int32[]: `FusionConfig.separate_min_frames` (0: off)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "label_mode"), donate_argnames=("state",))
-def _merge_step(state: MapState, params: _MergeParams, config: MapConfig,
-                label_mode: str) -> tuple[MapState, RefineStats]:
+@functools.partial(jax.jit, static_argnames=("config", "label_mode", "veto"), donate_argnames=("state",))
+def _merge_step(state: MapState, params: _MergeParams, config: MapConfig, label_mode: str,
+                veto: bool) -> tuple[MapState, RefineStats]:
     """Removal and merge (online, or the final post-processing merge), see `refine` and `finalize`.
 
     One pass over the voxels gives the voxel counts and the overlaps; the removal and the merge are then
@@ -306,6 +308,9 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig,
       removed id held voxels and such cells exist, the overlaps are recounted with the removed ids
       masked out (a second pass, in removal frames only);
     - the voxel counts after the merge follow from those before (see `_apply_new_ids`).
+
+    `veto` (static: `separate_min_frames > 0`) turns on the cannot-link veto and the folding of its
+    separation counts (two K x K passes that are skipped while it is off).
     """
     blocks = state.blocks
     final = jnp.asarray(params.final, bool)
@@ -334,13 +339,14 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig,
     pairs = jax.lax.cond(final, merge.post_merge_pairs, merge.merge_pairs, *test)
     table = state.instances
     pairs = pairs | merge.reunion_pairs(table.covered, rows.observations, rows.valid, params.reunite)
-    pairs = pairs & ~merge.separated_pairs(table.separated, table.covered, params.separate)
+    if veto:
+        pairs = pairs & ~merge.separated_pairs(table.separated, table.covered, params.separate)
     representative = merge.merge_groups(pairs, rows.valid, rows.voxel_count)
     merged = merge.merge_instance_table(rows, representative, label_mode)
     # merged.new_id is -1 for the removed rows too: one renaming applies the removal and the merge
     blocks, voxel_count = _apply_new_ids(blocks, census, merged.new_id, config)
     covered = merge.fold_pair_counts(table.covered, merged.new_id, table.valid)
-    separated = merge.fold_pair_counts(table.separated, merged.new_id, table.valid)
+    separated = merge.fold_pair_counts(table.separated, merged.new_id, table.valid) if veto else table.separated
     table = table._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered,
                            separated=separated)
     stats = RefineStats(removed=jnp.sum(remove).astype(jnp.int32),
@@ -365,7 +371,8 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
                           similarity=np.float32(fusion.merge_similarity), overlap=np.float32(fusion.merge_overlap),
                           reunite=np.int32(fusion.reunite_min_frames),
                           separate=np.int32(fusion.separate_min_frames))
-    return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
+    return _merge_step(state, params, config=config, label_mode=fusion.label_mode,
+                       veto=fusion.separate_min_frames > 0)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
@@ -391,7 +398,8 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
                           remove_min_voxels=np.int32(0), similarity=np.float32(fusion.post_merge_similarity),
                           overlap=np.float32(fusion.post_merge_iou), reunite=np.int32(fusion.reunite_min_frames),
                           separate=np.int32(fusion.separate_min_frames))
-    return _merge_step(state, params, config=config, label_mode=fusion.label_mode)
+    return _merge_step(state, params, config=config, label_mode=fusion.label_mode,
+                       veto=fusion.separate_min_frames > 0)
 
 
 def class_distribution(state: MapState, fusion: FusionConfig) -> jax.Array:
