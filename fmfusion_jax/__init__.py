@@ -19,6 +19,7 @@ __version__ = "0.1.0"
 #: public name -> module that defines it
 _EXPORTS = {
     "Mapper": "fmfusion_jax.mapper",
+    "MapperBatch": "fmfusion_jax.mapper",
     "PipelineConfig": "fmfusion_jax.config",
     "load_config": "fmfusion_jax.config",
     "RGBDFrame": "fmfusion_jax.types",
@@ -41,6 +42,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from fmfusion_jax.io.detections import DetectionFolder as DetectionFolder
     from fmfusion_jax.io.scene import open_scene as open_scene
     from fmfusion_jax.mapper import Mapper as Mapper
+    from fmfusion_jax.mapper import MapperBatch as MapperBatch
     from fmfusion_jax.pipeline import FusionResult as FusionResult
     from fmfusion_jax.types import CameraIntrinsics as CameraIntrinsics
     from fmfusion_jax.types import FrameDetections as FrameDetections

@@ -17,6 +17,7 @@ pool and table have the config's capacities from the start.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -29,10 +30,19 @@ import numpy as np
 from fmfusion_jax.config import PipelineConfig, load_config
 from fmfusion_jax.engine import extraction, growth, step
 from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.detections import pack_detections
+from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance
 from fmfusion_jax.labels import LabelSets, load_label_sets
-from fmfusion_jax.pipeline import DetectionSchedule, FusionResult, MapBuilder, build_map_config, extract_map_instances
+from fmfusion_jax.pipeline import (
+    DetectionSchedule,
+    FusionResult,
+    MapBuilder,
+    build_map_config,
+    extract_map_instances,
+    frame_inputs,
+)
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 
 log = logging.getLogger(__name__)
@@ -381,4 +391,177 @@ class Mapper:
         log.info("%s: the map grew (the steps recompile): %s", frame.name, new.describe())
 
 
-__all__ = ["Mapper", "as_config", "as_frame", "as_intrinsics", "frame_block_keys"]
+# ----------------------------------------------------------------------------------------------------
+# Many maps at once.
+
+def _tree_where(keep_new: jax.Array, new, old):
+    """Per leaf `new if keep_new else old` (`keep_new` a scalar bool: one map of a vmapped batch)."""
+    return jax.tree.map(lambda a, b: jnp.where(keep_new, a, b), new, old)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("states",))
+def _batch_frame(states, frames, batches, likelihood, has_frame, has_detections, config: MapConfig,
+                 fusion: step.FusionConfig):
+    """One frame for every map of a batch: the detection step where a map has detections, the TSDF alone where
+    it has none, nothing where it has no frame. (A detection step with no valid detection integrates the TSDF
+    and leaves the voxels' instance slots as they are; only its table, whose missed counts it would advance,
+    is taken from before.)"""
+
+    def one(state, frame, batch, with_frame, with_detections):
+        batch = batch._replace(valid=batch.valid & with_detections)
+        new, stats = step.fuse_detections(state, frame, batch, likelihood, config, fusion)
+        new = new._replace(instances=_tree_where(with_detections, new.instances, state.instances))
+        return _tree_where(with_frame, new, state), stats
+
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, 0))(states, frames, batches, has_frame, has_detections)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "fusion", "kind"), donate_argnames=("states",))
+def _batch_refinement(states, due, config: MapConfig, fusion: step.FusionConfig, kind: str):
+    """`refine`, `fuse_geometry` or `finalize` (`kind`) on the maps where `due`; the others unchanged."""
+
+    def one(state, is_due):
+        if kind == "geometry":
+            new, stats = step.fuse_geometry(state, config, fusion), None
+        else:
+            new, stats = (step.refine if kind == "refine" else step.finalize)(state, config, fusion)
+        return _tree_where(is_due, new, state), stats
+
+    return jax.vmap(one)(states, due)
+
+
+class MapperBatch:
+    """`B` independent maps of one config, fused in lock step: each engine step runs once for all maps,
+    vmapped, with the states donated (one compiled step whatever `B`). For many short scenes on one device,
+    or for experiments over seeds and noise models.
+
+    All maps share the image size and one block layout: `bounds` must cover every map's scene, each in its own
+    world frame (e.g. the union of the scenes' bounds). The capacities are the config's (no growth). Each map
+    keeps its own detection schedule and refinement schedule, as a `Mapper` would; map `i` fused here equals a
+    `Mapper(config, bounds=bounds)` fed the same frames (`tests/test_mapper.py`).
+
+        batch = MapperBatch("scannet", 3, bounds=(lo, hi), image_shape=(480, 640))
+        for frames, detections in zip(...):          # one frame (or None) and its detections per map
+            batch.integrate(frames, detections)
+        results = batch.finalize()                    # a FusionResult per map
+        batch.mapper(0).instances()                   # map 0 as an ordinary Mapper
+    """
+
+    def __init__(self, config: "str | Path | Mapping[str, Any] | PipelineConfig | None", batch_size: int, *,
+                 bounds: "tuple[Sequence[float], Sequence[float]]", image_shape: tuple[int, int],
+                 label_sets: LabelSets | None = None, likelihood: np.ndarray | None = None):
+        if batch_size < 1:
+            raise UserError(f"batch_size must be >= 1, got {batch_size}")
+        self.config = as_config(config)
+        self.label_sets = label_sets or load_label_sets()
+        self.batch_size = batch_size
+        self._bounds = (np.asarray(bounds[0], float), np.asarray(bounds[1], float))
+        height, width = image_shape
+        self.map_config = build_map_config(self.config, *self._bounds, height, width)
+        single = init_map_state(self.map_config)
+        self.states = jax.tree.map(lambda leaf: jnp.stack([leaf] * batch_size), single)
+        # one builder per map keeps its counts, refinement schedule and capacity warnings; the maps' states
+        # live stacked in `states` (the builders' own are unused, so they hold none)
+        self._builders = [MapBuilder(self.config, self.map_config, self.label_sets, likelihood, state=single)
+                          for _ in range(batch_size)]
+        for builder in self._builders:
+            builder.state = None
+        del single
+        self.fusion_config = self._builders[0].fusion_config
+        self._likelihood = self._builders[0].likelihood
+        self._schedules = [DetectionSchedule(self.config) for _ in range(batch_size)]
+        self._results: list[FusionResult] | None = None
+
+    def integrate(self, frames: "Sequence[RGBDFrame | None]",
+                  detections: "Sequence[FrameDetections | None] | None" = None) -> list[bool]:
+        """Integrates one frame per map (None: that map waits) and fuses each due map's detections.
+        Returns, per map, whether its detections were fused."""
+        if self._results is not None:
+            raise UserError("this batch is finalized: integrate frames before finalize()")
+        if len(frames) != self.batch_size or (detections is not None and len(detections) != self.batch_size):
+            raise UserError(f"integrate: expected {self.batch_size} frames and detections (one per map, None to "
+                            f"skip), got {len(frames)} and {len(detections) if detections is not None else 0}")
+        detections = list(detections) if detections is not None else [None] * self.batch_size
+        height, width = self.map_config.image_height, self.map_config.image_width
+        empty = FrameDetections("-", np.zeros((0, height, width), bool), [], np.zeros((0, 4), np.float32))
+        template = next((f for f in frames if f is not None), None)
+        if template is None:
+            return [False] * self.batch_size
+        inputs, batches, has_frame, due = [], [], [], []
+        for i, (frame, dets) in enumerate(zip(frames, detections)):
+            builder = self._builders[i]
+            fused = (frame is not None and dets is not None
+                     and self._schedules[i].due(builder.frames_integrated, np.asarray(frame.T_world_camera)))
+            if fused and dets.image_shape != (height, width):
+                raise UserError(f"{dets.frame_name}: detection masks are {dets.image_shape}, frames are "
+                                f"{(height, width)}")
+            inputs.append(frame_inputs(frame if frame is not None else template, self.map_config))
+            batches.append(pack_detections(dets if fused else empty, self.label_sets.open_labels,
+                                           self.config.detections.max_detections,
+                                           self.config.detections.min_mask_pixels))
+            has_frame.append(frame is not None)
+            due.append(fused)
+        stack = lambda items: jax.tree.map(lambda *leaves: np.stack(leaves), *items)  # noqa: E731
+        self.states, stats = _batch_frame(self.states, stack(inputs), stack(batches), self._likelihood,
+                                          np.array(has_frame), np.array(due), self.map_config, self.fusion_config)
+        stats = jax.device_get(stats)
+        refinement = self.config.refinement
+        merge_due, geometry_due = np.zeros(self.batch_size, bool), np.zeros(self.batch_size, bool)
+        for i, frame in enumerate(frames):
+            if frame is None:
+                continue
+            builder = self._builders[i]
+            builder.frames_integrated += 1
+            if due[i]:
+                self._schedules[i].fused(frame.T_world_camera)
+                builder.detection_frames += 1
+                for name in ("created", "matched", "detections"):
+                    builder.counters[name] += int(getattr(stats, name)[i])
+                merge_due[i] = refinement.enabled and builder.detection_frames % refinement.merge_every == 0
+                geometry_due[i] = refinement.enabled and builder.detection_frames % refinement.geometry_fusion_every == 0
+        if merge_due.any():
+            self.states, refine_stats = _batch_refinement(self.states, merge_due, self.map_config, self.fusion_config,
+                                                          "refine")
+            refine_stats = jax.device_get(refine_stats)
+            for i in np.flatnonzero(merge_due):
+                self._builders[i]._count_refinement(frames[i].name, jax.tree.map(lambda x, i=i: x[i], refine_stats))
+        if geometry_due.any():
+            self.states, _ = _batch_refinement(self.states, geometry_due, self.map_config, self.fusion_config,
+                                               "geometry")
+        for i, frame in enumerate(frames):
+            if frame is not None:
+                self._builders[i].monitor.check(self._map_state(i), self.map_config,
+                                                self._builders[i].frames_integrated)
+        return due
+
+    def finalize(self) -> list[FusionResult]:
+        """Finalizes every map once (geometry fusion and post-processing merge when refinement is on)."""
+        if self._results is None:
+            if self.config.refinement.enabled:
+                everyone = np.ones(self.batch_size, bool)
+                self.states, stats = _batch_refinement(self.states, everyone, self.map_config, self.fusion_config,
+                                                       "finalize")
+                stats = jax.device_get(stats)
+                for i, builder in enumerate(self._builders):
+                    builder._count_refinement("final", jax.tree.map(lambda x, i=i: x[i], stats))
+            self._results = [builder.snapshot(self._map_state(i)) for i, builder in enumerate(self._builders)]
+        return self._results
+
+    def mapper(self, index: int) -> Mapper:
+        """Map `index` as an ordinary `Mapper` (a copy: it continues on its own; finalized if the batch is)."""
+        builder = self._builders[index]
+        mapper = Mapper(self.config, bounds=self._bounds, label_sets=self.label_sets)
+        own = MapBuilder(self.config, self.map_config, self.label_sets, np.asarray(self._likelihood),
+                         state=jax.tree.map(jnp.copy, self._map_state(index)))
+        own.restore_progress(builder.snapshot(own.state).progress())
+        mapper._builder, mapper._ceiling = own, self.map_config
+        mapper._schedule._last_pose = self._schedules[index]._last_pose
+        if self._results is not None:
+            mapper._result = own.snapshot(own.state)
+        return mapper
+
+    def _map_state(self, index: int):
+        return jax.tree.map(lambda leaf: leaf[index], self.states)
+
+
+__all__ = ["Mapper", "MapperBatch", "as_config", "as_frame", "as_intrinsics", "frame_block_keys"]

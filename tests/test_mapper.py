@@ -196,3 +196,42 @@ def test_grow_state_keeps_every_voxel_and_row(room):
     with pytest.raises(ValueError, match="whole blocks"):
         growth.block_offset(old, shifted)
     assert build_map_config(config, np.zeros(3), np.ones(3), 240, 320).block_capacity == config.tsdf.block_capacity
+
+
+def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
+    """Two rooms of different lengths fused in lock step by `MapperBatch` (one vmapped step, per-map schedules;
+    the shorter room waits with None frames) give each room the map a `Mapper` of the same layout gives."""
+    from fmfusion_jax.mapper import MapperBatch
+
+    scene_dir, detections, config = room
+    other_spec = dataclasses.replace(SPEC, seed=6, num_frames=10)
+    other_dir = generated_scene(other_spec, tmp_path)
+    other_detections = simulated_detections(other_dir, tmp_path / "detections",
+                                            demo_noise(1, SPEC.width, SPEC.height))
+    rooms = [(_frames(scene_dir, config), DetectionFolder(detections)),
+             (_frames(other_dir, config), DetectionFolder(other_detections))]
+    scenes = [open_scene(d, depth_max=config.dataset.depth_max).bounds() for d in (scene_dir, other_dir)]
+    bounds = (np.minimum(scenes[0][0], scenes[1][0]), np.maximum(scenes[0][1], scenes[1][1]))
+
+    batch = MapperBatch(config, 2, bounds=bounds, image_shape=(SPEC.height, SPEC.width))
+    for t in range(SPEC.num_frames):
+        frames = [seq[t] if t < len(seq) else None for seq, _ in rooms]
+        batch.integrate(frames, [folder.get(f.name) if f is not None else None
+                                 for f, (_, folder) in zip(frames, rooms)])
+    results = batch.finalize()
+    for i, (frames, folder) in enumerate(rooms):
+        single = Mapper(config, bounds=bounds)
+        for frame in frames:
+            single.integrate(frame, folder.get(frame.name))
+        expected = single.instances()
+        assert len(expected) >= 2
+        got = extract_map_instances(results[i])
+        assert [(m.instance_id, m.class_index, m.observations) for m in got] == \
+            [(m.instance_id, m.class_index, m.observations) for m in expected]
+        for a, b in zip(got, expected):
+            np.testing.assert_array_equal(a.points, b.points)
+        assert results[i].detection_frames == single.detection_frames
+        assert results[i].frames_integrated == len(frames)
+        assert _key(batch.mapper(i).instances()) == _key(got)
+    with pytest.raises(UserError, match="expected 2 frames"):
+        MapperBatch(config, 2, bounds=bounds, image_shape=(SPEC.height, SPEC.width)).integrate([None])
