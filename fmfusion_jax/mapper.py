@@ -30,7 +30,6 @@ import numpy as np
 from fmfusion_jax.config import PipelineConfig, load_config
 from fmfusion_jax.engine import extraction, growth, step
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.detections import pack_detections
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance
@@ -41,7 +40,6 @@ from fmfusion_jax.pipeline import (
     MapBuilder,
     build_map_config,
     extract_map_instances,
-    frame_inputs,
 )
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 
@@ -482,8 +480,7 @@ class MapperBatch:
             raise UserError(f"integrate: expected {self.batch_size} frames and detections (one per map, None to "
                             f"skip), got {len(frames)} and {len(detections) if detections is not None else 0}")
         detections = list(detections) if detections is not None else [None] * self.batch_size
-        height, width = self.map_config.image_height, self.map_config.image_width
-        empty = FrameDetections("-", np.zeros((0, height, width), bool), [], np.zeros((0, 4), np.float32))
+        adapter = self._builders[0].adapter
         template = next((f for f in frames if f is not None), None)
         if template is None:
             return [False] * self.batch_size
@@ -492,13 +489,8 @@ class MapperBatch:
             builder = self._builders[i]
             fused = (frame is not None and dets is not None
                      and self._schedules[i].due(builder.frames_integrated, np.asarray(frame.T_world_camera)))
-            if fused and dets.image_shape != (height, width):
-                raise UserError(f"{dets.frame_name}: detection masks are {dets.image_shape}, frames are "
-                                f"{(height, width)}")
-            inputs.append(frame_inputs(frame if frame is not None else template, self.map_config))
-            batches.append(pack_detections(dets if fused else empty, self.label_sets.open_labels,
-                                           self.config.detections.max_detections,
-                                           self.config.detections.min_mask_pixels))
+            inputs.append(adapter.frame(frame if frame is not None else template))
+            batches.append(adapter.detections(dets if fused else None))
             has_frame.append(frame is not None)
             due.append(fused)
         stack = lambda items: jax.tree.map(lambda *leaves: np.stack(leaves), *items)  # noqa: E731

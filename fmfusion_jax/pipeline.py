@@ -1,7 +1,7 @@
 """The Python loop: the one place where readers, detectors and the jitted engine meet.
 
-    scene frames ──► frame_inputs ──► engine.step.integrate_frame / fuse_detections ──► refine / fuse_geometry
-    detections (files, ONNX front end, simulator) ──► pack_detections ─┘
+    scene frames ──► HostAdapter.frame ──► engine.step.integrate_frame / fuse_detections ──► refine / fuse_geometry
+    detections (files, ONNX front end, simulator) ──► HostAdapter.detections ─┘
 
 Everything here is host-side orchestration: schedules (detection every Nth frame, refinement, geometry
 fusion), capacity warnings, progress and timings. The math lives in `fmfusion_jax.engine`.
@@ -21,7 +21,7 @@ import numpy as np
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine import extraction, step
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.detections import pack_detections
+from fmfusion_jax.engine.detections import DetectionBatch, pack_detections
 from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance, observation_support, postprocess_instances
@@ -75,6 +75,40 @@ def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:
         T_world_camera=jnp.asarray(frame.T_world_camera, jnp.float32),
         intrinsics=jnp.asarray([k.fx, k.fy, k.cx, k.cy], jnp.float32),
         frame_index=jnp.asarray(frame.index, jnp.int32))
+
+
+@dataclasses.dataclass(frozen=True)
+class HostAdapter:
+    """The one joint between the host (readers, detectors, simulator: arrays of any size) and the engine
+    (fixed shapes): frames become `FrameInputs`, detections a padded `DetectionBatch`, each checked once
+    against the map's image size with an error that names the frame. `MapBuilder` (so `Mapper` and the
+    bench), `MapperBatch` and the Kimera baseline all go through it."""
+
+    map_config: MapConfig
+    open_labels: tuple[str, ...]
+    max_detections: int
+    min_mask_pixels: int
+
+    @classmethod
+    def for_map(cls, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets) -> HostAdapter:
+        return cls(map_config, tuple(label_sets.open_labels), config.detections.max_detections,
+                   config.detections.min_mask_pixels)
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return self.map_config.image_height, self.map_config.image_width
+
+    def frame(self, frame: RGBDFrame) -> step.FrameInputs:
+        return frame_inputs(frame, self.map_config)
+
+    def detections(self, detections: FrameDetections | None) -> DetectionBatch:
+        """The detections padded to `max_detections` rows (None: a batch with no valid row)."""
+        if detections is None:
+            detections = FrameDetections("-", np.zeros((0, *self.image_shape), bool), [], np.zeros((0, 4), np.float32))
+        if detections.image_shape != self.image_shape:
+            raise UserError(f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are "
+                            f"{self.image_shape}")
+        return pack_detections(detections, self.open_labels, self.max_detections, self.min_mask_pixels)
 
 
 @dataclasses.dataclass
@@ -189,15 +223,12 @@ class MapBuilder:
     def add_frame(self, frame: RGBDFrame, detections: FrameDetections | None) -> None:
         """Integrates a frame; fuses its detections when given (the caller applies the detection schedule,
         e.g. `scheduled_detections`)."""
-        inputs = frame_inputs(frame, self.map_config)
+        adapter = self.adapter
+        inputs = adapter.frame(frame)
         if detections is None:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.map_config)
         else:
-            if detections.image_shape != (self.map_config.image_height, self.map_config.image_width):
-                raise UserError(f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are "
-                                f"{(self.map_config.image_height, self.map_config.image_width)}")
-            batch = pack_detections(detections, self.label_sets.open_labels, self.config.detections.max_detections,
-                                    self.config.detections.min_mask_pixels)
+            batch = adapter.detections(detections)
             self.state, stats = self.timer.run("fusion", self.fuse_detections, self.state, inputs, batch,
                                                self.likelihood, self.map_config, self.fusion_config)
             self.detection_frames += 1
@@ -216,6 +247,11 @@ class MapBuilder:
                                             self.fusion_config)
         self.frames_integrated += 1
         self.monitor.check(self.state, self.map_config, self.frames_integrated)
+
+    @property
+    def adapter(self) -> HostAdapter:
+        """The host-to-engine packing for the current `map_config` (a growing map replaces it)."""
+        return HostAdapter.for_map(self.config, self.map_config, self.label_sets)
 
     def _count_refinement(self, where: str, stats: step.RefineStats) -> None:
         removed, merged = int(stats.removed), int(stats.merged)

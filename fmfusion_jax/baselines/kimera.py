@@ -51,7 +51,6 @@ import numpy as np
 
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance, postprocess_instances
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.types import FrameDetections, RGBDFrame
@@ -404,14 +403,10 @@ class KimeraMapper:
             self.seconds["labels"] += time.perf_counter() - start
 
     def _add_labels(self, frame: RGBDFrame, detections: FrameDetections) -> None:
-        from fmfusion_jax.engine.detections import detection_pixel_image, filter_detection_depth, pack_detections
+        from fmfusion_jax.engine.detections import detection_pixel_image, filter_detection_depth
 
         config, map_config = self.config, self.map_config
-        if detections.image_shape != (map_config.image_height, map_config.image_width):
-            raise UserError(f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are "
-                            f"{(map_config.image_height, map_config.image_width)}")
-        batch = pack_detections(detections, self.label_sets.open_labels, config.detections.max_detections,
-                                config.detections.min_mask_pixels)
+        batch = self.geometry.adapter.detections(detections)
         stride = map_config.pixel_stride
         depth_s = np.asarray(frame.depth, np.float32)[::stride, ::stride]
         lo, hi = config.detections.depth_percentiles
