@@ -315,7 +315,7 @@ def extract_map_instances(result: FusionResult, label_sets: LabelSets | None = N
                                                 min_share=export.min_slot_share)
     table = state.instances
     instances = [
-        MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[k], np.float32),
+        MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[int(k)], np.float32),
                     observations=int(table.observations[k]),
                     open_label_histogram=np.asarray(table.open_label_histogram[k]),
                     support=observation_support(int(table.observations[k]), result.config.export.support_observations))
