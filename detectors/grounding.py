@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -140,7 +141,9 @@ class GroundingDetector:
         self.max_tokens = min(limits)
         self.fixed_tokens = fixed_tokens
         image = model.inputs["img"]
-        self.fixed_size = (image.shape[2], image.shape[3]) if None not in image.shape[2:] else None
+        # (h, w) of the image input when the file fixes both (no None among them), else None
+        self.fixed_size = cast("tuple[int, int] | None",
+                               (image.shape[2], image.shape[3]) if None not in image.shape[2:] else None)
         self.break_ids = [tokenizer.ids[t] for t in PHRASE_BREAKS if t in tokenizer.ids]
 
     @classmethod

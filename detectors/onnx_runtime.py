@@ -134,7 +134,7 @@ class OnnxModel:
 
         Floating outputs come back as float32.
         """
-        session_feeds = {}
+        session_feeds: dict[str, np.ndarray] = {}
         for name, value in feeds.items():
             bound = self.inputs[name]
             session_feeds[bound.name] = np.ascontiguousarray(np.asarray(value).astype(bound.numpy_dtype, copy=False))

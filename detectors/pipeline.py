@@ -163,6 +163,7 @@ class FoundationModels:
 
     def detect(self, frame: RGBDFrame | np.ndarray, frame_name: str | None = None) -> FrameDetections:
         """Detections of one frame (an `RGBDFrame`, or an `(H, W, 3)` uint8 RGB image with `frame_name`)."""
+        name: str | None
         if isinstance(frame, RGBDFrame):
             image, name = frame.color, frame_name or frame.name
         else:

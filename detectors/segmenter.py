@@ -54,7 +54,7 @@ def sam_resized_shape(height: int, width: int, size: int = SAM_IMAGE_SIZE) -> tu
 def preprocess_sam(image: np.ndarray, size: int = SAM_IMAGE_SIZE) -> tuple[np.ndarray, tuple[int, int]]:
     """`(H, W, 3)` uint8 RGB -> `(1, 3, size, size)` float32 (resized, normalized, zero-padded) and `(h, w)`."""
     image = check_rgb_image(image)
-    height, width = sam_resized_shape(*image.shape[:2], size)
+    height, width = sam_resized_shape(image.shape[0], image.shape[1], size)
     resized = resize(image, height, width).astype(np.float32)
     padded = np.zeros((size, size, 3), np.float32)
     padded[:height, :width] = (resized - SAM_PIXEL_MEAN) / SAM_PIXEL_STD

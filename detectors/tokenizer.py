@@ -96,7 +96,7 @@ class WordPieceTokenizer:
 
     def __init__(self, vocabulary: Sequence[str], source: str = "vocabulary"):
         self.tokens = list(vocabulary)
-        self.ids = {}
+        self.ids: dict[str, int] = {}
         for index, token in enumerate(self.tokens):
             self.ids.setdefault(token, index)
         self.source = source
@@ -217,7 +217,7 @@ def text_self_attention(input_ids: np.ndarray, break_ids: Sequence[int]) -> tupl
     count = ids.shape[0]
     mask = np.eye(count, dtype=bool)
     positions = np.zeros(count, np.int64)
-    previous = 0
+    previous: int | np.intp = 0
     for col in np.flatnonzero(np.isin(ids, np.asarray(list(break_ids)))):
         if 0 < col < count - 1:
             mask[previous + 1: col + 1, previous + 1: col + 1] = True

@@ -40,10 +40,20 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
+
+if TYPE_CHECKING:
+    from fmfusion_jax.baselines.kimera import KimeraResult
+    from fmfusion_jax.evaluation.scannet_benchmark import BenchmarkResult
+    from fmfusion_jax.io.benchmark_format import InstancePredictions
+    from fmfusion_jax.io.ground_truth import SceneGroundTruth
+    from fmfusion_jax.io.scene import Scene
+    from fmfusion_jax.pipeline import FusionResult
+    from fmfusion_jax.simulation.scene_sets import PreparedScene
 
 log = logging.getLogger(__name__)
 
@@ -190,6 +200,7 @@ class SceneSource:
         from fmfusion_jax.simulation.procedural import generate_scene
 
         spec = self.spec
+        assert spec is not None  # a generated scene has its spec
         room = generate_scene(spec.seed, num_objects=spec.num_objects).room_size  # no rendering: cheap
         return demo_config(spec.num_frames, spec.width, spec.height, overrides, room_size=room)
 
@@ -200,6 +211,7 @@ class SceneSource:
 
         if self.kind == "real":
             return NoiseModel.preset("default").replace(seed=int(seed))
+        assert self.spec is not None  # a generated scene has its spec
         return demo_noise(seed, self.spec.width, self.spec.height)
 
 
@@ -233,9 +245,9 @@ class RunOutcome:
     """One (scene, method) run: its predictions on the scene's mesh, its summary (run.json) and its score on
     that scene alone."""
 
-    predictions: object  # io.benchmark_format.InstancePredictions
+    predictions: InstancePredictions
     summary: dict
-    score: object  # evaluation.scannet_benchmark.BenchmarkResult
+    score: BenchmarkResult
 
 
 def run_method(method: Method, scene, detections_dir: Path, config: PipelineConfig, gt, out_dir: Path,
@@ -263,6 +275,7 @@ def run_method(method: Method, scene, detections_dir: Path, config: PipelineConf
         raise UserError(f"{detections_dir} holds no detections")
     source = lambda frame: folder.get(frame.name)  # noqa: E731
     start = time.perf_counter()
+    result: KimeraResult | FusionResult
     if method.baseline == "kimera":
         from fmfusion_jax.baselines.kimera import run_kimera
 
@@ -356,10 +369,10 @@ class PreparedSource:
     """
 
     source: SceneSource
-    detections: dict
-    noise: dict
-    scene: object
-    gt: object
+    detections: dict[str, PreparedScene]
+    noise: dict[str, dict[str, Any]]
+    scene: Scene
+    gt: SceneGroundTruth
     seconds: float
 
     def record(self) -> dict:
@@ -389,8 +402,10 @@ def prepare_source(source: SceneSource, variants: Sequence[str], cache_dir: Path
         report(f"preparing {source.name}: {'scene and ' if source.kind == 'generated' else ''}{variant} detections "
                f"(cached in {cache_dir})")
         if source.kind == "real":
+            assert source.path is not None  # a real scene has its folder
             detections[variant] = prepare_real(source.path, cache_dir, variant_noise, every, variant, progress)
         else:
+            assert source.spec is not None  # a generated scene has its spec
             detections[variant] = prepare_generated(source.spec, cache_dir, variant_noise, every, variant, progress)
         noise[variant] = variant_noise.to_dict()
     scene_dir = next(iter(detections.values())).scene_dir
@@ -435,7 +450,8 @@ def run_experiment(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
     variants = sorted({m.detections for m in chosen})
 
     runs: dict[str, dict[str, RunOutcome]] = {}
-    gt_ids, scene_records, configs, timings = {}, [], {}, {}
+    gt_ids, scene_records, timings = {}, [], {}
+    configs: dict[str, dict[str, dict[str, Any]]] = {}
     total_runs = len(sources) * len(chosen)
     for source in sources:
         ready = prepare_source(source, variants, cache_dir, seed, source.config(overrides, real_max_frames), progress,
@@ -505,6 +521,7 @@ def _check_config(kind: str, sources: Sequence[SceneSource], overrides: list[str
         from fmfusion_jax.demo import demo_config
 
         spec = next(s.spec for s in sources if s.kind == "generated")
+        assert spec is not None  # a generated scene has its spec
         demo_config(spec.num_frames, spec.width, spec.height, overrides)
 
 

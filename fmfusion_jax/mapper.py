@@ -26,6 +26,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from numpy.typing import ArrayLike
 
 from fmfusion_jax.config import PipelineConfig, load_config
 from fmfusion_jax.engine import extraction, growth, step
@@ -93,7 +94,8 @@ def as_intrinsics(intrinsics: "CameraIntrinsics | np.ndarray | Sequence", height
             values = values[[0, 1, 0, 1], [0, 1, 2, 2]]
         if values.shape != (4,):
             raise UserError(f"intrinsics: expected a 3x3 K matrix or (fx, fy, cx, cy), got shape {values.shape}")
-        k = CameraIntrinsics(*(float(v) for v in values), width=width, height=height)
+        fx, fy, cx, cy = (float(v) for v in values)
+        k = CameraIntrinsics(fx, fy, cx, cy, width=width, height=height)
     if (k.height, k.width) != (height, width):
         raise UserError(f"intrinsics are for {k.width}x{k.height} images, the depth image is {width}x{height}")
     if not (np.isfinite([k.fx, k.fy, k.cx, k.cy]).all() and k.fx > 0 and k.fy > 0):
@@ -179,7 +181,7 @@ class Mapper:
 
     def __init__(self, config: "str | Path | Mapping[str, Any] | PipelineConfig | None" = None,
                  intrinsics: "CameraIntrinsics | np.ndarray | Sequence | None" = None, *,
-                 bounds: "tuple[Sequence[float], Sequence[float]] | None" = None,
+                 bounds: "tuple[ArrayLike, ArrayLike] | None" = None,
                  label_sets: LabelSets | None = None, likelihood: np.ndarray | None = None):
         self.config = as_config(config)
         self.label_sets = label_sets or load_label_sets()
@@ -280,7 +282,8 @@ class Mapper:
 
     def extract_point_cloud(self) -> tuple[np.ndarray, np.ndarray]:
         """`(points float32 (N, 3) world metres, colors uint8 (N, 3))` on the global TSDF's surface."""
-        return extraction.extract_surface_points(self._require_builder().state, self.map_config)
+        builder = self._require_builder()
+        return extraction.extract_surface_points(builder.state, builder.map_config)
 
     # ------------------------------------------------------------------------------------------------
     # Saving and loading.
@@ -332,9 +335,10 @@ class Mapper:
         """Makes the map ready for `frame`: built on the first frame, grown when it would not fit."""
         height, width = frame.depth.shape
         if self._builder is not None:
-            if (height, width) != (self.map_config.image_height, self.map_config.image_width):
+            built = self._builder.map_config
+            if (height, width) != (built.image_height, built.image_width):
                 raise UserError(f"{frame.name}: image {width}x{height}, the map's frames are "
-                                f"{self.map_config.image_width}x{self.map_config.image_height}")
+                                f"{built.image_width}x{built.image_height}")
             if self._bounds is None:
                 self._grow_for(frame)
             return

@@ -201,7 +201,7 @@ class MapBuilder:
     """
 
     def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None,
-                 likelihood: np.ndarray | None = None, state: MapState | None = None):
+                 likelihood: np.ndarray | jax.Array | None = None, state: MapState | None = None):
         """`state`: start from this map (e.g. `runner.load_map`) instead of an empty one; it must have
         been made with the same `map_config`. Its buffers are donated to the first step."""
         self.config = config
@@ -351,7 +351,7 @@ def extract_map_instances(result: FusionResult, label_sets: LabelSets | None = N
                                                 min_share=export.min_slot_share)
     table = state.instances
     instances = [
-        MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[k], np.float32),
+        MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[int(k)], np.float32),
                     observations=int(table.observations[k]),
                     open_label_histogram=np.asarray(table.open_label_histogram[k]),
                     support=observation_support(int(table.observations[k]), result.config.export.support_observations))

@@ -27,8 +27,9 @@ import logging
 import math
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -52,6 +53,10 @@ from fmfusion_jax.experiments import (
 )
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 from fmfusion_jax.simulation.zoo import FAMILIES, MIXED, ZooEntry, noise_zoo
+
+if TYPE_CHECKING:
+    from fmfusion_jax.io.ground_truth import SceneGroundTruth
+    from fmfusion_jax.io.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +91,11 @@ def scale_noise_to_image(noise, width: int, height: int):
 def entry_noise(source: SceneSource, entry: ZooEntry, variant: str = DETECTIONS_DEFAULT):
     """The noise model of `entry` on `source` (scaled to a generated scene's images; without prompt
     augmentation for ablation B's variant)."""
-    noise = entry.noise if source.kind == "real" else scale_noise_to_image(entry.noise, source.spec.width,
-                                                                            source.spec.height)
+    if source.kind == "real":
+        noise = entry.noise
+    else:
+        assert source.spec is not None  # a generated scene has its spec
+        noise = scale_noise_to_image(entry.noise, source.spec.width, source.spec.height)
     return noise.replace(prompt_augmentation=False) if variant == DETECTIONS_NO_AUGMENTATION else noise
 
 
@@ -122,7 +130,7 @@ def _worst(named: dict[str, float | None]) -> dict:
     finite = {k: float(v) for k, v in named.items() if v is not None and not math.isnan(v)}
     if not finite:
         return {"value": None, "entry": None}
-    entry = min(finite, key=finite.get)
+    entry = min(finite, key=finite.__getitem__)
     return {"value": finite[entry], "entry": entry}
 
 
@@ -321,7 +329,7 @@ def robustness_markdown(entries: Sequence[ZooEntry], scores: dict, summary: dict
 _PALETTE = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140))
 
 
-def bar_chart(groups: Sequence[str], series: dict[str, Sequence[float | None]], title: str,
+def bar_chart(groups: Sequence[str], series: Mapping[str, Sequence[float | None]], title: str,
               height: int = 420, separator_before: int | None = None) -> np.ndarray:
     """`(H, W, 3)` uint8 BGR grouped bar chart: one group per name of `groups`, one bar per series (values
     fractions in [0, 1], shown in %; None: no bar), with a 0-100 % axis and a legend; a vertical line
@@ -400,8 +408,8 @@ class OpenedScene:
     """A scene ready for its runs: the opened scene (frames possibly cached), ground truth and its record."""
 
     source: SceneSource
-    scene: object
-    gt: object
+    scene: Scene
+    gt: SceneGroundTruth
     gt_ids: np.ndarray
     record: dict
 
@@ -413,7 +421,12 @@ def open_source(source: SceneSource, cache_dir: Path, config, progress: bool) ->
     from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.simulation.scene_sets import generated_scene
 
-    scene_dir = source.path if source.kind == "real" else generated_scene(source.spec, cache_dir, progress)
+    if source.kind == "real":
+        assert source.path is not None  # a real scene has its folder
+        scene_dir = source.path
+    else:
+        assert source.spec is not None  # a generated scene has its spec
+        scene_dir = generated_scene(source.spec, cache_dir, progress)
     dataset = config.dataset
     scene = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
                        depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
@@ -435,8 +448,10 @@ def entry_detections(opened: OpenedScene, entry: ZooEntry, variant: str, cache_d
     noise = entry_noise(source, entry, variant)
     tag = detections_tag(entry.name, noise)
     if source.kind == "real":
+        assert source.path is not None  # a real scene has its folder
         prepared = prepare_real(source.path, cache_dir, noise, 1, tag, progress)
     else:
+        assert source.spec is not None  # a generated scene has its spec
         prepared = prepare_generated(source.spec, cache_dir, noise, 1, tag, progress)
     opened.record["detections"][f"{entry.name}/{variant}"] = {"dir": str(prepared.detections_dir),
                                                               "noise": noise.to_dict()}
@@ -522,13 +537,15 @@ def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
     start = time.perf_counter()
     total, done = len(sources) * len(entries) * len(chosen), 0
     runs: dict = {e.name: {} for e in entries}  # entry -> scene -> method -> RunOutcome
-    gt_ids, scene_records, timings = {}, [], {}
+    gt_ids, scene_records = {}, []
+    timings: dict[str, dict[str, float]] = {}
     for source in sources:
         opened = open_source(source, cache_dir, source.config(overrides, real_max_frames), progress=False)
         gt_ids[source.name] = opened.gt_ids
         timings[source.name] = {}
         for entry in entries:
-            outcomes, seen = {}, {}
+            outcomes: dict[str, RunOutcome] = {}
+            seen: dict[tuple[str | None, str, str], str] = {}  # (baseline, detections, config) -> first method
             runs[entry.name][source.name] = outcomes
             detections = {}
             for method in chosen:

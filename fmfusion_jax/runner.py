@@ -9,6 +9,7 @@ import json
 import logging
 import time
 from pathlib import Path
+from typing import Any
 
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import UserError
@@ -86,7 +87,7 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
         save_map(out_dir / MAP_STATE_FILE, result)
         lap("map_state")
 
-    summary = {
+    summary: dict[str, Any] = {
         "scene": scene.name, "frames": result.frames_integrated, "detection_frames": result.detection_frames,
         "instances": len(instances), "counters": result.counters, "timings_ms": result.timings.summary(),
         "map": result.map_config.describe(), "capacity_used": capacity_used(result),

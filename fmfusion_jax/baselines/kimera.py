@@ -46,6 +46,7 @@ import itertools
 import logging
 import time
 from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +55,9 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.instances import MapInstance, postprocess_instances
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.types import FrameDetections, RGBDFrame
+
+if TYPE_CHECKING:
+    from fmfusion_jax.pipeline import FusionResult
 
 log = logging.getLogger(__name__)
 
@@ -293,16 +297,17 @@ def cluster_all(keys: np.ndarray, labels: np.ndarray, dims: np.ndarray) -> tuple
     if n == 0:
         return np.zeros(0, np.int64), 0
     coords = key_coords(keys, dims)
-    sources, targets = [], []
+    source_parts: list[np.ndarray] = []
+    target_parts: list[np.ndarray] = []
     for offset in HALF_NEIGHBOURHOOD:
         neighbour = coords + offset
         inside = np.all((neighbour >= 0) & (neighbour < dims), axis=1)
         neighbour_keys = voxel_keys(neighbour, dims)
         at = np.minimum(np.searchsorted(keys, neighbour_keys), n - 1)
         linked = inside & (keys[at] == neighbour_keys) & (labels[at] == labels)
-        sources.append(np.flatnonzero(linked))
-        targets.append(at[linked])
-    sources, targets = np.concatenate(sources), np.concatenate(targets)
+        source_parts.append(np.flatnonzero(linked))
+        target_parts.append(at[linked])
+    sources, targets = np.concatenate(source_parts), np.concatenate(target_parts)
     graph = coo_matrix((np.ones(len(sources), np.int8), (sources, targets)), shape=(n, n)).tocsr()
     count, component = connected_components(graph, directed=False)
     _, first = np.unique(component, return_index=True)  # renumber by first voxel: independent of scipy's order
@@ -356,7 +361,7 @@ class KimeraResult:
     """
 
     instances: list[MapInstance]
-    geometry: object  # pipeline.FusionResult
+    geometry: FusionResult
     counters: dict[str, int]
     seconds: dict[str, float]
 

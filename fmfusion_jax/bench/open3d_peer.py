@@ -337,9 +337,10 @@ class Open3DInstancePipeline:
 
         start = time.perf_counter()
         masks, scores = self._filter_detections(detections, depth)
-        in_view = [i for i in ids if projections[i] is not None
-                   and projections[i].pixels > self.config.association.min_projected_pixels]
-        match = self._associate(masks, [projections[i] for i in in_view])
+        visible = {i: projection for i, projection in projections.items() if projection is not None
+                   and projection.pixels > self.config.association.min_projected_pixels}  # in the order of ids
+        in_view = list(visible)
+        match = self._associate(masks, list(visible.values()))
         target = np.array([in_view[j] if j >= 0 else -1 for j in match], np.int64)
         matched = set(target[target >= 0].tolist())
         for i in in_view:
@@ -375,6 +376,7 @@ class Open3DInstancePipeline:
         out = []
         for instance in self.instances.values():
             self._refresh(instance)
+            assert instance.points is not None  # refreshed
             dist = class_distribution(instance.evidence[None], self.mode)[0]
             out.append((instance.points.astype(np.float32), dist.astype(np.float32)))
         return out
@@ -421,6 +423,7 @@ class Open3DInstancePipeline:
         kernel of that spacing fills the gaps between them without growing the mask's outline.
         """
         self._refresh(instance)
+        assert instance.points is not None  # refreshed
         k = self.intrinsics
         T = np.asarray(T_world_camera, np.float64)
         p = (instance.points - T[:3, 3]) @ T[:3, :3]  # x_camera = R^T (x_world - t)
@@ -439,7 +442,7 @@ class Open3DInstancePipeline:
         r = max(1, math.ceil(0.5 * self.config.tsdf.voxel_size * max(k.fx, k.fy) / float(np.median(z))))
         pad = 2 * r  # room for the closing's dilation to shrink back at the crop border
         v0, u0 = int(v.min()) - pad, int(u.min()) - pad
-        crop = np.zeros((int(v.max()) - v0 + 1 + pad, int(u.max()) - u0 + 1 + pad), np.uint8)
+        crop: np.ndarray = np.zeros((int(v.max()) - v0 + 1 + pad, int(u.max()) - u0 + 1 + pad), np.uint8)
         crop[v - v0, u - u0] = 1
         crop = cv2.morphologyEx(crop, cv2.MORPH_CLOSE, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
         r0, c0 = max(v0, 0), max(u0, 0)
@@ -501,8 +504,11 @@ class Open3DInstancePipeline:
             dist = class_distribution(np.stack([self.instances[i].evidence for i in ids]), self.mode)
             similarity = dist @ dist.T
             size = self.config.tsdf.voxel_size
-            boxes = {i: (self.instances[i].points.min(0) - 2 * size, self.instances[i].points.max(0) + 2 * size)
-                     for i in ids}
+            boxes = {}
+            for i in ids:
+                points = self.instances[i].points
+                assert points is not None  # refreshed above
+                boxes[i] = (points.min(0) - 2 * size, points.max(0) + 2 * size)
             pairs = []
             for a, b in np.argwhere(np.triu(similarity > refinement.merge_similarity, 1)):
                 ia, ib = ids[a], ids[b]
@@ -510,8 +516,9 @@ class Open3DInstancePipeline:
                     continue  # bounding boxes apart: no voxel of one can be inside the other
                 big = self._larger(ia, ib)
                 small = ib if big == ia else ia
-                ratio = np.count_nonzero(np.isin(_coarse_keys(self.instances[small].voxels),
-                                                 self.instances[big].cells)) / self.instances[small].voxel_count
+                small_voxels, big_cells = self.instances[small].voxels, self.instances[big].cells
+                assert small_voxels is not None and big_cells is not None  # refreshed above
+                ratio = np.count_nonzero(np.isin(_coarse_keys(small_voxels), big_cells)) / self.instances[small].voxel_count
                 if ratio > refinement.merge_overlap:
                     pairs.append((ia, ib))
             for group in _union_groups(pairs):

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any, TypeGuard
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from fmfusion_jax.bench.stages import FUSION_STAGES
 
@@ -65,15 +67,15 @@ def median(values: Sequence[float]) -> float:
     return float(np.median(values)) if len(values) else math.nan
 
 
-def fit_line(x: Sequence[float], y: Sequence[float]) -> tuple[float, float]:
+def fit_line(x: ArrayLike, y: ArrayLike) -> tuple[float, float]:
     """Least-squares `y = base + slope * x`: `(base, slope)`; NaNs with fewer than two distinct x."""
-    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    keep = np.isfinite(x) & np.isfinite(y)
-    x, y = x[keep], y[keep]
-    if len(np.unique(x)) < 2:
+    xs, ys = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    keep = np.isfinite(xs) & np.isfinite(ys)
+    xs, ys = xs[keep], ys[keep]
+    if len(np.unique(xs)) < 2:
         return math.nan, math.nan
-    design = np.stack([np.ones_like(x), x], axis=1)
-    (base, slope), *_ = np.linalg.lstsq(design, y, rcond=None)
+    design = np.stack([np.ones_like(xs), xs], axis=1)
+    (base, slope), *_ = np.linalg.lstsq(design, ys, rcond=None)
     return float(base), float(slope)
 
 
@@ -83,8 +85,8 @@ def _pass(ours: dict, name: str) -> tuple[list, list]:
     return ours.get("frames", []), ours.get("compiled", [])
 
 
-def _usable(result: dict | None) -> bool:
-    return bool(result) and "frames" in result and not result.get("unavailable") and not result.get("error")
+def _usable(result: dict | None) -> TypeGuard[dict]:
+    return bool(result and "frames" in result and not result.get("unavailable") and not result.get("error"))
 
 
 def why_missing(result: dict | None, default: str = "not run") -> str:
@@ -101,9 +103,10 @@ def stage_table(ours: dict, peer: dict | None) -> dict:
     rows = []
     for label, pass_name, keys, peer_keys in STAGE_ROWS:
         frames, compiled = _pass(ours, pass_name)
-        row = {"label": label, "ours_all": median(frame_sums(frames, compiled, keys)),
-               "ours": math.nan, "peer": math.nan, "ratio": math.nan}
+        row: dict[str, Any] = {"label": label, "ours_all": median(frame_sums(frames, compiled, keys)),
+                               "ours": math.nan, "peer": math.nan, "ratio": math.nan}
         if p:
+            assert peer is not None  # p > 0: the peer is usable
             row["ours"] = median(frame_sums(frames, compiled, keys, stop=p))
             if peer_keys is None or peer_keys:
                 row["peer"] = median(frame_sums(peer["frames"], None, peer_keys, stop=p))
@@ -160,12 +163,13 @@ def sweep_costs(sweep: dict | None) -> dict | None:
     if not sweep:
         return None
     ours, peer = sweep.get("ours"), sweep.get("peer")
-    have_ours = bool(ours) and "runs" in ours and not ours.get("error")
-    have_peer = bool(peer) and "runs" in peer and not peer.get("error") and not peer.get("unavailable")
+    have_ours = bool(ours and "runs" in ours and not ours.get("error"))
+    have_peer = bool(peer and "runs" in peer and not peer.get("error") and not peer.get("unavailable"))
     by_k: dict[int, dict] = {}
     for name, result, fusion_keys in (("ours", ours, ("fusion",)), ("peer", peer, PEER_FUSION_STAGES)):
         if not (have_ours if name == "ours" else have_peer):
             continue
+        assert result is not None  # have_ours / have_peer hold only for a result
         for run in result["runs"]:
             point = by_k.setdefault(run["k"], {"k": run["k"]})
             point.update({
@@ -220,9 +224,10 @@ def targets(summary: dict, main: dict) -> list[dict]:
     stages = summary.get("stages")
     whole = next((r for r in stages["rows"] if r["label"].startswith("**whole")), None) if stages else None
     ok = whole is not None and math.isfinite(whole["ratio"])
+    # (mypy does not follow `ok` to `whole is not None`)
     rows.append({"target": "whole fusion step >= 10x faster than the Open3D per-instance pipeline",
-                 "figure": f"{whole['ratio']:.1f}x (on {stages['peer_frames']} frames)" if ok else
-                 f"n/a ({why_missing(main.get('peer'))})", "met": (whole["ratio"] >= 10) if ok else None})
+                 "figure": f"{whole['ratio']:.1f}x (on {stages['peer_frames']} frames)" if ok else  # type: ignore[index]
+                 f"n/a ({why_missing(main.get('peer'))})", "met": (whole["ratio"] >= 10) if ok else None})  # type: ignore[index]
     vbg = summary.get("vbg", {})
     ok = math.isfinite(vbg.get("ratio", math.nan))
     rows.append({"target": "global TSDF <= 1.5x Open3D VoxelBlockGrid",
@@ -238,8 +243,9 @@ def targets(summary: dict, main: dict) -> list[dict]:
     device = summary.get("device") or {}
     gpu = device.get("platform") in ("gpu", "cuda", "rocm")
     fusion = next((r for r in stages["rows"] if r["label"].startswith("**fusion")), None) if stages else None
+    # (stage_table's rows hold the fusion step's beside the whole frame's)
     rows.append({"target": "GPU: whole fusion step < 5 ms per frame",
-                 "figure": (f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on "
+                 "figure": (f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on "  # type: ignore[index]
                             f"{device.get('device_kind')}") if gpu and whole else "n/a (no GPU in this run)",
                  "met": (whole["ours_all"] < 5.0) if gpu and whole else None})
     return rows

@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from fmfusion_jax.bench import report
 from fmfusion_jax.bench.scenes import BenchScene, prepare_generated_scene, prepare_real_scene
@@ -116,7 +117,7 @@ def _child(pipeline: str, scene: BenchScene, frames: int | None, options: BenchO
     `{"error": ...}` when it failed (its messages went to stderr). `sweep`: the caps of a sweep pipeline."""
     stem = f"{pipeline}-{scene.name}"
     spec_path, result_path = work / f"{stem}.spec.json", work / f"{stem}.result.json"
-    spec = {"pipeline": pipeline, "scene": scene.to_json(), "frames": frames, "progress": options.progress}
+    spec: dict[str, Any] = {"pipeline": pipeline, "scene": scene.to_json(), "frames": frames, "progress": options.progress}
     if sweep is not None:
         spec["sweep"] = sweep
     spec_path.write_text(json.dumps(spec))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any, cast
 
 #: Config the real scene is fused with (its frames are ~18 original frames apart: detections on every frame).
 REAL_SCENE_CONFIG = "scannet-subsampled"
@@ -34,7 +35,7 @@ class BenchScene:
     @classmethod
     def from_json(cls, data: dict) -> "BenchScene":
         paths = {"scene_dir", "detections_dir", "config_path"}
-        values = {k: (Path(v) if k in paths else v) for k, v in data.items()}
+        values: dict[str, Any] = {k: (Path(v) if k in paths else v) for k, v in data.items()}
         if values.get("room_size") is not None:
             values["room_size"] = tuple(values["room_size"])
         return cls(**values)
@@ -79,7 +80,8 @@ def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: i
     scene_dir = generated_scene(GeneratedSceneSpec(seed, objects, frames, width, height), folder, progress)
     detections_dir = simulated_detections(scene_dir, folder / "detections", demo_noise(seed, width, height),
                                           every=1, progress=progress)
-    room_size = tuple(float(x) for x in json.loads((scene_dir / "synthesis.json").read_text())["room_size"])
+    room_size = cast("tuple[float, float, float]",  # W, D, H
+                     tuple(float(x) for x in json.loads((scene_dir / "synthesis.json").read_text())["room_size"]))
     # detections on every frame; geometry fusion timed however short the run: in runs of under 10 frames on
     # every frame, so that its compilation falls in the first frame, which the medians leave out
     geometry_fusion_every = (1 if frames < 10 else

@@ -119,7 +119,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
         builder.timer = timer
         if staged:
             builder.fuse_detections = staged_fuse_detections(timer)
-        counts = {"detections_in": [], "live_instances": []}
+        counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
         for frame, detections in _frames_with_detections(opened, folder, config, progress,
                                                          f"ours {'staged' if staged else 'fused'} {scene.name}"):
             timer.start_frame()
@@ -182,7 +182,8 @@ def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     baseline_mb = peak_rss_mb()
     pipeline = peer.Open3DInstancePipeline(config, opened.intrinsics, load_likelihood(config.label_fusion.likelihood),
                                            load_label_sets())
-    times, counts = [], {"detections_in": [], "live_instances": []}
+    times = []
+    counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
     for frame, detections in _frames_with_detections(opened, folder, config, progress, f"Open3D peer {scene.name}"):
         times.append({k: float(v) for k, v in pipeline.add_frame(frame, detections).items()})
         counts["detections_in"].append(0 if detections is None else detections.num_detections)

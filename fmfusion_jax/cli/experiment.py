@@ -123,11 +123,11 @@ def run(args: argparse.Namespace) -> int:
     if args.robustness:
         mixed = args.mixed if args.mixed is not None else (robustness.QUICK_MIXED if args.quick
                                                            else robustness.DEFAULT_MIXED)
-        result = robustness.run_robustness(
+        robust = robustness.run_robustness(
             args.out or robustness.DEFAULT_OUT, real_scenes=real, generated=specs, methods=args.methods,
             noise_seed=args.noise_seed or 0, mixed=mixed, cache_dir=args.cache, overrides=args.overrides,
             real_max_frames=QUICK_REAL_FRAMES if args.quick else None, progress=not args.no_progress)
-        print(result.text)
+        print(robust.text)
         return 0
     result = run_experiment(args.out or DEFAULT_OUT, real_scenes=real, generated=specs, methods=args.methods,
                             seed=args.seed or 0, cache_dir=args.cache, overrides=args.overrides,

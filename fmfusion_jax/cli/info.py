@@ -88,13 +88,15 @@ def describe_detections(folder: Path, scene_frames: Sequence[str]) -> list[tuple
     in_scene = set(scene_frames)
     matched = [name for name in detection_frames if name in in_scene]
     unmatched = [name for name in detection_frames if name not in in_scene]
-    counts, top_labels, errors = [], collections.Counter(), []
+    counts, errors = [], []
+    top_labels: collections.Counter[str] = collections.Counter()
     for name in matched:
         try:
             parsed = read_frame_labels(folder, name)
         except DataError as error:
             errors.append(str(error))
             continue
+        assert parsed is not None  # a listed frame has its _label.json
         counts.append(len(parsed["labels"]))
         top_labels.update(max(labels, key=labels.get) for labels in parsed["labels"] if labels)
 

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
+
+if TYPE_CHECKING:
+    from fmfusion_jax.pipeline import DetectionSource
 
 
 def register(subparsers) -> None:
@@ -51,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
     scene = open_scene(args.scene, layout=config.dataset.layout, stride=config.dataset.frame_stride,
                        depth_max=config.dataset.depth_max, depth_scale=config.dataset.depth_scale,
                        max_frames=config.dataset.max_frames)
+    source: DetectionSource
     if args.models is not None:
         from detectors import FoundationModels
 

@@ -50,15 +50,17 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float)
     color = host["color"][:, perm].reshape(-1, bs, bs, bs, 3)
     # Each block feeds its own chunk, and (as the apron) the chunks just below it along each axis
     # where it sits on the chunk's lower face.
-    block_ids, chunk_ids, rel = [], [], []
-    for d in np.ndindex(2, 2, 2):
-        d = np.asarray(d)
+    block_parts: list[np.ndarray] = []
+    chunk_parts: list[np.ndarray] = []
+    rel_parts: list[np.ndarray] = []
+    for corner in np.ndindex(2, 2, 2):
+        d = np.asarray(corner)
         on_face = np.all((d == 0) | (coords % chunk_blocks == 0), axis=1)
         chunk = coords // chunk_blocks - d
-        block_ids.append(np.nonzero(on_face)[0])
-        chunk_ids.append(chunk[on_face])
-        rel.append((coords - chunk * chunk_blocks)[on_face])
-    block_ids, chunk_ids, rel = (np.concatenate(x) for x in (block_ids, chunk_ids, rel))
+        block_parts.append(np.nonzero(on_face)[0])
+        chunk_parts.append(chunk[on_face])
+        rel_parts.append((coords - chunk * chunk_blocks)[on_face])
+    block_ids, chunk_ids, rel = (np.concatenate(x) for x in (block_parts, chunk_parts, rel_parts))
     order = np.lexsort(chunk_ids.T[::-1])
     block_ids, chunk_ids, rel = block_ids[order], chunk_ids[order], rel[order]
     starts = np.flatnonzero(np.any(np.diff(chunk_ids, axis=0) != 0, axis=1)) + 1
@@ -89,11 +91,12 @@ def _sample_linear(volume: np.ndarray, points: np.ndarray) -> np.ndarray:
     lo = np.clip(lo, 0, np.asarray(volume.shape[:3]) - 1)
     f = points - lo
     hi = np.minimum(lo + 1, np.asarray(volume.shape[:3]) - 1)
-    out = 0.0
+    out: np.ndarray | float = 0.0
     for corner in np.ndindex(2, 2, 2):
         idx = [np.where(corner[a], hi[:, a], lo[:, a]) for a in range(3)]
         wgt = np.prod([f[:, a] if corner[a] else 1.0 - f[:, a] for a in range(3)], axis=0)
         out = out + volume[idx[0], idx[1], idx[2]] * wgt.reshape((-1,) + (1,) * (volume.ndim - 3))
+    assert isinstance(out, np.ndarray)  # the eight corners have been added
     return out
 
 

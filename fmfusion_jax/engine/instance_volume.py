@@ -217,15 +217,17 @@ def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: Map
         # depth filter, say nothing). One scatter entry per (pixel, slot) carries both kinds of vote.
         k = detected.shape[0]
         speaks = seen if neutral is None else seen & ~jnp.asarray(neutral, bool).reshape(-1)
-        entries, deltas, lowered = [], [], []
+        entry_parts: list[jax.Array] = []
+        delta_parts: list[jax.Array] = []
+        lowered_parts: list[jax.Array] = []
         for s in range(num_slots):
             against = speaks & (ids[s] >= 0) & (ids[s] != instance) & detected[jnp.clip(ids[s], 0, k - 1)]
             mine = valid & (target == s)
             delta = jnp.where(mine, vote, 0.0) - jnp.where(against, contrary_weight, 0.0)
-            entries.append(jnp.where(mine | against, base + s, n_entries))
-            deltas.append(delta)
-            lowered.append(against | (mine & decay))
-        entries, deltas, lowered = jnp.concatenate(entries), jnp.concatenate(deltas), jnp.concatenate(lowered)
+            entry_parts.append(jnp.where(mine | against, base + s, n_entries))
+            delta_parts.append(delta)
+            lowered_parts.append(against | (mine & decay))
+        entries, deltas, lowered = jnp.concatenate(entry_parts), jnp.concatenate(delta_parts), jnp.concatenate(lowered_parts)
     else:
         entries, deltas, lowered = entry, vote, decay
     w_flat = blocks.instance_weight.reshape(-1).at[entries].add(deltas, mode="drop")
@@ -576,6 +578,7 @@ def _census(blocks: VoxelBlocks, config: MapConfig, overlap=None, keep=None, lis
     d_max = min(config.overlap_ids_per_cell, 8 * num_slots)
     sentinel = k * k
     with_pairs = overlap is not None
+    plain: bool | jax.Array | None
     if isinstance(overlap, str):
         if overlap not in ("inflated", "plain"):
             raise ValueError(f"overlap must be None, 'inflated', 'plain' or a bool array, got {overlap!r}")

@@ -25,6 +25,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from fmfusion_jax.engine import association, detections, label_fusion, maintenance, merge
 from fmfusion_jax.engine import instance_volume as iv
@@ -154,7 +155,7 @@ class Matches(NamedTuple):
     assignment: association.Assignment  # row of each detection (matched or new), the new valid rows
 
 
-def associate(det_image: jax.Array, seen: jax.Array, det_valid: jax.Array, inst_valid: jax.Array,
+def associate(det_image: jax.Array, seen: jax.Array, det_valid: jax.Array | np.ndarray, inst_valid: jax.Array,
               config: MapConfig, fusion: FusionConfig) -> Matches:
     """Projection-overlap association of the detections (`det_valid bool[N]`) with the live rows
     (`inst_valid bool[K]`), and new rows for the unmatched ones."""
@@ -173,7 +174,7 @@ class TableUpdate(NamedTuple):
     in_view: jax.Array  # bool[K]: live rows (before this frame) in view
 
 
-def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array, likelihood: jax.Array,
+def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array | np.ndarray, likelihood: jax.Array,
                frame_index: jax.Array, config: MapConfig,
                fusion: FusionConfig) -> tuple[InstanceTable, TableUpdate]:
     """The instance table after the frame: new rows, label fusion (`label_scores float32[N, O]`),
@@ -281,15 +282,16 @@ def _apply_new_ids(blocks, census, new_id: jax.Array, config: MapConfig):
 
 
 class _MergeParams(NamedTuple):
-    """Traced parameters of `_merge_step`, so that `refine` and `finalize` share one compiled step."""
+    """Traced parameters of `_merge_step`, so that `refine` and `finalize` share one compiled step
+    (host scalars, traced arrays inside the jit)."""
 
-    final: jax.Array  # bool[]: the final merge (plain overlap, 3D IoU, no removal) instead of the online one
-    remove_missed: jax.Array  # int32[]
-    remove_min_voxels: jax.Array  # int32[]
-    similarity: jax.Array  # float32[]: semantic similarity threshold
-    overlap: jax.Array  # float32[]: overlap ratio (online) or 3D IoU (final) threshold
-    reunite: jax.Array  # int32[]: `FusionConfig.reunite_min_frames` (0: off)
-    separate: jax.Array  # int32[]: `FusionConfig.separate_min_frames` (0: off)
+    final: ArrayLike  # bool[]: the final merge (plain overlap, 3D IoU, no removal) instead of the online one
+    remove_missed: ArrayLike  # int32[]
+    remove_min_voxels: ArrayLike  # int32[]
+    similarity: ArrayLike  # float32[]: semantic similarity threshold
+    overlap: ArrayLike  # float32[]: overlap ratio (online) or 3D IoU (final) threshold
+    reunite: ArrayLike  # int32[]: `FusionConfig.reunite_min_frames` (0: off)
+    separate: ArrayLike  # int32[]: `FusionConfig.separate_min_frames` (0: off)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "label_mode", "veto"), donate_argnames=("state",))

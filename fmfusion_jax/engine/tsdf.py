@@ -47,7 +47,8 @@ class TouchedBlocks(NamedTuple):
     blocks: VoxelBlocks  # the pool with the frame's new blocks allocated and the counters updated
     slots: jax.Array  # int32[M]: pool slots of the touched blocks (the scratch slot where not valid)
     valid: jax.Array  # bool[M]: entry is a touched block that has a slot
-    count: jax.Array  # int32[]: entries in use (valid ones lie in [0, count))
+    # shadows tuple.count, as the field's name is part of the API
+    count: jax.Array  # type: ignore[assignment]  # int32[]: entries in use (valid ones lie in [0, count))
 
 
 def _find_touched_blocks(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig) -> TouchedBlocks:

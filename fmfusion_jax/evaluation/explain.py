@@ -65,6 +65,7 @@ import dataclasses
 import json
 from collections.abc import Mapping
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -455,7 +456,7 @@ def explain_scene(gt_ids: np.ndarray, preds: InstancePredictions, vertices: np.n
             passes_25=bool((iou[same[:, i], i] > IOU_25).any()),
             match=int(counts.rows[match[i]]) if match[i] >= 0 else None,
             num_fragments=int(pieces[:, i].sum()),
-            centroid=gt_centroids.get(i)))
+            centroid=gt_centroids.get(int(i))))
 
     predictions = []
     object_iou = np.where(counts.counted[None, :], iou, -1.0)
@@ -512,7 +513,7 @@ def _centroids(gt_ids: np.ndarray, preds: InstancePredictions, counts: OverlapCo
 
 
 def _point(xyz: np.ndarray) -> tuple[float, float, float]:
-    return tuple(round(float(v), 3) for v in xyz)
+    return cast("tuple[float, float, float]", tuple(round(float(v), 3) for v in xyz))  # xyz: (3,)
 
 
 def _count(values: list[str], names: tuple[str, ...]) -> dict[str, int]:

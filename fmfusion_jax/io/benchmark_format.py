@@ -111,7 +111,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         raise DataError(f"{txt_path}: prediction file not found") from None
     except (OSError, UnicodeDecodeError) as error:
         raise DataError(f"{txt_path}: cannot read the prediction file ({error})") from error
-    masks, ids, confidences, seen = [], [], [], {}
+    masks, ids, confidences = [], [], []
+    seen: dict[Path, int] = {}
     for number, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue

@@ -343,7 +343,7 @@ def _triangle_list(element: _PlyElement, path: Path) -> tuple[str, str, str]:
 def _read_ply_binary(body: bytes, elements: list[_PlyElement], endian: str, path: Path) -> dict:
     arrays, offset = {}, 0
     for element in elements:
-        fields = [(name, endian + code) for name, code in element.scalars]
+        fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [(name, endian + code) for name, code in element.scalars]
         if element.lists:
             # Fast path: every face is a triangle, so each record has a fixed size.
             name, count_code, item_code = _triangle_list(element, path)
@@ -357,6 +357,7 @@ def _read_ply_binary(body: bytes, elements: list[_PlyElement], endian: str, path
         offset += size
         if element.lists and np.any(records["__count__"] != 3):
             raise DataError(f"{path}: only triangle faces are supported")
+        assert records.dtype.names is not None  # a structured dtype: it has field names
         arrays[element.name] = {name: records[name] for name in records.dtype.names}
     return arrays
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -37,7 +38,8 @@ def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, label:
         `*_vh_clean_2.labels.ply`.
       instance: optional `(N,)` instance ids, written as an `int instance` vertex property.
     """
-    columns = [(axis, "<f4", "float", np.asarray(points, np.float32)[:, i]) for i, axis in enumerate("xyz")]
+    columns: list[tuple[str, str, str, np.ndarray]] = [
+        (axis, "<f4", "float", np.asarray(points, np.float32)[:, i]) for i, axis in enumerate("xyz")]
     columns += [(channel, "u1", "uchar", np.asarray(colors, np.uint8)[:, i])
                 for i, channel in enumerate(("red", "green", "blue"))]
     if label is not None:
@@ -56,7 +58,8 @@ def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, label:
 def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
     mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces), process=False)
     if colors is not None:
-        mesh.visual.vertex_colors = np.concatenate(
+        # a mesh built without texture carries ColorVisuals
+        cast(trimesh.visual.ColorVisuals, mesh.visual).vertex_colors = np.concatenate(
             [colors.astype(np.uint8), np.full((len(colors), 1), 255, np.uint8)], axis=1)
     mesh.export(str(path))
 
@@ -365,7 +368,9 @@ def _rasterize(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarr
         # Only the highest point of each pixel can win anywhere its disc reaches (same radius per pixel).
         top = _top_points((v * width + u) * 8 + radii, z)
         u, v, z, colors, radii = u[top], v[top], z[top], colors[top], radii[top]
-        pixels, heights, sources = [], [], []
+        pixel_parts: list[np.ndarray] = []
+        height_parts: list[np.ndarray] = []
+        source_parts: list[np.ndarray] = []
         for r in np.unique(radii):
             members = np.flatnonzero(radii == r)
             offsets = np.array([(dx, dy) for dx in range(-r, r + 1) for dy in range(-r, r + 1)
@@ -373,10 +378,10 @@ def _rasterize(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarr
             uu = u[members, None] + offsets[None, :, 0]
             vv = v[members, None] + offsets[None, :, 1]
             ok = (uu >= 0) & (uu < width) & (vv >= 0) & (vv < height)
-            pixels.append((vv * width + uu)[ok])
-            heights.append(np.broadcast_to(z[members, None], uu.shape)[ok])
-            sources.append(np.broadcast_to(members[:, None], uu.shape)[ok])
-        pixels, heights, sources = np.concatenate(pixels), np.concatenate(heights), np.concatenate(sources)
+            pixel_parts.append((vv * width + uu)[ok])
+            height_parts.append(np.broadcast_to(z[members, None], uu.shape)[ok])
+            source_parts.append(np.broadcast_to(members[:, None], uu.shape)[ok])
+        pixels, heights, sources = np.concatenate(pixel_parts), np.concatenate(height_parts), np.concatenate(source_parts)
         win = _top_points(pixels, heights)
         image[pixels[win]] = colors[sources[win]]
         covered[pixels[win]] = True

@@ -413,7 +413,10 @@ def open_scene(path: str | Path, layout: str = "auto", stride: int = 1, depth_ma
     _check_files_exist([spec.depth_path(root, all_names[i]) for i in picked])
     pose_source = _pose_source(root, spec, all_names, picked)
 
-    names, indices, poses, skipped = [], [], [], []
+    names: list[str] = []
+    indices: list[int] = []
+    poses: list[np.ndarray] = []
+    skipped: list[tuple[str, str]] = []
     for i in picked:
         if max_frames is not None and len(names) >= max_frames:
             break

@@ -91,9 +91,9 @@ def match_instances(instances: Sequence[MapInstance], gt, scene_name: str, label
     if keep.size == 0:
         return MatchedInstances.empty(label_sets.num_open)
     return MatchedInstances(
-        histograms=np.stack([instances[k].open_label_histogram for k in keep]).astype(np.float32),
+        histograms=np.stack([instances[int(k)].open_label_histogram for k in keep]).astype(np.float32),
         classes=np.array([classes[int(candidates[best[k]])] for k in keep], np.int64),
-        predicted=np.array([instances[k].class_index for k in keep], np.int64),
+        predicted=np.array([instances[int(k)].class_index for k in keep], np.int64),
         iou=best_iou[keep].astype(np.float64),
         scenes=[scene_name] * keep.size,
     )

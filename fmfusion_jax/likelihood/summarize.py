@@ -275,6 +275,7 @@ def summarize_scene(scene_dir: str | Path, detections_dir: str | Path, label_set
     for i in iterator:
         gt_image = renderer.render(scene.read_depth(i), poses[i], scene.intrinsics)
         detections = folder.get(scene.frame_names[i])
+        assert detections is not None  # `frames` holds only frames with a detection file
         total = total + frame_record(gt_image, classes, detections, label_sets, min_pixels, min_iou, label_rule)
     log.info("%s: %d frames, %d observed instances, %d matched to a detection", scene.name, total.frames,
              total.instances, total.matched)

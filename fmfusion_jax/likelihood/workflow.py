@@ -26,6 +26,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_con
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood, write_likelihood_csv
 from fmfusion_jax.likelihood.matching import MatchedInstances
+
+if TYPE_CHECKING:
+    from fmfusion_jax.io.benchmark_format import InstancePredictions
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +150,7 @@ class RunOutcome:
     case: str
     likelihood: str
     matched: MatchedInstances
-    predictions: object        # io.benchmark_format.InstancePredictions over the GT mesh vertices
+    predictions: InstancePredictions  # over the GT mesh vertices
     gt_benchmark_ids: np.ndarray
     scores: dict[str, float]   # mAP, mAP50, mAP25 of this scene alone
     seconds: float

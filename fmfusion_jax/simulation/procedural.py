@@ -615,7 +615,7 @@ def _rect_distance(points: np.ndarray, placed: _Placed) -> np.ndarray:
 class _Layout:
     """Free-space bookkeeping of one placement attempt."""
 
-    def __init__(self, room_size, rng):
+    def __init__(self, room_size, rng) -> None:
         self.room_size = room_size
         self.rng = rng
         self.placed: list[_Placed] = []
@@ -757,7 +757,7 @@ def _place_objects(room_size, kinds: list[str], rng, allowed: Sequence[str] | No
                 raise _NoRoom(len(result))
             # Something else that may fit better: a small kind.
             small = [k for k in ("chair", "picture", "otherfurniture", "table") if allowed is None or k in allowed]
-            queue.append(str(rng.choice(small or list(allowed))))
+            queue.append(str(rng.choice(small or list(allowed or ()))))  # small holds them all when allowed is None
             continue
         layout.add(placed)
         result.append(placed)
@@ -809,7 +809,7 @@ def generate_scene(seed: int, room_size: Sequence[float] | None = None, num_obje
         if unknown or not kinds:
             raise ValueError(f"unknown object kinds {unknown or kinds}; expected some of {list(OBJECT_KINDS)}")
     auto = room_size is None
-    size = default_room_size(num_objects) if auto else tuple(float(x) for x in room_size)
+    size = default_room_size(num_objects) if room_size is None else tuple(float(x) for x in room_size)
     if len(size) != 3 or min(size[:2]) < 2.0 or size[2] < 2.2 or max(size) > 100:
         raise ValueError(f"room_size {size}: expected (W, D, H) metres with W, D >= 2 and H >= 2.2 (and <= 100)")
     for attempt in range(8):
@@ -865,6 +865,7 @@ def _assemble(seed: int, size, placed: list[_Placed], rng) -> ProceduralScene:
 
     for p in placed:
         spec = p.spec
+        assert spec is not None  # placed objects have their spec (only keep-clear zones have none)
         instance_id = add_instance(spec.kind, spec.kind, spec.raw_label, nyu40[spec.kind])
         R = raycast.yaw_rotation(p.yaw)
         origin = np.array([p.center[0], p.center[1], 0.0])
@@ -1001,14 +1002,18 @@ def build_mesh(scene: ProceduralScene, spacing: float = 0.03, max_vertices: int 
         he = boxes.half_extents[i]
         area += 8 * (he[0] * he[1] + he[1] * he[2] + he[0] * he[2])
     # Structural boxes contribute one face each (their others are outside the room).
-    for i in scene.enclosure_boxes:
-        if use[i]:
-            he = boxes.half_extents[i]
+    for e in scene.enclosure_boxes:
+        if use[e]:
+            he = boxes.half_extents[e]
             area -= 8 * (he[0] * he[1] + he[1] * he[2] + he[0] * he[2])
             area += 4 * np.sort(he)[1] * np.sort(he)[2]
     spacing = max(spacing, math.sqrt(area / (0.9 * max_vertices)))
 
-    vertices, faces, owners, segments, normals = [], [], [], [], []
+    vertex_parts: list[np.ndarray] = []
+    face_parts: list[np.ndarray] = []
+    owner_parts: list[np.ndarray] = []
+    segment_parts: list[np.ndarray] = []
+    normal_parts: list[np.ndarray] = []
     offset, segment_base = 0, 0
     for i in np.nonzero(use)[0]:
         R, c, he = boxes.rotations[i], boxes.centers[i], boxes.half_extents[i]
@@ -1039,17 +1044,17 @@ def build_mesh(scene: ProceduralScene, spacing: float = 0.03, max_vertices: int 
                 sv = np.minimum((np.arange(nv + 1) * pv) // (nv + 1), pv - 1)
                 seg = (su[:, None] * pv + sv[None, :]).ravel() + segment_base
                 segment_base += pu * pv
-                vertices.append(world)
-                faces.append(cell_faces + offset)
-                owners.append(np.full(world.shape[0], i))
-                segments.append(seg)
-                normals.append(np.broadcast_to(R[:, axis] * sign, world.shape))
+                vertex_parts.append(world)
+                face_parts.append(cell_faces + offset)
+                owner_parts.append(np.full(world.shape[0], i))
+                segment_parts.append(seg)
+                normal_parts.append(np.broadcast_to(R[:, axis] * sign, world.shape))
                 offset += world.shape[0]
-    vertices = np.concatenate(vertices)
-    faces = np.concatenate(faces)  # (C, 2, 3)
-    owners = np.concatenate(owners)
-    segments = np.concatenate(segments)
-    normals = np.concatenate(normals)
+    vertices = np.concatenate(vertex_parts)
+    faces = np.concatenate(face_parts)  # (C, 2, 3)
+    owners = np.concatenate(owner_parts)
+    segments = np.concatenate(segment_parts)
+    normals = np.concatenate(normal_parts)
 
     # Visibility of each cell from its centre.
     cell_owner = owners[faces[:, 0, 0]]

@@ -132,14 +132,14 @@ def _screen_rect(corners_camera: np.ndarray, intrinsics: CameraIntrinsics, near:
     front = z > near
     if not front.any():
         return None
-    points = [corners_camera[front]]
+    parts = [corners_camera[front]]
     if not front.all():
         i, j = _EDGES[:, 0], _EDGES[:, 1]
         crossing = front[i] != front[j]
         a, b = corners_camera[i[crossing]], corners_camera[j[crossing]]
         s = (near - a[:, 2]) / (b[:, 2] - a[:, 2])
-        points.append(a + s[:, None] * (b - a))
-    points = np.concatenate(points)
+        parts.append(a + s[:, None] * (b - a))
+    points = np.concatenate(parts)
     u = intrinsics.fx * points[:, 0] / points[:, 2] + intrinsics.cx
     v = intrinsics.fy * points[:, 1] / points[:, 2] + intrinsics.cy
     u0 = max(int(np.floor(u.min())), 0)
@@ -228,10 +228,12 @@ def _box_block(M, o, h, xs, ys, near, b, depth, box_index, face) -> None:
             t_near, t_far = lo, hi
             axis_near = np.zeros(lo.shape, np.int8)
         else:
+            assert axis_near is not None and t_far is not None  # set with t_near on the first axis
             better = lo > t_near
             t_near = np.where(better, lo, t_near)
             axis_near[better] = k
             np.minimum(t_far, hi, out=t_far)
+    assert t_near is not None and t_far is not None and axis_near is not None  # the three axes are done
     hit = (t_near <= t_far) & (t_near > near) & (t_near < depth)
     if not hit.any():
         return
@@ -262,6 +264,7 @@ def _enclosure_exit(R_wc, origin, xs, ys, lower, upper, face_boxes, depth, box_i
             closer = t < best
             best = np.where(closer, t, best)
             best_face = np.where(closer, f, best_face)
+    assert best is not None and best_face is not None  # the three axes are done
     closer = best < depth
     depth[closer] = best[closer]
     box_index[closer] = face_boxes[best_face[closer]]

@@ -104,7 +104,7 @@ class GroundTruthRenderer:
         for row in range(3):
             points[:, row] = T[row, 0] * x + T[row, 1] * y + T[row, 2] * z + T[row, 3]
         _, nearest = self.tree.query(points, k=1, distance_upper_bound=self.max_distance, workers=self.workers)
-        labels = np.zeros(sub.shape, np.uint16)
+        labels: np.ndarray = np.zeros(sub.shape, np.uint16)
         labels[vs, us] = self._vertex_compact[nearest]
 
         if self.smooth:

@@ -357,9 +357,9 @@ def _absorb_neighbours(objects: list[_Object], areas: Mapping[int, int], pairs: 
     for obj in objects:
         if obj.instances[0] in gone and len(obj.instances) == 1:
             continue
-        neighbour = absorbed.get(obj.instances[0])
-        if neighbour is not None:
-            obj = dataclasses.replace(obj, instances=(obj.instances[0], neighbour), area=obj.area + areas[neighbour])
+        merged = absorbed.get(obj.instances[0])
+        if merged is not None:
+            obj = dataclasses.replace(obj, instances=(obj.instances[0], merged), area=obj.area + areas[merged])
         out.append(obj)
     return out
 
@@ -522,7 +522,9 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
     drawn = [model.draw(r_label, o.class_index, o.key) for o in objects[:real]]
     if noise.extra_confusion_prob > 0:
         drawn = [model.confuse(r_confusion, o.class_index, labels) for o, labels in zip(objects[:real], drawn)]
-    drawn += [dict(o.fixed_labels) for o in objects[real:]]
+    for o in objects[real:]:
+        assert o.fixed_labels is not None  # confusers carry their labels
+        drawn.append(dict(o.fixed_labels))
     blobs = _blobs(image, instance_classes, class_names, model, r_blob) if noise.blob_rate > 0 else []
 
     # 3. Tagger and prompt.
@@ -577,7 +579,7 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
                 # No label of its own reached the prompt: it shares the first part's, a bit less sure.
                 factor = r_mask.uniform(0.85, 1.0)
                 second_labels = {name: max(score * factor, noise.text_threshold) for name, score in labels.items()}
-                top = max(second_labels, key=second_labels.get)
+                top = max(second_labels, key=second_labels.__getitem__)
                 second_labels[top] = max(second_labels[top], noise.box_threshold)
             parts = [(first, labels), (second, second_labels)]
         else:
