@@ -463,11 +463,11 @@ class MapperBatch:
         single = init_map_state(self.map_config)
         self.states = jax.tree.map(lambda leaf: jnp.stack([leaf] * batch_size), single)
         # one builder per map keeps its counts, refinement schedule and capacity warnings; the maps' states
-        # live stacked in `states` (the builders' own are unused, so they hold none)
+        # live stacked in `states`, so the builders hold none (not even the unbatched initial one: a room's worth)
         self._builders = [MapBuilder(self.config, self.map_config, self.label_sets, likelihood, state=single)
                           for _ in range(batch_size)]
         for builder in self._builders:
-            builder.state = None
+            builder.state = None  # type: ignore[assignment]  # never stepped: the batch steps `states`
         del single
         self.fusion_config = self._builders[0].fusion_config
         self._likelihood = self._builders[0].likelihood
@@ -519,8 +519,9 @@ class MapperBatch:
             self.states, refine_stats = _batch_refinement(self.states, merge_due, self.map_config, self.fusion_config,
                                                           "refine")
             refine_stats = jax.device_get(refine_stats)
-            for i in np.flatnonzero(merge_due):
-                self._builders[i]._count_refinement(frames[i].name, jax.tree.map(lambda x, i=i: x[i], refine_stats))
+            for i, frame in enumerate(frames):
+                if merge_due[i] and frame is not None:
+                    self._builders[i]._count_refinement(frame.name, jax.tree.map(lambda x, i=i: x[i], refine_stats))
         if geometry_due.any():
             self.states, _ = _batch_refinement(self.states, geometry_due, self.map_config, self.fusion_config,
                                                "geometry")
