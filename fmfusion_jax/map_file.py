@@ -19,7 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from fmfusion_jax.config import PipelineConfig, _set_field, validate_config
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.serialization import state_from_arrays, state_to_arrays
 from fmfusion_jax.errors import DataError
+from fmfusion_jax.pipeline import FusionResult, MapBuilder
 
 METADATA_KEY = "__metadata__"
 MAP_FORMAT = "fmfusion-jax map state"
@@ -77,7 +81,6 @@ def map_config_to_dict(map_config) -> dict[str, Any]:
 
 
 def map_config_from_dict(values: dict[str, Any]):
-    from fmfusion_jax.engine.config import MapConfig
 
     known = {f.name for f in dataclasses.fields(MapConfig)}
     unknown = sorted(set(values) - known)
@@ -88,7 +91,6 @@ def map_config_from_dict(values: dict[str, Any]):
 
 def pipeline_config_from_dict(values: dict[str, Any], origin: str):
     """A `PipelineConfig` from `PipelineConfig.to_dict()` output, checked like a config file."""
-    from fmfusion_jax.config import PipelineConfig, _set_field, validate_config
 
     config = PipelineConfig()
     for section, items in values.items():
@@ -115,7 +117,6 @@ def write_map_file(path: str | Path, state, map_config, config, progress: dict[s
       progress: how far fusion had got (`frames_integrated`, `detection_frames`, `counters`), so that
         a `MapBuilder` can continue the schedules where they stopped.
     """
-    from fmfusion_jax.engine.serialization import state_to_arrays
 
     metadata = {"format": MAP_FORMAT, "version": MAP_FORMAT_VERSION, "map_config": map_config_to_dict(map_config),
                 "pipeline_config": config.to_dict(), "progress": progress or {}}
@@ -134,7 +135,6 @@ class SavedMap:
 
 def read_map_file(path: str | Path) -> SavedMap:
     """Reads a map written by `write_map_file`; a wrong or damaged file is a DataError naming it."""
-    from fmfusion_jax.engine.serialization import state_from_arrays
 
     arrays, metadata = read_state_file(path)
     if metadata.get("format") != MAP_FORMAT:
@@ -150,3 +150,36 @@ def read_map_file(path: str | Path) -> SavedMap:
                         "version of fmfusion") from None
     config = pipeline_config_from_dict(metadata.get("pipeline_config", {}), f"{path} (pipeline config)")
     return SavedMap(state, map_config, config, dict(metadata.get("progress", {})))
+
+
+#: File name of the saved map in a run's output folder.
+MAP_STATE_FILE = "map_state.npz"
+
+
+def save_map(path: str | Path, result: FusionResult) -> Path:
+    """Saves a fused map (state, MapConfig, PipelineConfig, how far fusion got) to an `.npz` file."""
+    return write_map_file(path, result.state, result.map_config, result.config, result.progress())
+
+
+def load_map(path: str | Path):
+    """`(MapState, MapConfig, PipelineConfig)` of a map saved by `save_map` (`map_state.npz` of a run).
+
+    The state is exactly the saved one (device arrays); to continue fusing it, pass it to
+    `MapBuilder(config, map_config, state=state)` (or use `resume_builder`, which also restores the
+    schedules' frame counts). A wrong or damaged file is a DataError (a UserError) naming it.
+    """
+    saved = read_map_file(path)
+    return saved.state, saved.map_config, saved.config
+
+
+def resume_builder(path: str | Path) -> MapBuilder:
+    """A `MapBuilder` that continues the map saved at `path`, with its counts of frames and detection
+    frames (which drive the refinement schedules) and counters restored.
+
+    A run's `map_state.npz` holds the finalized map (after the final geometry fusion and post-merge);
+    `save_map` of a `FusionResult` built from a builder's current state saves it mid-sequence instead.
+    """
+    saved = read_map_file(path)
+    builder = MapBuilder(saved.config, saved.map_config, state=saved.state)
+    builder.restore_progress(saved.progress)
+    return builder

@@ -34,6 +34,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance
+from fmfusion_jax.map_file import read_map_file, write_map_file
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.pipeline import (
     DetectionSchedule,
@@ -290,8 +291,6 @@ class Mapper:
 
     def save(self, path: str | Path) -> Path:
         """Writes the map (state, configs, schedules) to an `.npz` file that `Mapper.load` continues."""
-        from fmfusion_jax.map_file import write_map_file
-
         builder = self._require_builder()
         last = self._schedule._last_pose
         state = self._result.state if self._result is not None else builder.state
@@ -303,8 +302,6 @@ class Mapper:
     @classmethod
     def load(cls, path: str | Path) -> "Mapper":
         """A Mapper that continues the map saved at `path` (by `save`, or a run's `map_state.npz`)."""
-        from fmfusion_jax.map_file import read_map_file
-
         saved = read_map_file(path)
         progress = saved.progress
         lo, hi = saved.map_config.grid_bounds

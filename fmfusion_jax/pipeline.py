@@ -202,7 +202,7 @@ class MapBuilder:
 
     def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None,
                  likelihood: np.ndarray | jax.Array | None = None, state: MapState | None = None):
-        """`state`: start from this map (e.g. `runner.load_map`) instead of an empty one; it must have
+        """`state`: start from this map (e.g. `map_file.load_map`) instead of an empty one; it must have
         been made with the same `map_config`. Its buffers are donated to the first step."""
         self.config = config
         self.map_config = map_config

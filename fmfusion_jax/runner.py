@@ -16,7 +16,8 @@ from fmfusion_jax.errors import UserError
 from fmfusion_jax.io import map_outputs
 from fmfusion_jax.io.scene import Scene
 from fmfusion_jax.labels import load_label_sets
-from fmfusion_jax.pipeline import DetectionSource, FusionResult, MapBuilder, extract_map_instances
+from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
+from fmfusion_jax.pipeline import DetectionSource, FusionResult, extract_map_instances
 
 log = logging.getLogger(__name__)
 
@@ -115,45 +116,6 @@ def capacity_used(result: FusionResult) -> dict[str, int]:
             "dropped_blocks": int(blocks.dropped_blocks), "touched_overflow": int(blocks.touched_overflow),
             "instances_live": int(table.valid.sum()), "instance_capacity": result.map_config.instance_capacity,
             "table_overflow": int(table.overflow)}
-
-
-#: File name of the saved map in a run's output folder.
-MAP_STATE_FILE = "map_state.npz"
-
-
-def save_map(path: str | Path, result: FusionResult) -> Path:
-    """Saves a fused map (state, MapConfig, PipelineConfig, how far fusion got) to an `.npz` file."""
-    from fmfusion_jax.map_file import write_map_file
-
-    return write_map_file(path, result.state, result.map_config, result.config, result.progress())
-
-
-def load_map(path: str | Path):
-    """`(MapState, MapConfig, PipelineConfig)` of a map saved by `save_map` (`map_state.npz` of a run).
-
-    The state is exactly the saved one (device arrays); to continue fusing it, pass it to
-    `MapBuilder(config, map_config, state=state)` (or use `resume_builder`, which also restores the
-    schedules' frame counts). A wrong or damaged file is a DataError (a UserError) naming it.
-    """
-    from fmfusion_jax.map_file import read_map_file
-
-    saved = read_map_file(path)
-    return saved.state, saved.map_config, saved.config
-
-
-def resume_builder(path: str | Path) -> MapBuilder:
-    """A `MapBuilder` that continues the map saved at `path`, with its counts of frames and detection
-    frames (which drive the refinement schedules) and counters restored.
-
-    A run's `map_state.npz` holds the finalized map (after the final geometry fusion and post-merge);
-    `save_map` of a `FusionResult` built from a builder's current state saves it mid-sequence instead.
-    """
-    from fmfusion_jax.map_file import read_map_file
-
-    saved = read_map_file(path)
-    builder = MapBuilder(saved.config, saved.map_config, state=saved.state)
-    builder.restore_progress(saved.progress)
-    return builder
 
 
 def load_ground_truth(scene: Scene):

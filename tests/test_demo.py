@@ -18,7 +18,7 @@ import trimesh
 
 from fmfusion_jax.demo import MARKER, demo_config, run_demo
 from fmfusion_jax.io.ground_truth import read_ply_vertices
-from fmfusion_jax.runner import MAP_STATE_FILE, load_map
+from fmfusion_jax.map_file import MAP_STATE_FILE, load_map
 
 TINY = dict(seed=3, num_objects=4, num_frames=12, width=160, height=120, progress=False)
 

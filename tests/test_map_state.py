@@ -13,9 +13,8 @@ from test_pipeline import BoxRoom, build, clean_detections, make_frames, small_c
 from fmfusion_jax.engine.serialization import SCRATCH_SUFFIX, state_from_arrays, state_to_arrays
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import DataError
-from fmfusion_jax.map_file import read_state_file, write_state_file
+from fmfusion_jax.map_file import load_map, read_state_file, resume_builder, save_map, write_state_file
 from fmfusion_jax.pipeline import FusionResult, MapBuilder
-from fmfusion_jax.runner import load_map, resume_builder, save_map
 
 
 @pytest.fixture(scope="module")
