@@ -34,8 +34,8 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance
-from fmfusion_jax.map_file import read_map_file, write_map_file
 from fmfusion_jax.labels import LabelSets, load_label_sets
+from fmfusion_jax.map_file import read_map_file, write_map_file
 from fmfusion_jax.pipeline import (
     DetectionSchedule,
     FusionResult,
