@@ -44,6 +44,7 @@ class BenchOptions:
     sweep: tuple[int, ...] = (1, 2, 4, 8, 16)  # detection caps of the per-object sweep (empty: no sweep)
     sweep_frames: int | None = 30  # the sweep runs on this prefix of the main scene (None: all)
     seed: int = 0
+    overrides: tuple[str, ...] = ()  # KEY=VALUE config overrides for every scene (`--set`)
     progress: bool = True
 
 
@@ -103,11 +104,13 @@ def _prepare_scenes(options: BenchOptions, cache: Path, say) -> list[BenchScene]
     scenes = []
     if options.scene is not None:
         say(f"preparing {options.scene} ({options.frames or 'all'} frames; detections simulated once into {cache})")
-        scenes.append(prepare_real_scene(options.scene, cache, options.frames, options.seed, options.progress))
+        scenes.append(prepare_real_scene(options.scene, cache, options.frames, options.seed, options.progress,
+                                          options.overrides))
     for objects in options.objects:
         say(f"preparing a generated room with {objects} objects (made once into {cache})")
         scenes.append(prepare_generated_scene(cache, objects, options.generated_frames, options.width,
-                                              options.height, options.seed, options.progress))
+                                              options.height, options.seed, options.progress,
+                                              options.overrides))
     return scenes
 
 

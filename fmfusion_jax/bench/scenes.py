@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, cast
 
@@ -42,7 +43,7 @@ class BenchScene:
 
 
 def prepare_real_scene(scene_dir: Path, cache_dir: Path, max_frames: int | None, seed: int = 0,
-                       progress: bool = True) -> BenchScene:
+                       progress: bool = True, overrides: Sequence[str] = ()) -> BenchScene:
     """The real scene's first `max_frames` frames (None: all), with detections simulated on every frame of
     the scene into `cache_dir/<scene>/detections` (once: any frame count reuses them)."""
     from fmfusion_jax.config import load_config
@@ -50,8 +51,7 @@ def prepare_real_scene(scene_dir: Path, cache_dir: Path, max_frames: int | None,
     from fmfusion_jax.simulation.noise import NoiseModel
     from fmfusion_jax.simulation.scene_sets import simulated_detections
 
-    overrides = [f"dataset.max_frames={max_frames}"] if max_frames else []
-    config = load_config(REAL_SCENE_CONFIG, overrides)
+    config = load_config(REAL_SCENE_CONFIG, [*([f"dataset.max_frames={max_frames}"] if max_frames else []), *overrides])
     dataset = config.dataset
     scene = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
                        depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
@@ -64,7 +64,7 @@ def prepare_real_scene(scene_dir: Path, cache_dir: Path, max_frames: int | None,
 
 
 def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: int, height: int, seed: int = 0,
-                            progress: bool = True) -> BenchScene:
+                            progress: bool = True, overrides: Sequence[str] = ()) -> BenchScene:
     """A generated room with `objects` objects (its size grows with them, `procedural.default_room_size`),
     `frames` frames of `width x height` along a loop around it, and simulated detections on every frame.
 
@@ -87,7 +87,7 @@ def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: i
     geometry_fusion_every = (1 if frames < 10 else
                              min(load_config("demo").refinement.geometry_fusion_every, frames // 2))
     config = demo_config(frames, width, height, ["detections.every=1",
-                                                 f"refinement.geometry_fusion_every={geometry_fusion_every}"],
+                                                 f"refinement.geometry_fusion_every={geometry_fusion_every}", *overrides],
                          room_size=room_size)
     config_path = folder / "config.yaml"
     config_path.write_text(config.to_yaml())

@@ -57,6 +57,9 @@ def register(subparsers) -> None:
     parser.add_argument("--cache", type=Path, default=None, help="folder of the prepared scenes (default OUT/cache)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the generated rooms and simulated detections")
     parser.add_argument("--out", type=Path, default=Path("outputs/bench"), help="output folder")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 "
+                             "(repeatable)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -91,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
             options[name] = None
     scene = None if args.no_scene else _real_scene(args.scene, quick=args.quick)
     bench = BenchOptions(out=args.out, cache=args.cache, scene=scene, peer=not args.no_peer, seed=args.seed,
-                         progress=not args.no_progress, **options)
+                         overrides=tuple(args.overrides), progress=not args.no_progress, **options)
     summary = run_bench(bench, command=_command_line(args))
     print(summary["markdown"])
     print(f"written: {args.out / 'bench.md'}, {args.out / 'bench.json'}")
@@ -116,6 +119,8 @@ def _command_line(args: argparse.Namespace) -> str:
     if args.seed:
         words += ["--seed", str(args.seed)]
     words += [flag for flag, on in (("--no-scene", args.no_scene), ("--no-peer", args.no_peer)) if on]
+    for override in args.overrides:
+        words += ["--set", override]
     return shlex.join(words)
 
 
