@@ -18,6 +18,7 @@ from fmfusion_jax.io.scene import Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
 from fmfusion_jax.pipeline import DetectionSource, FusionResult, extract_map_instances
+from fmfusion_jax.viz import overview
 
 log = logging.getLogger(__name__)
 
@@ -135,17 +136,17 @@ def load_ground_truth(scene: Scene):
 def _write_overview(path: Path, scene_name: str, instances, mesh, gt, result: FusionResult, benchmark: dict,
                     label_sets) -> None:
     vertices, faces, colors = mesh
-    panels = [map_outputs.map_overview_panel(instances, label_sets, vertices, colors, faces,
+    panels = [overview.map_overview_panel(instances, label_sets, vertices, colors, faces,
                                              result.map_config.voxel_size)]
     if gt is not None:
-        panels.append(map_outputs.ground_truth_overview_panel(gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids,
+        panels.append(overview.ground_truth_overview_panel(gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids,
                                                               gt.instance_ids, label_sets))
     title = f"{scene_name}: {result.frames_integrated} frames"
     if "mAP" in benchmark:
         title += (f"  |  AP {benchmark['mAP']:.3f}   AP50 {benchmark['mAP50']:.3f}   "
                   f"AP25 {benchmark['mAP25']:.3f}")
     try:
-        map_outputs.write_overview(path, panels, label_sets, title)
+        overview.write_overview(path, panels, label_sets, title)
     except OSError as error:
         log.warning("no overview: %s", error)
 

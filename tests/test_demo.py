@@ -112,8 +112,8 @@ def test_same_seed_same_map(demo, tmp_path):
 
 def test_overview_without_ground_truth_and_of_an_empty_map():
     from fmfusion_jax.instances import MapInstance
-    from fmfusion_jax.io.map_outputs import map_overview_panel, render_overview
     from fmfusion_jax.labels import load_label_sets
+    from fmfusion_jax.viz.overview import map_overview_panel, render_overview
 
     labels = load_label_sets()
     rng = np.random.default_rng(0)

@@ -15,14 +15,7 @@ import numpy as np
 
 from fmfusion_jax.evaluation.explain import GT_STATUSES, PREDICTION_KINDS, SceneExplanation, vertex_categories
 from fmfusion_jax.io.benchmark_format import InstancePredictions
-from fmfusion_jax.io.map_outputs import (
-    _height_cut,
-    _put_fitted,
-    _scale_bar,
-    _view_rotation,
-    mesh_spacing,
-    point_spacing,
-)
+from fmfusion_jax.viz.overview import height_cut, mesh_spacing, point_spacing, put_fitted, scale_bar, view_rotation
 
 #: RGB colours of the object statuses and prediction kinds.
 STATUS_COLORS = {"found": (50, 170, 60), "wrong_class": (150, 70, 200), "low_iou": (245, 150, 30),
@@ -74,9 +67,9 @@ def render_explanation(explanation: SceneExplanation, gt_ids: np.ndarray, preds:
     right[drawn >= 0] = kind_rgb[drawn[drawn >= 0]]
 
     # One view for both panels; the ceiling is cut away.
-    cut = _height_cut(vertices[:, 2])
+    cut = height_cut(vertices[:, 2])
     visible = vertices[:, 2] <= cut
-    rotation = _view_rotation(vertices[visible, :2])
+    rotation = view_rotation(vertices[visible, :2])
     xy = vertices[:, :2] @ rotation.T
     pad = 24
     if visible.any():
@@ -211,12 +204,12 @@ def _compose(panels: list[np.ndarray], captions: list[str], legends: list[list[t
     legend_h = 12 + max(-(-len(items) // per_row) for items in legends) * legend_row
     width = 2 * margin + len(panels) * panel_w + (len(panels) - 1) * gap
     canvas = np.full((title_h + caption_h + panel_h + legend_h + margin, width, 3), 255, np.uint8)
-    _put_fitted(canvas, title, (margin, 30), width - 2 * margin, 0.75, 2)
+    put_fitted(canvas, title, (margin, 30), width - 2 * margin, 0.75, 2)
     top = title_h + caption_h
     for k, (panel, caption, items) in enumerate(zip(panels, captions, legends)):
         x = margin + k * (panel_w + gap)
-        _put_fitted(canvas, caption, (x, title_h + 20), panel_w - 220, 0.6, 1)
-        _scale_bar(canvas, x + panel_w - 2, title_h + 20, scale)
+        put_fitted(canvas, caption, (x, title_h + 20), panel_w - 220, 0.6, 1)
+        scale_bar(canvas, x + panel_w - 2, title_h + 20, scale)
         canvas[top:top + panel_h, x:x + panel_w] = panel
         cv2.rectangle(canvas, (x, top), (x + panel_w - 1, top + panel_h - 1), (160, 160, 160), 1)
         for j, (text, rgb) in enumerate(items):
@@ -224,5 +217,5 @@ def _compose(panels: list[np.ndarray], captions: list[str], legends: list[list[t
             lx, ly = x + col * 200, top + panel_h + 12 + row * legend_row
             cv2.rectangle(canvas, (lx, ly), (lx + 16, ly + 16), tuple(int(c) for c in rgb[::-1]), -1)
             cv2.rectangle(canvas, (lx, ly), (lx + 16, ly + 16), (80, 80, 80), 1)
-            _put_fitted(canvas, text, (lx + 24, ly + 13), 170, 0.5, 1)
+            put_fitted(canvas, text, (lx + 24, ly + 13), 170, 0.5, 1)
     return canvas

@@ -1,0 +1,1 @@
+"""Pictures of maps and their evaluation (NumPy + OpenCV; no engine)."""
