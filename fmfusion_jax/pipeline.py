@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -201,9 +202,14 @@ class MapBuilder:
     """
 
     def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None,
-                 likelihood: np.ndarray | jax.Array | None = None, state: MapState | None = None):
+                 likelihood: np.ndarray | jax.Array | None = None, state: MapState | None = None, *,
+                 timer: StageTimer | None = None, fuse_detections: Callable[..., Any] = step.fuse_detections):
         """`state`: start from this map (e.g. `map_file.load_map`) instead of an empty one; it must have
-        been made with the same `map_config`. Its buffers are donated to the first step."""
+        been made with the same `map_config`. Its buffers are donated to the first step.
+
+        Hooks: `timer` times each step (default: a `StageTimer`); `fuse_detections` is the detection-frame
+        step, with the signature of `step.fuse_detections` (`fmfusion_jax.bench` passes its stage-by-stage
+        twin)."""
         self.config = config
         self.map_config = map_config
         self.fusion_config = build_fusion_config(config)
@@ -212,9 +218,8 @@ class MapBuilder:
             likelihood = load_likelihood(config.label_fusion.likelihood)
         self.likelihood = jnp.asarray(likelihood, jnp.float32)
         self.state = init_map_state(map_config) if state is None else state
-        self.timer = StageTimer()
-        #: the detection-frame step; `fmfusion_jax.bench` swaps in its stage-by-stage twin to time the stages
-        self.fuse_detections = step.fuse_detections
+        self.timer = StageTimer() if timer is None else timer
+        self.fuse_detections = fuse_detections
         self.monitor = CapacityMonitor()
         self.frames_integrated = 0
         self.detection_frames = 0

@@ -110,9 +110,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     device = device_description()
 
     def builder(timer: FrameTimer) -> MapBuilder:
-        made = MapBuilder(config, map_config, label_sets=label_sets, likelihood=likelihood)
-        made.timer = timer
-        return made
+        return MapBuilder(config, map_config, label_sets=label_sets, likelihood=likelihood, timer=timer)
 
     start = time.perf_counter()
     warm = FrameTimer()  # the uncapped pass that compiles everything

@@ -115,10 +115,9 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
           f"{device['cpus']} CPUs; map {map_config.describe()}", file=sys.stderr, flush=True)
 
     def fuse(staged: bool) -> tuple[MapBuilder, FrameTimer, dict]:
-        builder, timer = MapBuilder(config, map_config), FrameTimer()
-        builder.timer = timer
-        if staged:
-            builder.fuse_detections = staged_fuse_detections(timer)
+        timer = FrameTimer()
+        step_hook = {"fuse_detections": staged_fuse_detections(timer)} if staged else {}
+        builder = MapBuilder(config, map_config, timer=timer, **step_hook)
         counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
         for frame, detections in _frames_with_detections(opened, folder, config, progress,
                                                          f"ours {'staged' if staged else 'fused'} {scene.name}"):
