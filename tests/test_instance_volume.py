@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from oracles import reference as ref
 
 from fmfusion_jax.engine import instance_volume as iv
+from fmfusion_jax.engine import occupied_cells as oc
 from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import init_voxel_blocks, local_voxel_index
@@ -277,15 +278,15 @@ def test_overlap_and_voxel_counts_match_reference(seed):
     # random fields put up to 16 distinct ids in a 2x2x2 cell: keep them all for an exact comparison
     exact = dataclasses.replace(CONFIG, overlap_ids_per_cell=16)
     for inflate in (False, True):
-        got = iv.instance_overlap_counts(blocks, exact, inflate)
+        got = oc.instance_overlap_counts(blocks, exact, inflate)
         assert int(got.dropped_cells) == 0
         expected = ref.reference_overlap_counts(grid, NUM_INSTANCES, inflate)
         np.testing.assert_array_equal(np.asarray(got.counts), expected)
     # with the default 4 ids per cell the crowded cells are reported and only lose counts
-    capped = iv.instance_overlap_counts(blocks, CONFIG, True)
+    capped = oc.instance_overlap_counts(blocks, CONFIG, True)
     assert int(capped.dropped_cells) > 0
     assert np.all(np.asarray(capped.counts) <= ref.reference_overlap_counts(grid, NUM_INSTANCES, True))
-    counts = iv.instance_voxel_counts(blocks, CONFIG)
+    counts = oc.instance_voxel_counts(blocks, CONFIG)
     expected = np.diag(ref.reference_overlap_counts(grid, NUM_INSTANCES, False))
     np.testing.assert_array_equal(np.asarray(counts.counts), expected)
     assert int(counts.dropped_cells) == 0
@@ -295,11 +296,11 @@ def test_inflated_overlap_of_the_integrated_room():
     blocks = integrated_map()
     grid = ref.blocks_to_dense(blocks, CONFIG)
     for inflate in (False, True):
-        got = iv.instance_overlap_counts(blocks, CONFIG, inflate)
+        got = oc.instance_overlap_counts(blocks, CONFIG, inflate)
         expected = ref.reference_overlap_counts(grid, NUM_INSTANCES, inflate)
         np.testing.assert_array_equal(np.asarray(got.counts), expected)
-    plain = np.asarray(iv.instance_overlap_counts(blocks, CONFIG, False).counts)
-    inflated = np.asarray(iv.instance_overlap_counts(blocks, CONFIG, True).counts)
+    plain = np.asarray(oc.instance_overlap_counts(blocks, CONFIG, False).counts)
+    inflated = np.asarray(oc.instance_overlap_counts(blocks, CONFIG, True).counts)
     assert np.all(inflated >= plain) and np.array_equal(np.diag(inflated), np.diag(plain))
     assert (inflated > plain).any()
 
@@ -308,8 +309,8 @@ def test_cell_capacity_drops_are_counted():
     grid = random_instance_field(3)
     small = dataclasses.replace(CONFIG, overlap_cell_capacity=100, cell_chunk=64)
     blocks = ref.dense_to_blocks(grid, small)
-    full = iv.instance_voxel_counts(blocks, CONFIG)
-    part = iv.instance_voxel_counts(blocks, small)
+    full = oc.instance_voxel_counts(blocks, CONFIG)
+    part = oc.instance_voxel_counts(blocks, small)
     assert int(part.dropped_cells) > 0 and int(full.dropped_cells) == 0
     assert np.all(np.asarray(part.counts) <= np.asarray(full.counts))
     assert np.asarray(part.counts).sum() < np.asarray(full.counts).sum()
@@ -326,7 +327,7 @@ def test_remap_merges_and_deletes():
     new_id[1] = 0  # merge 1 into 0
     new_id[4] = 2  # merge 4 into 2
     new_id[7] = -1  # delete 7
-    out = iv.remap_instances(blocks, jnp.asarray(new_id, jnp.int32), CONFIG)
+    out = oc.remap_instances(blocks, jnp.asarray(new_id, jnp.int32), CONFIG)
     check_slot_invariants(out)
     got = ref.blocks_to_dense(out, CONFIG)
     # expected, voxel by voxel
@@ -342,14 +343,14 @@ def test_remap_merges_and_deletes():
     for k in range(NUM_INSTANCES):
         before = sum(grid.instance_weight[ids == j].sum() for j in np.flatnonzero(new_id == k))
         assert got.instance_weight[got.instance_id == k].sum() == before
-    counts = np.asarray(iv.instance_voxel_counts(out, CONFIG).counts)
+    counts = np.asarray(oc.instance_voxel_counts(out, CONFIG).counts)
     assert counts[1] == counts[4] == counts[7] == 0
 
 
 def test_fuse_instance_geometry_keeps_surface_voxels_only():
     grid = random_instance_field(9)
     blocks = ref.dense_to_blocks(grid, CONFIG)
-    out = iv.fuse_instance_geometry(blocks, CONFIG, 2.0, 0.05)
+    out = oc.fuse_instance_geometry(blocks, CONFIG, 2.0, 0.05)
     got = ref.blocks_to_dense(out, CONFIG)
     keep = (grid.weight >= 2.0) & (np.abs(grid.tsdf) * CONFIG.sdf_trunc <= 0.05)
     np.testing.assert_array_equal(got.instance_id, np.where(keep[..., None], grid.instance_id, -1))
@@ -385,9 +386,9 @@ def test_no_recompilation_and_vmap():
     for i, single in enumerate(singles):
         np.testing.assert_array_equal(np.asarray(single.instance_id), np.asarray(batched.instance_id[i]))
         np.testing.assert_array_equal(np.asarray(single.instance_weight), np.asarray(batched.instance_weight[i]))
-    counts = jax.vmap(lambda b: iv.instance_overlap_counts(b, CONFIG, True).counts)(batched)
+    counts = jax.vmap(lambda b: oc.instance_overlap_counts(b, CONFIG, True).counts)(batched)
     for i, single in enumerate(singles):
-        expected = iv.instance_overlap_counts(single, CONFIG, True).counts
+        expected = oc.instance_overlap_counts(single, CONFIG, True).counts
         np.testing.assert_array_equal(np.asarray(counts[i]), np.asarray(expected))
 
 
@@ -410,9 +411,9 @@ def reference_remap(grid, new_id):
     return out
 
 
-_census = jax.jit(iv._census, static_argnames=("config", "overlap", "list_cells"))  # overlap: a mode name
-_census_flag = jax.jit(iv._census, static_argnames=("config", "list_cells"))  # overlap: a traced bool
-_remap_cells = jax.jit(iv._remap_cells, static_argnames=("config",))
+_census = jax.jit(oc.census, static_argnames=("config", "overlap", "list_cells"))  # overlap: a mode name
+_census_flag = jax.jit(oc.census, static_argnames=("config", "list_cells"))  # overlap: a traced bool
+_remap_cells = jax.jit(oc.remap_cells, static_argnames=("config",))
 
 
 def run_census(blocks, config, overlap=None, keep=None, list_cells=False):
@@ -425,11 +426,11 @@ def test_prefix_sum_and_compaction():
     rng = np.random.default_rng(0)
     for n in (1, 16, 17, 4097):
         x = rng.integers(0, 3, n).astype(np.int32)
-        np.testing.assert_array_equal(np.asarray(iv._inclusive_cumsum(jnp.asarray(x))), np.cumsum(x))
+        np.testing.assert_array_equal(np.asarray(oc._inclusive_cumsum(jnp.asarray(x))), np.cumsum(x))
         flags = rng.random(n) < 0.4
         values = (np.arange(n) * 7).astype(np.int32)
         for start, size in ((0, n), (3, n + 5), (2, max(1, n // 3))):
-            out, found = iv._compact(jnp.full((size,), -1, jnp.int32), jnp.int32(start), jnp.asarray(flags),
+            out, found = oc._compact(jnp.full((size,), -1, jnp.int32), jnp.int32(start), jnp.asarray(flags),
                                      jnp.asarray(values))
             expected = np.full(size + n + start, -1)
             expected[start:start + flags.sum()] = values[flags]
@@ -458,7 +459,7 @@ def test_census_without_removed_ids_matches_the_reference_after_removal(seed):
     after = ref.dense_to_blocks(removed, CONFIG)
     for overlap in ("inflated", jnp.bool_(False)):
         census = run_census(blocks, CONFIG, overlap, jnp.asarray(keep))
-        expected = iv.instance_overlap_counts(after, CONFIG, True)
+        expected = oc.instance_overlap_counts(after, CONFIG, True)
         np.testing.assert_array_equal(np.asarray(census.overlap), np.asarray(expected.counts))
         assert int(census.overfull + census.dropped_cells) == int(expected.dropped_cells) > 0
 
@@ -507,11 +508,11 @@ def test_cell_tags_flag_every_cell_holding_a_wanted_id():
     result = run_census(blocks, CONFIG, list_cells=True)
     n = int(result.occupied)
     cells, tags = np.asarray(result.cells[:n]), result.tags[:n]
-    rows = np.asarray(iv._cell_rows(blocks.instance_id))[cells]
+    rows = np.asarray(oc._cell_rows(blocks.instance_id))[cells]
     assert (rows >= 0).any(axis=1).all() and len(np.unique(cells)) == n
     for wanted_ids in ([0], [3, 7], [NUM_INSTANCES - 1]):
         wanted = np.isin(np.arange(NUM_INSTANCES), wanted_ids)
-        flagged = np.asarray(iv._tag_holds(tags, jnp.asarray(wanted)))
+        flagged = np.asarray(oc._tag_holds(tags, jnp.asarray(wanted)))
         holds = np.isin(rows, wanted_ids).any(axis=1)
         assert flagged[holds].all()  # never misses a cell
         distinct = np.array([len(set(r[r >= 0])) for r in rows])

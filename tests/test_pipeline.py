@@ -171,23 +171,23 @@ def sequential_merge(state, map_config, fusion, final: bool):
     """The refinement as first written, step by step from the public kernels: recount; remove (rename,
     recount); count the overlaps; merge (rename, recount). `refine` and `finalize` must decide and
     produce exactly the same."""
-    from fmfusion_jax.engine import instance_volume as iv
     from fmfusion_jax.engine import label_fusion, maintenance, merge
+    from fmfusion_jax.engine import occupied_cells as oc
 
     def recount(s):
-        counts = iv.instance_voxel_counts(s.blocks, map_config).counts
+        counts = oc.instance_voxel_counts(s.blocks, map_config).counts
         return s._replace(instances=s.instances._replace(voxel_count=counts))
 
     def apply(s, rows, new_id):
         table = s.instances
         folded = {name: merge.fold_pair_counts(getattr(table, name), new_id, table.valid)
                   for name in ("covered", "separated")}
-        s = s._replace(blocks=iv.remap_instances(s.blocks, new_id, map_config),
+        s = s._replace(blocks=oc.remap_instances(s.blocks, new_id, map_config),
                        instances=table._replace(**rows._asdict(), **folded))
         return recount(s)
 
     if final:
-        state = recount(state._replace(blocks=iv.fuse_instance_geometry(state.blocks, map_config,
+        state = recount(state._replace(blocks=oc.fuse_instance_geometry(state.blocks, map_config,
                                                                         fusion.geometry_min_weight)))
     else:
         state = recount(state)
@@ -197,7 +197,7 @@ def sequential_merge(state, map_config, fusion, final: bool):
         removal = maintenance.remove_instances(rows, remove)
         state = apply(state, removal.rows, removal.new_id)
     rows = maintenance.TableRows.of(state.instances)
-    overlap = iv.instance_overlap_counts(state.blocks, map_config, inflate=not final).counts
+    overlap = oc.instance_overlap_counts(state.blocks, map_config, inflate=not final).counts
     similarity = merge.semantic_similarity(label_fusion.class_distribution(rows.label_evidence, fusion.label_mode))
     if final:
         pairs = merge.post_merge_pairs(similarity, overlap, rows.voxel_count, rows.valid,
@@ -217,7 +217,7 @@ def sequential_merge(state, map_config, fusion, final: bool):
 def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, ids_per_cell, separate):
     import dataclasses
 
-    from fmfusion_jax.engine.instance_volume import instance_voxel_counts
+    from fmfusion_jax.engine.occupied_cells import instance_voxel_counts
     room, frames = room_frames
     config = small_config(**{"refinement.enabled": False})
     builder = build(config, room)

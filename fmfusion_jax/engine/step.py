@@ -28,10 +28,11 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from fmfusion_jax.engine import association, detections, label_fusion, maintenance, merge
-from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
-from fmfusion_jax.engine.instance_volume import fuse_instance_geometry, integrate_instances, pixel_instances
+from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_instances
+from fmfusion_jax.engine.occupied_cells import census as occupied_census
+from fmfusion_jax.engine.occupied_cells import fuse_instance_geometry, remap_cells
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
@@ -274,10 +275,10 @@ def _apply_new_ids(blocks, census, new_id: jax.Array, config: MapConfig):
     listed = None
     if census.cells.shape[0]:  # the census' list of the occupied cells, unless there were too many
         listed = (census.cells, census.tags, census.occupied, (census.occupied <= config.cell_list_capacity) & complete)
-    blocks, gained = iv._remap_cells(blocks, new_id, config, active=needed, listed=listed)  # no-op unless needed
+    blocks, gained = remap_cells(blocks, new_id, config, active=needed, listed=listed)  # no-op unless needed
     updated = jnp.where(changed, 0, counts) + gained
     if can_drop:
-        updated = jax.lax.cond(complete, lambda: updated, lambda: iv._census(blocks, config).counts)
+        updated = jax.lax.cond(complete, lambda: updated, lambda: occupied_census(blocks, config).counts)
     return blocks, updated
 
 
@@ -317,7 +318,7 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig, label_
     blocks = state.blocks
     final = jnp.asarray(params.final, bool)
     # plain overlaps for the final merge, inflated online; the occupied cells listed for the renaming
-    census = iv._census(blocks, config, final, list_cells=True)
+    census = occupied_census(blocks, config, final, list_cells=True)
     counts = census.counts
     rows = maintenance.TableRows.of(state.instances)
     remove = maintenance.instances_to_remove(rows.missed, counts, rows.valid, params.remove_missed,
@@ -327,7 +328,7 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig, label_
     rows = rows._replace(voxel_count=jnp.where(keep, counts, 0))
 
     def recount():
-        again = iv._census(blocks, config, final, keep)
+        again = occupied_census(blocks, config, final, keep)
         return again.overlap, again.overfull
 
     def as_counted():  # the removed ids' rows and columns are left in: the pair tests mask invalid rows
