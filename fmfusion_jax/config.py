@@ -224,7 +224,11 @@ def load_config(name_or_path: str | None = None, overrides: list[str] | None = N
         key, sep, text = item.partition("=")
         if not sep or "." not in key:
             raise UserError(f"--set {item!r}: expected section.key=value, e.g. detections.every=1")
-        _set_field(config, key.strip(), yaml.safe_load(text), f"--set {item}")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as error:
+            raise UserError(f"--set {item!r}: the value is not valid YAML ({str(error).splitlines()[0]})") from None
+        _set_field(config, key.strip(), value, f"--set {item}")
     validate_config(config)
     return config
 
@@ -254,6 +258,19 @@ def validate_config(config: PipelineConfig) -> None:
         (config.refinement.reunite_min_frames >= 0 and config.refinement.separate_min_frames >= 0,
          "refinement.reunite_min_frames and separate_min_frames must be >= 0"),
         (config.tsdf.block_capacity >= 2 and config.tsdf.max_touched_blocks >= 1, "block capacities too small"),
+        (config.tsdf.block_size >= 2 and config.tsdf.block_size % 2 == 0, "tsdf.block_size must be even and >= 2"),
+        (config.tsdf.bounds_margin >= 0, "tsdf.bounds_margin must be >= 0 (metres added around the scene)"),
+        (config.tsdf.max_weight > 0, "tsdf.max_weight must be > 0"),
+        (config.association.pixel_stride >= 1, "association.pixel_stride must be >= 1"),
+        (config.detections.max_detections >= 1 and config.detections.min_mask_pixels >= 0,
+         "detections.max_detections must be >= 1 and min_mask_pixels >= 0"),
+        (len(config.detections.depth_percentiles) == 2
+         and 0.0 <= config.detections.depth_percentiles[0] < config.detections.depth_percentiles[1] <= 1.0,
+         "detections.depth_percentiles must be [low, high] with 0 <= low < high <= 1"),
+        (config.refinement.merge_every >= 1 and config.refinement.geometry_fusion_every >= 1,
+         "refinement.merge_every and geometry_fusion_every must be >= 1 (detection frames)"),
+        (config.export.transfer_radius > 0 and config.export.min_points >= 0,
+         "export.transfer_radius must be > 0 and export.min_points >= 0"),
     ]
     for ok, message in checks:
         if not ok:

@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from fmfusion_jax.errors import UserError
+
 #: nyu40 ids of the 18 classes of the ScanNet 3D semantic instance benchmark (no wall, no floor).
 BENCHMARK_NYU40_IDS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 24, 28, 33, 34, 36, 39)
 
@@ -83,7 +85,14 @@ def read_likelihood_csv(path: str | Path, label_sets: LabelSets | None = None) -
     """
     label_sets = label_sets or load_label_sets()
     path = Path(path)
-    lines = [line for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise UserError(f"{path}: cannot read the likelihood matrix ({getattr(error, 'strerror', None) or error}); "
+                        "label_fusion.likelihood is statistical, manual or the path of a CSV") from None
+    lines = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
+    if not lines:
+        raise UserError(f"{path}: an empty likelihood matrix file")
     header = lines[0].split(",")
     if tuple(header[1:]) != label_sets.class_names:
         raise ValueError(f"{path}: columns {header[1:]} do not match the closed classes {list(label_sets.class_names)}")

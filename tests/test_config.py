@@ -51,3 +51,32 @@ def test_config_round_trips_through_yaml(tmp_path):
     path.write_text(config.to_yaml())
     assert load_config(str(path)) == config
     assert PipelineConfig() == load_config(None)
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("refinement.merge_every=0", "merge_every"),
+    ("refinement.geometry_fusion_every=0", "geometry_fusion_every"),
+    ("detections.max_detections=0", "max_detections"),
+    ("association.pixel_stride=0", "pixel_stride"),
+    ("tsdf.block_size=0", "block_size"),
+    ("tsdf.block_size=7", "block_size"),
+    ("tsdf.bounds_margin=-10", "bounds_margin"),
+    ("detections.depth_percentiles=[0.9,0.1]", "depth_percentiles"),
+    ("export.transfer_radius=-1", "transfer_radius"),
+    ("tsdf.voxel_size=[1", "not valid YAML"),
+])
+def test_out_of_range_values_are_one_line_errors_naming_the_knob(override, fragment):
+    """Values that used to fail deep inside the run (ZeroDivisionError, JAX shape errors) or give a wrong map
+    silently are refused when the config is read."""
+    with pytest.raises(UserError, match=fragment):
+        load_config("scannet", [override])
+
+
+def test_missing_likelihood_file_is_a_user_error(tmp_path):
+    from fmfusion_jax.labels import read_likelihood_csv
+
+    with pytest.raises(UserError, match="cannot read the likelihood matrix"):
+        read_likelihood_csv(tmp_path / "nonexistent.csv")
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(UserError, match="empty"):
+        read_likelihood_csv(tmp_path / "empty.csv")
