@@ -81,7 +81,6 @@ def map_config_to_dict(map_config) -> dict[str, Any]:
 
 
 def map_config_from_dict(values: dict[str, Any]):
-
     known = {f.name for f in dataclasses.fields(MapConfig)}
     unknown = sorted(set(values) - known)
     if unknown:

@@ -37,6 +37,7 @@ from fmfusion_jax.instances import MapInstance
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.map_file import read_map_file, write_map_file
 from fmfusion_jax.pipeline import (
+    CapacityMonitor,
     DetectionSchedule,
     FusionResult,
     MapBuilder,
@@ -498,7 +499,6 @@ class MapperBatch:
         self.states, stats = _batch_frame(self.states, stack(inputs), stack(batches), self._likelihood,
                                           np.array(has_frame), np.array(due), self.map_config, self.fusion_config)
         stats = jax.device_get(stats)
-        refinement = self.config.refinement
         merge_due, geometry_due = np.zeros(self.batch_size, bool), np.zeros(self.batch_size, bool)
         for i, frame in enumerate(frames):
             if frame is None:
@@ -507,11 +507,8 @@ class MapperBatch:
             builder.frames_integrated += 1
             if due[i]:
                 self._schedules[i].fused(frame.T_world_camera)
-                builder.detection_frames += 1
-                for name in ("created", "matched", "detections"):
-                    builder.counters[name] += int(getattr(stats, name)[i])
-                merge_due[i] = refinement.enabled and builder.detection_frames % refinement.merge_every == 0
-                geometry_due[i] = refinement.enabled and builder.detection_frames % refinement.geometry_fusion_every == 0
+                merge_due[i], geometry_due[i] = builder.record_detection_frame(
+                    jax.tree.map(lambda x, i=i: x[i], stats))
         if merge_due.any():
             self.states, refine_stats = _batch_refinement(self.states, merge_due, self.map_config, self.fusion_config,
                                                           "refine")
@@ -522,10 +519,12 @@ class MapperBatch:
         if geometry_due.any():
             self.states, _ = _batch_refinement(self.states, geometry_due, self.map_config, self.fusion_config,
                                                "geometry")
+        # the overflow counters of every map in one small transfer (not each map's state sliced out)
+        counts = jax.device_get(CapacityMonitor.counts_of(self.states))
         for i, frame in enumerate(frames):
             if frame is not None:
-                self._builders[i].monitor.check(self._map_state(i), self.map_config,
-                                                self._builders[i].frames_integrated)
+                self._builders[i].monitor.check_counts({name: value[i] for name, value in counts.items()},
+                                                       self.map_config, self._builders[i].frames_integrated)
         return due
 
     def finalize(self) -> list[FusionResult]:

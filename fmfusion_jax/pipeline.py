@@ -149,23 +149,33 @@ class CapacityMonitor:
     #: far beyond the room are normal; a real bounds problem loses far more than this).
     out_of_bounds_tolerance: float = 1e-3
 
+    @staticmethod
+    def counts_of(state: MapState) -> dict[str, Any]:
+        """The four overflow counters of `state` (device scalars; with a leading batch axis for a batch)."""
+        blocks = state.blocks
+        return {"dropped_blocks": blocks.dropped_blocks, "touched_overflow": blocks.touched_overflow,
+                "out_of_bounds": blocks.out_of_bounds, "table_overflow": state.instances.overflow}
+
     def check(self, state: MapState, map_config: MapConfig, frames_integrated: int) -> None:
-        blocks, table = state.blocks, state.instances
+        self.check_counts(self.counts_of(state), map_config, frames_integrated)
+
+    def check_counts(self, counts: dict[str, Any], map_config: MapConfig, frames_integrated: int) -> None:
+        """Warns about the counters of `counts_of` (one map's) that overflowed for the first time."""
         stride = map_config.alloc_pixel_stride
         samples = frames_integrated * map_config.alloc_depth_samples * (
             -(-map_config.image_height // stride)) * (-(-map_config.image_width // stride))
-        outside = int(blocks.out_of_bounds)
+        outside = int(counts["out_of_bounds"])
         counters = {
-            "dropped_blocks": (int(blocks.dropped_blocks),
+            "dropped_blocks": (int(counts["dropped_blocks"]),
                                f"the voxel block pool is full ({map_config.block_capacity} blocks): raise "
                                "tsdf.block_capacity; parts of the scene are not mapped"),
-            "touched_overflow": (int(blocks.touched_overflow),
+            "touched_overflow": (int(counts["touched_overflow"]),
                                  f"a frame touched more than {map_config.max_touched_blocks} blocks: raise "
                                  "tsdf.max_touched_blocks; those blocks were skipped for that frame"),
             "out_of_bounds": (outside if outside > self.out_of_bounds_tolerance * samples else 0,
                               f"{outside} of {samples} depth samples fell outside the scene bounds estimated "
                               "from the poses and depth: raise tsdf.bounds_margin"),
-            "table_overflow": (int(table.overflow),
+            "table_overflow": (int(counts["table_overflow"]),
                                f"the instance table is full ({map_config.instance_capacity} instances): raise "
                                "instances.capacity; new detections were dropped"),
         }
@@ -236,18 +246,15 @@ class MapBuilder:
             batch = adapter.detections(detections)
             self.state, stats = self.timer.run("fusion", self.fuse_detections, self.state, inputs, batch,
                                                self.likelihood, self.map_config, self.fusion_config)
-            self.detection_frames += 1
             stats = jax.device_get(stats)  # one transfer for the counters and the log line
-            for name in ("created", "matched", "detections"):
-                self.counters[name] += int(getattr(stats, name))
+            merge_due, geometry_due = self.record_detection_frame(stats)
             log.info("%s: %d detections, %d matched, %d new instances, %d in view", frame.name,
                      int(stats.detections), int(stats.matched), int(stats.created), int(stats.in_view))
-            refinement = self.config.refinement
-            if refinement.enabled and self.detection_frames % refinement.merge_every == 0:
+            if merge_due:
                 self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.map_config,
                                                           self.fusion_config)
                 self._count_refinement(frame.name, refine_stats)
-            if refinement.enabled and self.detection_frames % refinement.geometry_fusion_every == 0:
+            if geometry_due:
                 self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.map_config,
                                             self.fusion_config)
         self.frames_integrated += 1
@@ -257,6 +264,16 @@ class MapBuilder:
     def adapter(self) -> HostAdapter:
         """The host-to-engine packing for the current `map_config` (a growing map replaces it)."""
         return HostAdapter.for_map(self.config, self.map_config, self.label_sets)
+
+    def record_detection_frame(self, stats: step.FrameStats) -> tuple[bool, bool]:
+        """Counts one fused detection frame (`stats` on the host); returns whether the online merge and the
+        geometry fusion are due after it (their schedules count detection frames)."""
+        self.detection_frames += 1
+        for name in ("created", "matched", "detections"):
+            self.counters[name] += int(getattr(stats, name))
+        refinement = self.config.refinement
+        return (refinement.enabled and self.detection_frames % refinement.merge_every == 0,
+                refinement.enabled and self.detection_frames % refinement.geometry_fusion_every == 0)
 
     def _count_refinement(self, where: str, stats: step.RefineStats) -> None:
         removed, merged = int(stats.removed), int(stats.merged)

@@ -263,17 +263,7 @@ def read_ply_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray 
       vertices `(V, 3)` float64, faces `(F, 3)` int64, colours `(V, 3)` uint8 or None.
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DataError(f"{path}: mesh file not found") from None
-    except OSError as error:
-        raise DataError(f"{path}: cannot read the mesh ({error})") from error
-    fmt, elements, body = _parse_ply_header(data, path)
-    arrays = _read_ply_ascii(body, elements, path) if fmt == "ascii" else \
-        _read_ply_binary(body, elements, "<" if fmt == "binary_little_endian" else ">", path)
-    if "vertex" not in arrays:
-        raise DataError(f"{path}: no 'vertex' element")
+    arrays = _read_ply_elements(path, "mesh file")
     vertex = arrays["vertex"]
     if not all(k in vertex for k in "xyz"):
         raise DataError(f"{path}: vertices lack x, y or z")
@@ -289,17 +279,24 @@ def read_ply_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray 
 
 def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
     """The vertex properties of a PLY file by name (`x`, `y`, `z`, `red`, ..., `label`, `instance`)."""
-    path = Path(path)
+    return dict(_read_ply_elements(Path(path), "PLY file")["vertex"])
+
+
+def _read_ply_elements(path: Path, what: str) -> dict:
+    """Every element of a PLY file (ascii or binary) as `{element: {property: array}}`; a vertex element
+    is required. `what` names the file in the errors."""
     try:
         data = path.read_bytes()
+    except FileNotFoundError:
+        raise DataError(f"{path}: {what} not found") from None
     except OSError as error:
-        raise DataError(f"{path}: cannot read the PLY file ({error.strerror or error})") from None
+        raise DataError(f"{path}: cannot read the {what} ({error})") from error
     fmt, elements, body = _parse_ply_header(data, path)
     arrays = _read_ply_ascii(body, elements, path) if fmt == "ascii" else \
         _read_ply_binary(body, elements, "<" if fmt == "binary_little_endian" else ">", path)
     if "vertex" not in arrays:
         raise DataError(f"{path}: no 'vertex' element")
-    return dict(arrays["vertex"])
+    return arrays
 
 
 def _parse_ply_header(data: bytes, path: Path) -> tuple[str, list[_PlyElement], bytes]:
