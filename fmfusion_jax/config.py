@@ -43,6 +43,8 @@ class DetectionConfig:
     schedule: str = "motion"        # motion: when the camera moved/turned enough | every: every Nth frame
     min_translation: float = 0.05   # m since the last detection frame (motion schedule)
     min_rotation: float = 5.0       # degrees since the last detection frame (motion schedule)
+    sparse_motion: float = 0.5      # a sequence whose median step between frames is this share of the above is
+                                    # subsampled in time: every frame is fused (motion schedule; 0: off)
     every: int = 10                 # every Nth frame (schedule `every`; paper: ScanNet 10, SceneNN 5)
     max_detections: int = 32        # detections per frame kept (highest scores first)
     min_mask_pixels: int = 1000     # smaller masks are ignored (reference Python: 1000, C++: 100)
@@ -252,6 +254,7 @@ def validate_config(config: PipelineConfig) -> None:
         (config.detections.schedule in ("motion", "every"), "detections.schedule must be motion or every"),
         (config.detections.min_translation >= 0 and config.detections.min_rotation >= 0,
          "detections.min_translation and min_rotation must be >= 0"),
+        (config.detections.sparse_motion >= 0, "detections.sparse_motion must be >= 0"),
         (config.instances.capacity >= 2 and config.instances.voxel_slots >= 1, "instance capacities too small"),
         (config.instances.contrary_vote_weight >= 0, "instances.contrary_vote_weight must be >= 0"),
         (config.export.transfer_neighbours >= 1, "export.transfer_neighbours must be >= 1"),

@@ -58,8 +58,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 DEFAULT_OUT = Path("outputs/experiment")
-#: Config of real scenes: ScanNet scenes subsampled in time, like ../shared/data/scannet/scene0000_00.
-REAL_SCENE_CONFIG = "scannet-subsampled"
+#: Config of real scenes: the default a user gets without --config (its detection schedule finds that a scene
+#: like ../shared/data/scannet/scene0000_00 is subsampled in time and fuses every frame).
+REAL_SCENE_CONFIG = "scannet"
 #: Default generated scenes: seeds 1..3, the demo's room and sequence.
 DEFAULT_GENERATED = 3
 DEFAULT_GENERATED_FRAMES = 120

@@ -220,6 +220,7 @@ class Mapper:
         self._builder.add_frame(frame, detections if due else None)
         if due:
             self._schedule.fused(frame.T_world_camera)
+        self._schedule.advance(frame.T_world_camera)
         return due
 
     def detection_due(self, T_world_camera) -> bool:
@@ -293,11 +294,10 @@ class Mapper:
     def save(self, path: str | Path) -> Path:
         """Writes the map (state, configs, schedules) to an `.npz` file that `Mapper.load` continues."""
         builder = self._require_builder()
-        last = self._schedule._last_pose
         state = self._result.state if self._result is not None else builder.state
         progress = {**builder.snapshot(state).progress(), "finalized": self._result is not None,
                     "grows": self._bounds is None,
-                    "last_detection_pose": None if last is None else np.asarray(last).tolist()}
+                    "schedule": self._schedule.state()}
         return write_map_file(path, state, builder.map_config, builder.config, progress)
 
     @classmethod
@@ -311,8 +311,7 @@ class Mapper:
         builder.restore_progress(progress)
         mapper._builder = builder
         mapper._ceiling = mapper._capacity_ceiling(saved.map_config)
-        if progress.get("last_detection_pose") is not None:
-            mapper._schedule.fused(np.asarray(progress["last_detection_pose"]))
+        mapper._schedule.restore(progress.get("schedule", progress))  # older files: the detection pose alone
         if progress.get("finalized"):
             mapper._result = builder.snapshot(builder.state)
         return mapper
@@ -505,6 +504,7 @@ class MapperBatch:
                 continue
             builder = self._builders[i]
             builder.frames_integrated += 1
+            self._schedules[i].advance(frame.T_world_camera)
             if due[i]:
                 self._schedules[i].fused(frame.T_world_camera)
                 merge_due[i], geometry_due[i] = builder.record_detection_frame(
@@ -548,7 +548,7 @@ class MapperBatch:
                          state=jax.tree.map(jnp.copy, self._map_state(index)))
         own.restore_progress(builder.snapshot(own.state).progress())
         mapper._builder, mapper._ceiling = own, self.map_config
-        mapper._schedule._last_pose = self._schedules[index]._last_pose
+        mapper._schedule.restore(self._schedules[index].state())
         if self._results is not None:
             mapper._result = own.snapshot(own.state)
         return mapper

@@ -9,6 +9,7 @@ fusion), capacity warnings, progress and timings. The math lives in `fmfusion_ja
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import time
@@ -316,14 +317,25 @@ class DetectionSchedule:
     `min_translation` metres or turned `min_rotation` degrees since the last frame whose detections were
     fused (the first frame is always due). The rule follows the camera, not the frame rate: on a 30 Hz
     ScanNet sequence (typically 0.4 cm and 0.35 degrees per frame) it fuses about every 8th-15th frame, near
-    the paper's every 10th; on a sequence subsampled to ~18 frames apart it fuses most frames. A due frame
-    without detections (no detection file) leaves the schedule due, so the next frame with detections is
-    taken. `schedule = every`: every `every`-th frame read (the paper's rule).
+    the paper's every 10th. A sequence already subsampled in time (its median step between consecutive
+    frames is at least `sparse_motion` of a detection step) has every frame fused, as a fixed stride of 1
+    would, pauses of the camera included: its frames are keyframes already. A due frame without detections
+    (no detection file) leaves the schedule due, so the next frame with detections is taken.
+    `schedule = every`: every `every`-th frame read (the paper's rule).
+
+    Call `due` (pure) before a frame, `fused` when its detections were fused and `advance` once per frame
+    read, in that order.
     """
+
+    #: consecutive-frame steps the sequence's rate is judged on (a pause shorter than half of it does not
+    #: change the judgement)
+    RATE_WINDOW = 100
 
     def __init__(self, config: PipelineConfig):
         self.detections = config.detections
-        self._last_pose: np.ndarray | None = None
+        self._last_pose: np.ndarray | None = None      # T_world_camera of the last detection frame fused
+        self._previous_pose: np.ndarray | None = None  # T_world_camera of the last frame read
+        self._steps: collections.deque[float] = collections.deque(maxlen=self.RATE_WINDOW)
 
     def due(self, position: int, T_world_camera: np.ndarray) -> bool:
         """Whether the frame read at `position` (0, 1, ...) with this pose should have detections fused."""
@@ -332,12 +344,49 @@ class DetectionSchedule:
             return position % det.every == 0
         if self._last_pose is None:
             return True
-        metres, degrees = camera_motion(self._last_pose, T_world_camera)
-        return metres >= det.min_translation or degrees >= det.min_rotation
+        if self.sparse_sequence(T_world_camera):
+            return True
+        return self._detection_steps(self._last_pose, T_world_camera) >= 1.0
+
+    def sparse_sequence(self, T_world_camera: np.ndarray | None = None) -> bool:
+        """Whether the sequence read so far (and a next frame at `T_world_camera`) is subsampled in time."""
+        if self.detections.sparse_motion <= 0:
+            return False
+        steps = list(self._steps)
+        if T_world_camera is not None and self._previous_pose is not None:
+            steps.append(self._detection_steps(self._previous_pose, T_world_camera))
+        return bool(steps) and float(np.median(steps)) >= self.detections.sparse_motion
 
     def fused(self, T_world_camera: np.ndarray) -> None:
         """Records that a frame's detections were fused at this pose."""
         self._last_pose = np.asarray(T_world_camera, np.float64)
+
+    def advance(self, T_world_camera: np.ndarray) -> None:
+        """Records a frame read (detections fused or not) at this pose."""
+        pose = np.asarray(T_world_camera, np.float64)
+        if self._previous_pose is not None:
+            self._steps.append(self._detection_steps(self._previous_pose, pose))
+        self._previous_pose = pose
+
+    def _detection_steps(self, T_world_a: np.ndarray, T_world_b: np.ndarray) -> float:
+        """Camera motion from a to b in detection steps: 1.0 = `min_translation` or `min_rotation`."""
+        metres, degrees = camera_motion(T_world_a, T_world_b)
+        det = self.detections
+        return max(metres / det.min_translation if det.min_translation > 0 else np.inf,
+                   degrees / det.min_rotation if det.min_rotation > 0 else np.inf)
+
+    def state(self) -> dict[str, Any]:
+        """The schedule's memory as plain JSON values (for saved maps)."""
+        pose = lambda p: None if p is None else np.asarray(p).tolist()  # noqa: E731
+        return {"last_detection_pose": pose(self._last_pose), "previous_pose": pose(self._previous_pose),
+                "steps": list(self._steps)}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continues from `state()` (a map saved before the schedule kept its rate has the detection pose only)."""
+        pose = lambda p: None if p is None else np.asarray(p, np.float64)  # noqa: E731
+        self._last_pose = pose(state.get("last_detection_pose"))
+        self._previous_pose = pose(state.get("previous_pose"))
+        self._steps = collections.deque((float(s) for s in state.get("steps", [])), maxlen=self.RATE_WINDOW)
 
 
 def scheduled_detections(frames: Iterable[RGBDFrame], detection_source: DetectionSource,
@@ -349,6 +398,7 @@ def scheduled_detections(frames: Iterable[RGBDFrame], detection_source: Detectio
         detections = detection_source(frame) if schedule.due(position, frame.T_world_camera) else None
         if detections is not None:
             schedule.fused(frame.T_world_camera)
+        schedule.advance(frame.T_world_camera)
         yield frame, detections
 
 

@@ -274,9 +274,11 @@ def _due_positions(poses, config, available=lambda i: True) -> list[int]:
 
     schedule, due = DetectionSchedule(config), []
     for i, pose in enumerate(poses):
+        assert schedule.due(i, pose) == schedule.due(i, pose)  # asking does not change the schedule
         if schedule.due(i, pose) and available(i):
             schedule.fused(pose)
             due.append(i)
+        schedule.advance(pose)
     return due
 
 
@@ -292,6 +294,22 @@ def test_motion_schedule_follows_the_camera_not_the_frame_rate():
     subsampled = full_rate[::18]
     assert _due_positions(subsampled, config) == list(range(len(subsampled)))
     assert _due_positions(_walk(20, 0.0, 0.0), config) == [0]  # a camera standing still: one frame
+
+
+def test_motion_schedule_fuses_every_frame_of_a_subsampled_sequence_through_camera_pauses():
+    """A sequence subsampled in time keeps fusing while the camera pauses (its frames are keyframes already,
+    as with a fixed stride of 1); at 30 Hz the same pause is one frame, and so is a subsampled camera that
+    stands still throughout."""
+    config = load_config("scannet")
+    subsampled = _walk(40, 0.12, 6.0)
+    subsampled = subsampled[:30] + [subsampled[29]] * 15 + subsampled[30:]  # a pause shorter than the past
+    assert _due_positions(subsampled, config) == list(range(len(subsampled)))
+    full_rate = _walk(300, 0.004, 0.3)
+    full_rate = full_rate[:150] + [full_rate[149]] * 100 + full_rate[150:]
+    fused = _due_positions(full_rate, config)
+    assert not any(150 <= i < 250 for i in fused)
+    off = load_config("scannet", ["detections.sparse_motion=0"])
+    assert len(_due_positions(subsampled, off)) == 40
 
 
 def test_a_due_frame_without_detections_keeps_the_schedule_due():
