@@ -5,16 +5,20 @@ Shared by `fmfusion run`, `fmfusion demo` and the experiments; the loop itself i
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
 import logging
+import shutil
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from fmfusion_jax.config import PipelineConfig
-from fmfusion_jax.errors import UserError
+from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io import map_outputs
-from fmfusion_jax.io.scene import Scene
+from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
 from fmfusion_jax.pipeline import DetectionSource, FusionResult, extract_map_instances
@@ -23,31 +27,188 @@ from fmfusion_jax.viz import overview
 log = logging.getLogger(__name__)
 
 
+#: What a bad frame (unreadable image, malformed detection file) does: `skip` it with a warning naming the file,
+#: or `stop` the run with that error.
+ON_ERROR_POLICIES = ("skip", "stop")
+#: Under `skip`, this many bad frames before the first good one mean the input is wrong as a whole: stop.
+_MAX_LEADING_BAD_FRAMES = 10
+
+
+class Checkpoint:
+    """A resumable run's state in `folder`: `checkpoint.npz` (the map, `Mapper.save`) and `checkpoint.json`
+    (the scene position reached, the frames skipped and the config, to refuse a resume that differs)."""
+
+    MAP_FILE = "checkpoint.npz"
+    INFO_FILE = "checkpoint.json"
+
+    def __init__(self, folder: Path, every: int = 0):
+        """`every`: write one every this many frames (0: only when the run is interrupted)."""
+        self.folder = Path(folder)
+        self.every = int(every)
+
+    def exists(self) -> bool:
+        return (self.folder / self.INFO_FILE).is_file() and (self.folder / self.MAP_FILE).is_file()
+
+    def info(self) -> dict[str, Any]:
+        try:
+            return json.loads((self.folder / self.INFO_FILE).read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            raise UserError(f"{self.folder / self.INFO_FILE}: unreadable checkpoint ({error})") from None
+
+    def save(self, mapper, scene: Scene, position: int, skipped: list[tuple[str, str]]) -> None:
+        """Writes the map, then the info that names it (each atomically: a crash leaves the previous pair)."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        mapper.save(self.folder / self.MAP_FILE)
+        info = {"scene": str(scene.path), "frames": len(scene), "position": position,
+                "frames_integrated": mapper.frames_integrated, "skipped": [list(item) for item in skipped],
+                "config": mapper.config.to_dict()}
+        partial = self.folder / (self.INFO_FILE + ".partial")
+        partial.write_text(json.dumps(info, indent=1))
+        partial.replace(self.folder / self.INFO_FILE)
+
+    def remove(self) -> None:
+        for name in (self.MAP_FILE, self.INFO_FILE):
+            (self.folder / name).unlink(missing_ok=True)
+
+
+class SceneFusion:
+    """Fuses a scene frame by frame through a `Mapper` under a run's policies: a bad frame skipped (named in
+    a warning and in `skipped`) or fatal (`on_error`), checkpoints, and a stop request honoured between
+    frames. `run()` returns whether every frame was read; `finalize()` gives the map.
+
+    A new map's block index covers the scene's bounds (estimated from its poses and depth, after a check
+    that the depth is in the units the config says); detections are read only for the frames the schedule
+    fuses.
+    """
+
+    def __init__(self, scene: Scene, detection_source: DetectionSource, config: PipelineConfig, *,
+                 on_error: str = "skip", checkpoint: Checkpoint | None = None, resume: bool = False):
+        from fmfusion_jax.mapper import Mapper
+
+        if on_error not in ON_ERROR_POLICIES:
+            raise UserError(f"on_error {on_error!r}: expected one of {ON_ERROR_POLICIES}")
+        self.scene, self.detection_source, self.config = scene, detection_source, config
+        self.on_error, self.checkpoint = on_error, checkpoint
+        #: `(frame name, reason)` of the frames left out: bad poses (found when the scene was opened) and
+        #: frames whose files failed to read
+        self.skipped: list[tuple[str, str]] = list(scene.skipped)
+        #: the next frame of the scene to read
+        self.position = 0
+        if resume:
+            if checkpoint is None or not checkpoint.exists():
+                raise UserError(f"nothing to resume: no checkpoint in {checkpoint.folder if checkpoint else '-'}")
+            info = checkpoint.info()
+            if info.get("config") != config.to_dict():
+                raise UserError(f"{checkpoint.folder / checkpoint.INFO_FILE}: the checkpoint was made with another "
+                                "config; resume with the same --config and --set values")
+            if info.get("frames") != len(scene) or Path(info.get("scene", "")).name != scene.name:
+                raise UserError(f"{checkpoint.folder / checkpoint.INFO_FILE}: the checkpoint is of "
+                                f"{info.get('scene')} ({info.get('frames')} frames), not of {scene.path} "
+                                f"({len(scene)} frames)")
+            self.mapper = Mapper.load(checkpoint.folder / checkpoint.MAP_FILE)
+            self.position = int(info["position"])
+            self.skipped = [(str(name), str(reason)) for name, reason in info.get("skipped", [])]
+            log.info("%s: resuming at frame %d of %d", scene.name, self.position, len(scene))
+        else:
+            sample = scene.sample_depth(max_frames=60)
+            check_depth_units(scene, sample)
+            self.mapper = Mapper(config, bounds=scene.bounds(sample=sample))
+
+    def run(self, progress: Callable[[int], None] | None = None,
+            should_stop: Callable[[], bool] | None = None) -> bool:
+        """Fuses the frames from `position` on; True when the scene is done, False when `should_stop()` said
+        stop (checked between frames; a checkpoint is written then, when the run has one)."""
+        if progress and self.position:
+            progress(self.position)
+        while self.position < len(self.scene):
+            if should_stop and should_stop():
+                if self.checkpoint is not None:
+                    self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
+                return False
+            self._fuse_frame(self.position)
+            self.position += 1
+            if progress:
+                progress(1)
+            if self.checkpoint is not None and self.checkpoint.every and self.position % self.checkpoint.every == 0 \
+                    and self.position < len(self.scene):
+                self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
+        return True
+
+    def finalize(self) -> FusionResult:
+        """The finalized map of the frames fused so far (no frame can be added afterwards)."""
+        if self.mapper.frames_integrated == 0:
+            raise UserError(f"{self.scene.path}: no frame could be fused ({len(self.skipped)} skipped; first: "
+                            f"{self.skipped[0][0] if self.skipped else '-'})")
+        return self.mapper.finalize()
+
+    def _fuse_frame(self, i: int) -> None:
+        name = self.scene.frame_names[i]
+        try:
+            frame = self.scene.read_frame(i)
+        except DataError as error:
+            self._bad_input(name, str(error), "skipping frame")
+            if self.mapper.frames_integrated == 0 and len(self.skipped) - len(self.scene.skipped) >= \
+                    _MAX_LEADING_BAD_FRAMES:
+                raise UserError(f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: "
+                                f"{self.skipped[len(self.scene.skipped)][1]}") from None
+            return
+        detections = None
+        if self.mapper.detection_due(frame.T_world_camera):
+            try:
+                detections = self.detection_source(frame)
+            except DataError as error:  # the frame's geometry is still fused
+                self._bad_input(name, f"detections skipped: {error}", "frame")
+        self.mapper.integrate(frame, detections)
+
+    def _bad_input(self, name: str, reason: str, action: str) -> None:
+        if self.on_error == "stop":
+            raise UserError(f"{reason} (frame {name}; --on-error skip would skip it)")
+        log.warning("%s %s: %s", action, name, reason)
+        self.skipped.append((name, reason))
+
+
 def fuse_scene(scene: Scene, detection_source: DetectionSource, config: PipelineConfig,
-               progress: bool = True) -> FusionResult:
-    """Fuses every frame of `scene` through a `Mapper` whose block index covers the scene's bounds
-    (estimated from its poses and depth); detections are read only for the frames the schedule fuses."""
-    from fmfusion_jax.mapper import Mapper
+               progress: bool = True, on_error: str = "skip") -> FusionResult:
+    """Fuses every frame of `scene` (`SceneFusion`, bad frames skipped with a warning) and finalizes the map."""
+    fusion = SceneFusion(scene, detection_source, config, on_error=on_error)
+    with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
+        fusion.run(update)
+    return fusion.finalize()
 
-    mapper = Mapper(config, bounds=scene.bounds())
 
-    def fuse(update=None) -> FusionResult:
-        for frame in scene.frames():
-            detections = detection_source(frame) if mapper.detection_due(frame.T_world_camera) else None
-            mapper.integrate(frame, detections)
-            if update:
-                update(1)
-        return mapper.finalize()
-
-    if not progress:
-        return fuse()
+@contextlib.contextmanager
+def progress_bar(total: int, description: str, enabled: bool = True) -> Iterator[Callable[[int], None] | None]:
+    """A frame progress bar on stderr (log lines go above it), as its `update` function; None when disabled."""
+    if not enabled:
+        yield None
+        return
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    # Log lines (with -v) go above the bar instead of into it.
-    with logging_redirect_tqdm(), tqdm(total=len(scene), desc=f"fusing {scene.name}", unit="frame",
-                                       dynamic_ncols=True) as bar:
-        return fuse(bar.update)
+    with logging_redirect_tqdm(), tqdm(total=total, desc=description, unit="frame", dynamic_ncols=True) as bar:
+        yield bar.update
+
+
+#: Depth a room-scale RGB-D scene cannot have: nearly all of it (99%) closer than this, in metres ...
+_NEAR_DEPTH_LIMIT = 0.5
+#: ... or valid (within dataset.depth_max) on fewer than this share of the sampled pixels.
+_MIN_VALID_DEPTH_SHARE = 0.01
+
+
+def check_depth_units(scene: Scene, sample: DepthSample) -> None:
+    """A `UserError` when the sampled depth cannot be in the units `dataset.depth_scale` says (depth in metres
+    or centimetres read as millimetres is 'all within 4 mm' or 'within 40 cm'; depth in finer units than
+    said lies mostly beyond `depth_max`), before minutes of fusion build an empty or wrong map."""
+    share, p99 = sample.valid_fraction, float(sample.depth_percentiles[-1])
+    hint = (f"check dataset.depth_scale (now {scene.depth_scale:g} raw units per metre; millimetres: 1000, "
+            f"TUM: 5000) and dataset.depth_max ({scene.depth_max:g} m)")
+    where = f"{scene.path / 'depth'} ({len(sample.frame_names)} frames sampled)"
+    if share < _MIN_VALID_DEPTH_SHARE:
+        raise UserError(f"{where}: only {100 * share:.2f}% of the pixels have depth within "
+                        f"{scene.depth_max:g} m; {hint}")
+    if p99 < _NEAR_DEPTH_LIMIT:
+        raise UserError(f"{where}: 99% of the depth is closer than {p99:.3g} m, which no room-scale scene is; "
+                        f"{hint}")
 
 
 def ground_truth_mesh_path(scene: Scene) -> Path | None:
@@ -55,7 +216,25 @@ def ground_truth_mesh_path(scene: Scene) -> Path | None:
     return path if path.is_file() else None
 
 
-def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state: bool = True) -> dict:
+#: Everything `write_outputs` may write (files and folders): removed before a run writes into a folder again,
+#: so no file of an earlier run (an instance that no longer exists, a report without ground truth) stays.
+OUTPUT_NAMES = ("config.yaml", "instances.json", "semantic.ply", "instances.ply", "instances", "mesh.ply",
+                MAP_STATE_FILE, "overview.png", "run.json", "benchmark", "report.json", "explain.md", "explain.json",
+                "explain.png")
+
+
+def clear_outputs(out_dir: Path) -> None:
+    """Removes the outputs of an earlier run from `out_dir` (only the names in `OUTPUT_NAMES`)."""
+    for name in OUTPUT_NAMES:
+        path = out_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+
+
+def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state: bool = True,
+                  skipped: list[tuple[str, str]] | None = None) -> dict:
     """Writes every output of a run into `out_dir`; returns the run summary (also saved as run.json).
 
     Outputs: config.yaml, instances.json, semantic.ply, instances.ply, instances/*.ply, mesh.ply,
@@ -67,6 +246,7 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
 
     label_sets = load_label_sets()
     out_dir.mkdir(parents=True, exist_ok=True)
+    clear_outputs(out_dir)
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -84,6 +264,11 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
     lap("write_instances")
     vertices, faces, colors = extraction.extract_mesh(result.state, result.map_config)
     map_outputs.write_mesh(out_dir / "mesh.ply", vertices, faces, colors)
+    if len(faces) == 0:
+        log.warning("%s: the global surface is empty (no depth fused?): mesh.ply has no face", scene.name)
+    if not instances:
+        log.warning("%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply "
+                    "are empty", scene.name)
     lap("mesh")
     if save_state:
         save_map(out_dir / MAP_STATE_FILE, result)
@@ -93,6 +278,8 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
         "scene": scene.name, "frames": result.frames_integrated, "detection_frames": result.detection_frames,
         "instances": len(instances), "counters": result.counters, "timings_ms": result.timings.summary(),
         "map": result.map_config.describe(), "capacity_used": capacity_used(result),
+        "skipped_frames": [{"frame": name, "reason": reason}
+                           for name, reason in (scene.skipped if skipped is None else skipped)],
     }
     gt = load_ground_truth(scene)
     if isinstance(gt, str):
@@ -195,30 +382,87 @@ def _explain(gt, gt_ids, predictions, scene_name: str, out_dir: Path) -> dict:
             "seconds": round(time.perf_counter() - start, 3)}
 
 
-def prepare_output_dir(out_dir: str | Path) -> Path:
-    """Creates the output folder up front (before minutes of fusion); a path that cannot be one is a
-    UserError."""
+def prepare_output_dir(out_dir: str | Path, create: bool = True) -> Path:
+    """Checks (and creates, or with `create=False` its parent) the output folder up front, before minutes of
+    fusion; a path that cannot be one is a UserError."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} is a file, not a folder")
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir if create else out_dir.parent).mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise UserError(f"cannot create the output folder {out_dir}: {error.strerror or error}") from None
     return out_dir
 
 
+def partial_dir(out_dir: Path) -> Path:
+    """Where `run_and_export` builds a run's outputs and keeps its checkpoint: `OUT.partial` beside `OUT`."""
+    return out_dir.with_name(out_dir.name + ".partial")
+
+
+@dataclasses.dataclass
+class RunOutcome:
+    """What `run_and_export` did: `summary` (the lines to print), `complete` (False: interrupted, the map so far
+    and a checkpoint are in `folder`), `folder` (where the outputs are)."""
+
+    summary: str
+    complete: bool
+    folder: Path
+
+
 def run_and_export(scene: Scene, detection_source: DetectionSource, config: PipelineConfig, out_dir: Path,
-                   progress: bool = True) -> str:
-    """`fmfusion run`: fuse, write, and return a short human-readable summary."""
+                   progress: bool = True, *, on_error: str = "skip", checkpoint_every: int = 0,
+                   resume: bool = False, restart: bool = False,
+                   should_stop: Callable[[], bool] | None = None) -> RunOutcome:
+    """`fmfusion run`: fuse, write, and summarize.
+
+    The outputs are built in `OUT.partial` and renamed to `OUT` when complete, replacing an earlier run's
+    folder as a whole (never mixing two runs). When `should_stop()` turns true, fusion stops between frames:
+    a checkpoint and the outputs of what was fused are written into `OUT.partial`, and `resume=True` later
+    continues from the checkpoint (the map equals an uninterrupted run's). `checkpoint_every` frames also
+    writes one. An unfinished `OUT.partial` is continued (`resume`) or discarded (`restart`), never silently.
+    """
     start = time.perf_counter()
-    out_dir = prepare_output_dir(out_dir)
-    result = fuse_scene(scene, detection_source, config, progress=progress)
+    out_dir = prepare_output_dir(out_dir, create=False)
+    staging = partial_dir(out_dir)
+    checkpoint = Checkpoint(staging, checkpoint_every)
+    if staging.exists() and not resume:
+        if checkpoint.exists() and not restart:
+            info = checkpoint.info()
+            raise UserError(f"{staging} holds an unfinished run (checkpoint at frame {info.get('position')} of "
+                            f"{info.get('frames')}): add --resume to continue it, or --restart to discard it")
+        shutil.rmtree(staging)  # a run that failed before its first checkpoint: nothing to keep
+    fusion = SceneFusion(scene, detection_source, config, on_error=on_error, checkpoint=checkpoint, resume=resume)
+    staging.mkdir(parents=True, exist_ok=True)
+    with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
+        complete = fusion.run(update, should_stop)
+    if not complete:
+        log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene),
+                    staging)
+    result = fusion.finalize()
     try:
-        summary = write_outputs(result, scene, out_dir)
+        summary = write_outputs(result, scene, staging, skipped=fusion.skipped)
+        if complete:
+            checkpoint.remove()
+            _replace_folder(staging, out_dir)
     except OSError as error:
-        raise UserError(f"cannot write the outputs into {out_dir}: {error}") from None
-    return summarize_run(summary, result, time.perf_counter() - start, out_dir)
+        raise UserError(f"cannot write the outputs into {staging}: {error}") from None
+    folder = out_dir if complete else staging
+    text = summarize_run(summary, result, time.perf_counter() - start, folder)
+    return RunOutcome(text, complete, folder)
+
+
+def _replace_folder(new: Path, target: Path) -> None:
+    """Renames `new` to `target`; an existing `target` is moved aside first and removed after."""
+    if target.exists():
+        aside = target.with_name(f".{target.name}.replaced")
+        if aside.exists():
+            shutil.rmtree(aside)
+        target.rename(aside)
+        new.rename(target)
+        shutil.rmtree(aside, ignore_errors=True)
+    else:
+        new.rename(target)
 
 
 def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: Path) -> str:
@@ -234,6 +478,10 @@ def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: 
         lines.append(f"{'fusion' if stage == 'fusion' else 'integration'} step: median "
                      f"{timings[stage]['median_ms']:.1f} ms/frame (first call incl. compile "
                      f"{timings[stage]['first_call_ms'] / 1e3:.1f} s); {frames_per_s:.1f} frames/s overall")
+    skipped = summary.get("skipped_frames", [])
+    if skipped:
+        lines.append(f"warning: {len(skipped)} frames skipped or partly skipped for bad input (listed in run.json; "
+                     f"first: {skipped[0]['frame']}: {skipped[0]['reason']})")
     if result.detection_frames == 0:
         lines.append("warning: no frame had detections, so the map has no instances: check the detections folder")
     benchmark = summary.get("benchmark", {})
@@ -241,7 +489,10 @@ def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: 
         lines.insert(0, benchmark["table"])
     elif "error" in benchmark:
         lines.append(f"not scored: {benchmark['error']}")
-    lines.append(f"outputs in {out_dir}: overview.png, instances.json, semantic.ply, instances.ply, mesh.ply, "
-                 f"{MAP_STATE_FILE}, run.json"
-                 + (", report.json, explain.md/.json/.png" if "table" in benchmark else ""))
+    if summary["instances"] == 0 and result.detection_frames:
+        lines.append("warning: the map has no instance although detections were fused")
+    listed = ["overview.png", "instances.json", "semantic.ply", "instances.ply", "mesh.ply", MAP_STATE_FILE,
+              "run.json", "report.json", "explain.md", "explain.json", "explain.png"]
+    written = [name for name in listed if (out_dir / name).is_file() or name == "run.json"]
+    lines.append(f"outputs in {out_dir}: {', '.join(written)}")
     return "\n".join(lines)

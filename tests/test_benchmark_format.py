@@ -44,13 +44,16 @@ def test_empty_and_blank_lines(tmp_path):
     assert read_benchmark_predictions(txt).num_instances == 3
 
 
-def test_mask_with_crlf_and_absolute_path(tmp_path):
+def test_mask_with_crlf_and_a_path_inside_the_folder_but_not_an_absolute_one(tmp_path):
     mask = tmp_path / "m.txt"
     mask.write_bytes(b"0\r\n1\r\n1\r\n")
     np.testing.assert_array_equal(read_mask_file(mask), [False, True, True])
     txt = tmp_path / "scene.txt"
-    txt.write_text(f"{mask} 3 0.5\n")
+    txt.write_text("./m.txt 3 0.5\n")
     assert read_benchmark_predictions(txt, 3).masks.tolist() == [[False, True, True]]
+    txt.write_text(f"{mask} 3 0.5\n")
+    with pytest.raises(DataError, match="is absolute"):
+        read_benchmark_predictions(txt, 3)
 
 
 @pytest.mark.parametrize("line, message", [
@@ -75,7 +78,7 @@ def test_mask_length_and_values_are_checked(tmp_path):
         read_benchmark_predictions(txt, num_vertices=12)
     mask = tmp_path / "pred_mask" / "s_1.txt"
     mask.write_text("0\n1\n2\n" + "0\n" * 7)
-    with pytest.raises(DataError, match=r"s_1\.txt:3 \(listed at .*s\.txt:2\): mask value '2' is not 0 or 1"):
+    with pytest.raises(DataError, match=r"s_1\.txt:3 \(listed at .*s\.txt:2\): not a mask value"):
         read_benchmark_predictions(txt)
     mask.write_text("0\n" * 9)  # one line short: the masks disagree with each other
     with pytest.raises(DataError, match=r"s_1\.txt .*: 9 lines but the mesh has 10 vertices"):

@@ -4,6 +4,7 @@ never a traceback; and these errors come before any slow work."""
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 import cv2
@@ -79,7 +80,16 @@ def test_run_errors(capsys, tmp_path, tiny_scene):
                        "is a file")
     (dets / "frame-000000_label.json").write_text("{broken")
     _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out,
-                                "--set", "detections.every=1", "--no-progress"], "frame-000000_label.json")
+                                "--set", "detections.every=1", "--no-progress", "--on-error", "stop"],
+                       "frame-000000_label.json: malformed JSON", "--on-error skip")
+    # By default the frame's detections are skipped, named in a warning, in the summary and in run.json.
+    assert cli.main(["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--set",
+                     "detections.every=1", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "1 frames skipped or partly skipped" in printed and "frame-000000: detections skipped" in printed
+    skipped = json.loads((Path(out) / "run.json").read_text())["skipped_frames"]
+    assert skipped[0]["frame"] == "frame-000000" and "malformed JSON" in skipped[0]["reason"]
+    assert "semantic.ply" in printed  # written, empty: the map has no instance
 
 
 def test_info_errors(capsys, tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -36,11 +37,21 @@ def register(subparsers) -> None:
                         help="config file, or a packaged one: scannet, scannet-subsampled, scenenn")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value, e.g. --set detections.every=1 (repeatable)")
+    parser.add_argument("--on-error", choices=("skip", "stop"), default="skip",
+                        help="a frame whose image or detection file cannot be read: skip it with a warning naming "
+                             "the file (listed in run.json), or stop the run")
+    parser.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
+                        help="write a checkpoint every N frames into OUT.partial (always on Ctrl-C)")
+    resume = parser.add_mutually_exclusive_group()
+    resume.add_argument("--resume", action="store_true",
+                        help="continue an interrupted run from its checkpoint in OUT.partial (same arguments)")
+    resume.add_argument("--restart", action="store_true", help="discard an interrupted run's checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from fmfusion_jax.cli.interrupt import StopRequest
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.scene import open_scene
@@ -50,8 +61,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"scene folder {args.scene} does not exist")
     if args.detections is not None and not args.detections.is_dir():
         raise UserError(f"detections folder {args.detections} does not exist (make one with `fmfusion simulate`)")
+    if args.checkpoint_every < 0:
+        raise UserError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
     config = load_config(args.config, args.overrides)
-    prepare_output_dir(args.out)  # a bad --out fails now, not after the fusion
+    prepare_output_dir(args.out, create=False)  # a bad --out fails now, not after the fusion
     scene = open_scene(args.scene, layout=config.dataset.layout, stride=config.dataset.frame_stride,
                        depth_max=config.dataset.depth_max, depth_scale=config.dataset.depth_scale,
                        max_frames=config.dataset.max_frames)
@@ -71,6 +84,14 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"no detection file in {args.detections} matches a frame of {scene.name} "
                             f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})")
         source = lambda frame: folder.get(frame.name)  # noqa: E731
-    summary = run_and_export(scene, source, config, args.out, progress=not args.no_progress)
-    print(summary)
+    with StopRequest("stopping after the frame being fused, then writing a checkpoint and the map so far (outputs "
+                     "already being written are finished); Ctrl-C again to exit at once") as stop:
+        outcome = run_and_export(scene, source, config, args.out, progress=not args.no_progress,
+                                 on_error=args.on_error, checkpoint_every=args.checkpoint_every, resume=args.resume,
+                                 restart=args.restart, should_stop=stop)
+    print(outcome.summary)
+    if not outcome.complete:
+        print(f"interrupted: the map so far is in {outcome.folder}; continue with the same command plus --resume",
+              file=sys.stderr)
+        return 130
     return 0

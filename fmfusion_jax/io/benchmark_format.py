@@ -11,6 +11,7 @@ line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex orde
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -19,6 +20,13 @@ import numpy as np
 
 from fmfusion_jax.errors import DataError
 from fmfusion_jax.labels import BENCHMARK_NYU40_IDS
+
+logger = logging.getLogger(__name__)
+
+#: Bytes a mask file may have per mesh vertex (``0\\r\\n`` is 3), before it is refused unread.
+_MASK_BYTES_PER_VERTEX = 4
+#: ... and the cap when the vertex count is not known yet.
+_MAX_MASK_BYTES = 256 * 2**20
 
 if TYPE_CHECKING:
     from fmfusion_jax.io.ground_truth import SceneGroundTruth
@@ -97,7 +105,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
     """Reads a `<scene>.txt` prediction file and its mask files.
 
     Args:
-      txt_path: the scene's prediction list; mask paths are relative to its folder (absolute ones are kept).
+      txt_path: the scene's prediction list; mask paths are relative to its folder and must stay inside it
+        (no absolute path, no `..` out of it; they must be regular files).
       num_vertices: expected mask length (the mesh's vertex count); None: all masks must agree.
 
     Raises:
@@ -131,11 +140,12 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
             raise DataError(f"{where}: confidence {confidence_text!r} is not a number") from None
         if not math.isfinite(confidence):
             raise DataError(f"{where}: confidence {confidence_text!r} is not finite")
-        mask_path = txt_path.parent / relative
+        mask_path = _mask_path_inside(txt_path.parent, relative, where)
         if mask_path in seen:
             raise DataError(f"{where}: mask {relative} is already listed on line {seen[mask_path]}")
         seen[mask_path] = number
-        mask = read_mask_file(mask_path, where)
+        mask = read_mask_file(mask_path, where, max_bytes=_MAX_MASK_BYTES if num_vertices is None
+                              else _MASK_BYTES_PER_VERTEX * num_vertices + 64)
         if num_vertices is None:
             num_vertices = mask.shape[0]
         if mask.shape[0] != num_vertices:
@@ -144,14 +154,42 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         masks.append(mask)
         ids.append(nyu40)
         confidences.append(confidence)
+    unscored = sorted({nyu40 for nyu40 in ids if nyu40 not in BENCHMARK_NYU40_IDS})
+    if unscored:
+        logger.warning("%s: %d predictions have nyu40 ids outside the %d benchmark classes (%s): they are not scored",
+                       txt_path, sum(nyu40 in unscored for nyu40 in ids), len(BENCHMARK_NYU40_IDS),
+                       ", ".join(map(str, unscored[:5])) + (" ..." if len(unscored) > 5 else ""))
     if not masks:
         return InstancePredictions.empty(num_vertices or 0)
     return InstancePredictions(np.stack(masks), np.asarray(ids, np.int64), np.asarray(confidences, np.float64))
 
 
-def read_mask_file(path: Path, listed_at: str = "") -> np.ndarray:
-    """`(V,)` bool from a file of one `0`/`1` per line."""
+def _mask_path_inside(folder: Path, relative: str, where: str) -> Path:
+    """`folder / relative`, refused (`DataError`) when it is absolute or leads out of `folder`."""
+    if Path(relative).is_absolute():
+        raise DataError(f"{where}: mask path {relative!r} is absolute; paths are relative to the prediction file")
+    path = folder / relative
+    try:
+        inside = path.resolve().is_relative_to(folder.resolve())
+    except (OSError, RuntimeError):  # a symlink loop
+        inside = False
+    if not inside:
+        raise DataError(f"{where}: mask path {relative!r} leads out of {folder}")
+    return path
+
+
+def read_mask_file(path: Path, listed_at: str = "", max_bytes: int = _MAX_MASK_BYTES) -> np.ndarray:
+    """`(V,)` bool from a file of one `0`/`1` per line; a `DataError` for a file that is not a regular
+    file, is larger than `max_bytes`, or holds anything but 0/1 lines (its content is never printed)."""
     where = f" (listed at {listed_at})" if listed_at else ""
+    if path.exists() and not path.is_file():
+        raise DataError(f"{path}{where}: not a regular file")
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise DataError(f"{path}{where}: mask file not found") from None
+    if size > max_bytes:
+        raise DataError(f"{path}{where}: {size} bytes, more than a mask of this mesh can have ({max_bytes})")
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -169,7 +207,7 @@ def read_mask_file(path: Path, listed_at: str = "") -> np.ndarray:
     for number, line in enumerate(lines, 1):
         value = line.strip()
         if value not in ("0", "1"):
-            raise DataError(f"{path}:{number}{where}: mask value {value!r} is not 0 or 1")
+            raise DataError(f"{path}:{number}{where}: not a mask value (each line must be 0 or 1)")
         values[number - 1] = value == "1"
     return values
 

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from fmfusion_jax.errors import DataError, UserError
+from fmfusion_jax.io.image_file import read_image
 from fmfusion_jax.types import FrameDetections
 
 logger = logging.getLogger(__name__)
@@ -45,6 +46,11 @@ logger = logging.getLogger(__name__)
 LABEL_SUFFIX = "_label.json"
 NPY_SUFFIX = "_mask.npy"
 PNG_SUFFIX = "_mask.png"
+
+#: Limits of one ``_label.json`` (a detector gives tens of detections a frame): larger files are refused with
+#: an error instead of costing memory in proportion (each detection's mask is a full-size image).
+MAX_LABEL_FILE_BYTES = 16 * 2**20
+MAX_DETECTIONS_PER_FRAME = 1024
 
 #: Boxes may reach this fraction of the image size beyond its border (detector boxes are not clamped);
 #: they are clipped to the image. Farther out means the box is in other pixel units: an error.
@@ -91,19 +97,30 @@ def read_frame_labels(folder: str | Path, frame_name: str) -> dict[str, Any] | N
     ``tags``, ``prompt`` (lists of str), in the file's detection order sorted by value.
     """
     path = label_path(folder, frame_name)
-    if not path.is_file():
+    if not path.exists():
         return None
+    if not path.is_file():
+        raise DataError(f"{path}: not a regular file")
+    size = path.stat().st_size
+    if size > MAX_LABEL_FILE_BYTES:
+        raise DataError(f"{path}: {size / 2**20:.1f} MiB, more than a detection file can be "
+                        f"({MAX_LABEL_FILE_BYTES // 2**20} MiB)")
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError) as error:
         raise DataError(f"{path}: unreadable ({error})") from None
     except json.JSONDecodeError as error:
         raise DataError(f"{path}: malformed JSON ({error})") from None
+    except RecursionError:
+        raise DataError(f"{path}: malformed JSON (nested too deep)") from None
     if not isinstance(data, dict):
         raise DataError(f"{path}: expected a JSON object, found {type(data).__name__}")
     entries = data.get("mask")
     if not isinstance(entries, list):
         raise DataError(f"{path}: 'mask' must be a list of detection entries")
+    if len(entries) > MAX_DETECTIONS_PER_FRAME + 1:
+        raise DataError(f"{path}: {len(entries)} entries, more than the {MAX_DETECTIONS_PER_FRAME} detections a "
+                        "frame may hold (filter the detector's output first)")
 
     detections = []
     for position, entry in enumerate(entries):
@@ -318,9 +335,7 @@ def _read_npy_masks(path: Path, values: list[int]) -> np.ndarray:
 
 def _read_png_masks(path: Path, values: list[int]) -> np.ndarray:
     """`(K, H, W)` bool masks, one per value, from a label image where pixel = value."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DataError(f"{path}: unreadable or corrupt image")
+    image = read_image(path)
     if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
         raise DataError(f"{path}: expected a single-channel uint8 label image, found {image.dtype} {image.shape}")
     present = set(np.unique(image).tolist()) - {0}

@@ -54,6 +54,13 @@ def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, label:
 
 
 def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """A binary PLY triangle mesh; an empty mesh is written as a valid PLY with no vertex and no face."""
+    if len(vertices) == 0 or len(faces) == 0:
+        header = ["ply", "format binary_little_endian 1.0", "comment written by fmfusion-jax (empty mesh)",
+                  "element vertex 0", "property float x", "property float y", "property float z",
+                  "element face 0", "property list uchar int vertex_indices", "end_header"]
+        path.write_bytes(("\n".join(header) + "\n").encode("ascii"))
+        return
     mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces), process=False)
     if colors is not None:
         # a mesh built without texture carries ColorVisuals
@@ -66,9 +73,15 @@ def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_set
     """`semantic.ply` (coloured by class), `instances.ply` (per instance) and one PLY per instance.
 
     The two whole-map clouds carry `label` (NYU40 id, as ScanNet's `*_vh_clean_2.labels.ply`) and `instance`
-    (the instance id of instances.json) vertex properties.
+    (the instance id of instances.json) vertex properties. Without instances the two clouds are written
+    empty (valid PLY files with no vertex) and the folder is empty.
     """
+    folder = out_dir / "instances"
+    folder.mkdir(exist_ok=True)
     if not instances:
+        for name in ("semantic.ply", "instances.ply"):
+            write_point_cloud(out_dir / name, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8),
+                              np.zeros(0, np.uint16), np.zeros(0, np.int32))
         return
     points = np.concatenate([inst.points for inst in instances])
     label = np.concatenate([np.full(len(inst.points), label_sets.nyu40_ids[inst.class_index], np.uint16)
@@ -81,8 +94,6 @@ def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_set
                                    for i, inst in enumerate(instances)])
     write_point_cloud(out_dir / "semantic.ply", points, class_colors, label, instance)
     write_point_cloud(out_dir / "instances.ply", points, per_instance, label, instance)
-    folder = out_dir / "instances"
-    folder.mkdir(exist_ok=True)
     for i, inst in enumerate(instances):
         name = label_sets.class_names[inst.class_index].replace(" ", "_")
         write_point_cloud(folder / f"{inst.instance_id:04d}_{name}.ply", inst.points,

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from fmfusion_jax.errors import DataError, UserError
+from fmfusion_jax.io.image_file import read_image
 from fmfusion_jax.types import CameraIntrinsics, RGBDFrame
 
 logger = logging.getLogger(__name__)
@@ -48,6 +49,7 @@ class _Layout:
     color_dir: str
     color_suffixes: tuple[str, ...]
     stem_pattern: str
+    depth_stem_pattern: str
     required_dirs: tuple[str, ...]
 
     def depth_path(self, root: Path, name: str) -> Path:
@@ -62,8 +64,10 @@ class _Layout:
 
 
 _LAYOUTS = {
-    "scannet": _Layout("scannet", "color", (".jpg", ".png"), r"^(?:frame-)?(\d+)$", ("color", "depth", "intrinsic")),
-    "scenenn": _Layout("scenenn", "image", (".png", ".jpg"), r"^image(\d+)$", ("image", "depth", "intrinsic")),
+    "scannet": _Layout("scannet", "color", (".jpg", ".png"), r"^(?:frame-)?(\d+)$", r"^(?:frame-)?(\d+)$",
+                       ("color", "depth", "intrinsic")),
+    "scenenn": _Layout("scenenn", "image", (".png", ".jpg"), r"^image(\d+)$", r"^depth(\d+)$",
+                       ("image", "depth", "intrinsic")),
 }
 
 
@@ -125,6 +129,9 @@ def read_pose(path: Path) -> np.ndarray | None:
         error = np.abs(rotation.T @ rotation - np.eye(3)).max()
         if error > _ROTATION_TOLERANCE or not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6):
             raise DataError(f"{path}: not a rigid transform (|R^T R - I| = {error:.3g}, last row {pose[3]})")
+        if np.linalg.det(rotation) < 0:
+            raise DataError(f"{path}: the rotation is a reflection (det R = {np.linalg.det(rotation):.3g}), "
+                            "not a camera pose")
     return pose
 
 
@@ -147,7 +154,7 @@ def read_trajectory_log(path: Path) -> np.ndarray:
 
 def read_depth_image(path: Path, depth_scale: float, depth_max: float) -> np.ndarray:
     """Reads a uint16 depth PNG into `(H, W)` float32 metres, 0 where invalid or beyond `depth_max`."""
-    raw = _imread(path, cv2.IMREAD_UNCHANGED)
+    raw = read_image(path, cv2.IMREAD_UNCHANGED)
     if raw.ndim != 2 or raw.dtype != np.uint16:
         raise DataError(f"{path}: expected a single-channel uint16 depth image, found {raw.dtype} {raw.shape}")
     depth = raw.astype(np.float32) * np.float32(1.0 / depth_scale)
@@ -157,7 +164,7 @@ def read_depth_image(path: Path, depth_scale: float, depth_max: float) -> np.nda
 
 def read_color_image(path: Path) -> np.ndarray:
     """Reads a colour image into `(H, W, 3)` uint8 RGB."""
-    bgr = _imread(path, cv2.IMREAD_COLOR)
+    bgr = read_image(path, cv2.IMREAD_COLOR)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
@@ -301,25 +308,34 @@ class Scene:
     def sample_depth(self, max_frames: int = 30, pixel_step: int = 8) -> DepthSample:
         """Depth statistics and the AABB of back-projected depth over `max_frames` evenly spaced frames.
 
-        Reads only depth images, each on a `pixel_step` pixel grid. `DataError` when the scene has no frame.
+        Reads only depth images, each on a `pixel_step` pixel grid; unreadable ones are left out. `DataError`
+        when the scene has no frame or none of the sampled depth images reads.
         """
         if len(self) == 0:
             raise DataError(f"{self.path}: no usable frame (all {len(self.skipped)} skipped)")
         picks = np.unique(np.linspace(0, len(self) - 1, min(max_frames, len(self))).round().astype(int))
-        points, depths, num_pixels = [], [], 0
+        points, depths, num_pixels, read = [], [], 0, []
+        errors: list[DataError] = []
         for i in picks:
-            depth = self.read_depth(int(i))
+            try:
+                depth = self.read_depth(int(i))
+            except DataError as error:  # a bad frame is the fusion loop's to skip or stop on, not the sample's
+                errors.append(error)
+                continue
+            read.append(int(i))
             grid = depth[np.ix_(pixel_grid(depth.shape[0], pixel_step), pixel_grid(depth.shape[1], pixel_step))]
             num_pixels += grid.size
             depths.append(grid[grid > 0])
             points.append(transform_points(self._T_world_cameras[i], backproject(depth, self.intrinsics, pixel_step)))
+        if not read:
+            raise errors[0]
         valid = np.concatenate(depths)
         world = np.concatenate(points)
         if valid.size == 0:
             raise DataError(f"{self.path}: no valid depth in the {len(picks)} sampled frames "
                             f"(depth_scale {self.depth_scale}, depth_max {self.depth_max} m)")
         return DepthSample(
-            frame_names=tuple(self.frame_names[i] for i in picks),
+            frame_names=tuple(self.frame_names[i] for i in read),
             valid_fraction=float(valid.size / num_pixels),
             depth_percentiles=np.percentile(valid, [1, 25, 50, 75, 99]),
             world_min=world.min(axis=0),
@@ -408,6 +424,7 @@ def open_scene(path: str | Path, layout: str = "auto", stride: int = 1, depth_ma
             raise DataError(f"{root / folder}: folder missing (layout {layout} needs {', '.join(spec.required_dirs)})")
 
     color_paths = _list_color_images(root / spec.color_dir, spec)
+    _check_every_depth_has_color(root, spec, color_paths)
     all_names = [p.stem for p in color_paths]
     picked = list(range(0, len(all_names), stride))
     _check_files_exist([spec.depth_path(root, all_names[i]) for i in picked])
@@ -457,6 +474,19 @@ def _list_color_images(folder: Path, spec: _Layout) -> list[Path]:
     return [entry for _, _, entry in found]
 
 
+def _check_every_depth_has_color(root: Path, spec: _Layout, color_paths: list[Path]) -> None:
+    """`DataError` naming the first depth image whose colour image is missing (frames are listed by colour, so
+    a missing colour image would otherwise silently shorten the sequence)."""
+    pattern = re.compile(spec.depth_stem_pattern)
+    color_numbers = {int(re.match(spec.stem_pattern, p.stem).group(1)) for p in color_paths}  # type: ignore[union-attr]
+    orphans = sorted((int(m.group(1)), entry.name) for entry in (root / "depth").iterdir()
+                     if entry.suffix.lower() == ".png" and (m := pattern.match(entry.stem))
+                     and int(m.group(1)) not in color_numbers)
+    if orphans:
+        raise DataError(f"{root / 'depth' / orphans[0][1]}: its colour image is missing from {root / spec.color_dir} "
+                        f"({len(orphans)} depth images have none)")
+
+
 def _check_files_exist(paths: list[Path]) -> None:
     """`DataError` naming the first missing file (one listing per folder, not one stat per file)."""
     listings: dict[Path, set[str]] = {}
@@ -494,7 +524,10 @@ def _read_intrinsics(root: Path, spec: _Layout, first_name: str) -> CameraIntrin
         width, height = shapes["depth_width"], shapes["depth_height"]
     else:
         first_depth = spec.depth_path(root, first_name)
-        height, width = _imread(first_depth, cv2.IMREAD_UNCHANGED).shape[:2]
+        height, width = read_image(first_depth, cv2.IMREAD_UNCHANGED).shape[:2]
+    if not (0 < K[0, 2] < width and 0 < K[1, 2] < height):
+        raise DataError(f"{matrix_path}: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the "
+                        f"{width}x{height} depth image (intrinsics of another camera or resolution?)")
     return CameraIntrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
 
@@ -510,13 +543,3 @@ def _read_numbers(path: Path) -> np.ndarray:
         return np.array([float(x) for x in text.split()], np.float64)
     except ValueError as error:
         raise DataError(f"{path}: not a list of numbers ({error})") from None
-
-
-def _imread(path: Path, flags: int) -> np.ndarray:
-    """`cv2.imread` that names the file in a `DataError` instead of returning None."""
-    if not path.is_file():
-        raise DataError(f"{path}: file missing")
-    image = cv2.imread(str(path), flags)
-    if image is None:
-        raise DataError(f"{path}: unreadable or corrupt image")
-    return image

@@ -1,0 +1,144 @@
+"""`fmfusion run` as a long job: outputs replaced as a whole, bad frames skipped and listed, a stop between
+frames that leaves a checkpoint, a resume that gives the uninterrupted map, and Ctrl-C in a real process."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from fmfusion_jax.demo import demo_config, demo_noise
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.runner import Checkpoint, partial_dir, run_and_export
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
+
+SPEC = GeneratedSceneSpec(seed=3, num_objects=4, num_frames=14, width=160, height=120)
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    root = tmp_path_factory.mktemp("policies")
+    scene_dir = generated_scene(SPEC, root)
+    detections = simulated_detections(scene_dir, root / "detections", demo_noise(0, SPEC.width, SPEC.height))
+    config = demo_config(SPEC.num_frames, SPEC.width, SPEC.height, ["refinement.geometry_fusion_every=3"])
+    return scene_dir, detections, config
+
+
+def _run(room, out: Path, **options):
+    scene_dir, detections, config = room
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    folder = DetectionFolder(detections)
+    return run_and_export(scene, lambda frame: folder.get(frame.name), config, out, progress=False, **options)
+
+
+def _instances(out: Path) -> list:
+    return json.loads((out / "instances.json").read_text())["instances"]
+
+
+def _stop_after(frames: int):
+    calls = []
+
+    def should_stop() -> bool:
+        calls.append(1)
+        return len(calls) > frames
+    return should_stop
+
+
+def test_a_stopped_run_resumes_to_the_uninterrupted_map(room, tmp_path):
+    reference = _run(room, tmp_path / "whole")
+    assert reference.complete and not partial_dir(tmp_path / "whole").exists()
+
+    out = tmp_path / "resumed"
+    stopped = _run(room, out, should_stop=_stop_after(5))
+    staging = partial_dir(out)
+    assert not stopped.complete and stopped.folder == staging and not out.exists()
+    assert Checkpoint(staging).info()["position"] == 5
+    assert (staging / "instances.json").is_file()  # the map so far, to look at
+    with pytest.raises(UserError, match="unfinished run .*frame 5 of 14.*--resume"):
+        _run(room, out)
+    resumed = _run(room, out, resume=True)
+    assert resumed.complete and not staging.exists()
+    assert _instances(out) == _instances(tmp_path / "whole")
+    run = json.loads((out / "run.json").read_text())
+    assert run["frames"] == json.loads((tmp_path / "whole" / "run.json").read_text())["frames"] == 14
+    assert not (out / Checkpoint.MAP_FILE).exists()
+
+
+def test_periodic_checkpoints_and_restart(room, tmp_path):
+    out = tmp_path / "out"
+    stopped = _run(room, out, checkpoint_every=4, should_stop=_stop_after(9))
+    assert not stopped.complete and Checkpoint(partial_dir(out)).info()["position"] == 9
+    with pytest.raises(UserError, match="another config"):
+        scene_dir, detections, config = room
+        other = (scene_dir, detections, demo_config(SPEC.num_frames, SPEC.width, SPEC.height))
+        _run(other, out, resume=True)
+    assert _run(room, out, restart=True).complete
+    with pytest.raises(UserError, match="nothing to resume"):
+        _run(room, out, resume=True)
+
+
+def test_a_second_run_replaces_the_first_runs_outputs_as_a_whole(room, tmp_path):
+    out = tmp_path / "out"
+    assert _run(room, out).complete
+    (out / "instances" / "9999_stale.ply").write_text("from an earlier run")
+    (out / "report.json").write_text("{}")
+    assert _run(room, out).complete
+    assert not (out / "instances" / "9999_stale.ply").exists() and "mAP50" in (out / "report.json").read_text()
+    assert sorted(p.name for p in (out / "instances").iterdir()) == sorted(
+        f"{i['id']:04d}_{i['class'].replace(' ', '_')}.ply" for i in _instances(out))
+
+
+def test_bad_frames_are_skipped_and_listed_or_stop_the_run(room, tmp_path):
+    scene_dir, detections, config = room
+    broken = tmp_path / "scene"
+    shutil.copytree(scene_dir, broken)
+    (broken / "depth" / "frame-000004.png").write_bytes(b"not a png")
+    out = tmp_path / "out"
+    outcome = _run((broken, detections, config), out)
+    assert outcome.complete and "1 frames skipped" in outcome.summary
+    run = json.loads((out / "run.json").read_text())
+    assert run["frames"] == 13
+    assert run["skipped_frames"] == [{"frame": "frame-000004",
+                                      "reason": f"{broken / 'depth' / 'frame-000004.png'}: unreadable or corrupt image"}]
+    with pytest.raises(UserError, match=r"frame-000004\.png: unreadable or corrupt image"):
+        _run((broken, detections, config), tmp_path / "stop", on_error="stop")
+
+
+def test_ctrl_c_stops_between_frames_writes_a_checkpoint_and_exits_130(tmp_path):
+    """A real SIGINT to a real `fmfusion run` process: status 130, no traceback or crash, a checkpoint."""
+    spec = GeneratedSceneSpec(seed=4, num_objects=3, num_frames=60, width=160, height=120)
+    scene_dir = generated_scene(spec, tmp_path)
+    detections = simulated_detections(scene_dir, tmp_path / "detections", demo_noise(0, spec.width, spec.height))
+    config = demo_config(spec.num_frames, spec.width, spec.height)
+    config_path = tmp_path / "config.yaml"
+    config_path.write_text(config.to_yaml())
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "fmfusion_jax.cli", "run", str(scene_dir), "--detections", str(detections),
+               "--out", str(out), "--config", str(config_path), "--no-progress", "-v"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    started = time.monotonic()
+    stderr_lines = []
+    assert process.stderr is not None
+    for line in process.stderr:  # wait until fusion is under way (each detection frame is logged at -v)
+        stderr_lines.append(line)
+        if "frame-000002: " in line or time.monotonic() - started > 120:
+            break
+    process.send_signal(signal.SIGINT)
+    stdout, rest = process.communicate(timeout=300)
+    stderr = "".join(stderr_lines) + rest
+    if process.returncode == 0:
+        pytest.skip("the run finished before the signal arrived")
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr and "Segmentation" not in stderr
+    assert "--resume" in stderr
+    assert Checkpoint(partial_dir(out)).exists()
