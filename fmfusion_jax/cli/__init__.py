@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from fmfusion_jax.errors import UserError
@@ -57,7 +58,13 @@ def _accept_verbose_after_subcommands(parser: argparse.ArgumentParser) -> None:
                 _accept_verbose_after_subcommands(sub)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, exit_at_once_on_interrupt: bool = False) -> int:
+    """Runs one command; returns its exit status (2: a user error, printed in one line; 130: interrupted).
+
+    `exit_at_once_on_interrupt`: after a Ctrl-C that reached a command as `KeyboardInterrupt` (commands without
+    their own safe stop point), flush the streams and exit the process right away, skipping the interpreter's
+    teardown, which can crash while the runtime's threads are mid-computation (`fmfusion` itself does this).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -74,8 +81,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fmfusion {args.command}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(f"fmfusion {args.command}: interrupted", file=sys.stderr)
+        if exit_at_once_on_interrupt:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         return 130
+
+
+def entry() -> None:
+    """The `fmfusion` console command."""
+    sys.exit(main(exit_at_once_on_interrupt=True))
 
 
 if __name__ == "__main__":
