@@ -1,125 +1,186 @@
-"""Pipeline configuration: nested dataclasses with the paper's defaults, read from YAML, overridable.
+"""Pipeline configuration: one schema (pydantic models) with the paper's defaults, read from YAML, overridable.
 
-A YAML file may name a `base:` file (relative to itself) whose values it overrides. Any value can be
-overridden on the command line as `--set section.key=value` (value parsed as YAML). Unknown sections or
-keys are errors that name the closest valid key, so a typo never silently falls back to a default.
+Each knob is defined once, in the section models below: its name (the YAML key), default, range, what reads it
+(`KINDS`) and one line of documentation; `docs/config.md` is generated from them. A YAML file may name a
+`base:` file (relative to itself) whose values it overrides. Any value can be overridden on the command line
+as `--set section.key=value` (value parsed as YAML). Unknown sections or keys are errors that name the closest
+valid key, so a typo never silently falls back to a default; values are type- and range-checked on load and
+on assignment.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, ValidationError, model_validator
 
 from fmfusion_jax.errors import UserError
 
+#: What a knob is read by, as the schema records it (`Field(json_schema_extra={"kind": ...})`):
+#: ``shape``: sizes of the map state and of the per-pixel grids, fixed when a map is made (a change makes
+#: another map layout and recompiles); ``engine``: parameters of the jitted fusion and refinement steps
+#: (compiled in as static arguments today: a change recompiles); ``host``: read by the Python loop, the
+#: readers or the export only (no recompilation).
+KINDS = ("shape", "engine", "host")
 
-@dataclasses.dataclass
-class DatasetConfig:
-    layout: str = "auto"            # scannet | scenenn | auto (detected from the folder)
-    depth_scale: float = 1000.0     # depth png units per metre
-    depth_max: float = 4.0          # m; farther depth is dropped (reference: 4.0)
-    frame_stride: int = 1           # read every Nth frame
-    max_frames: int | None = None   # stop after this many frames (None: all)
-
-
-@dataclasses.dataclass
-class TSDFConfig:
-    voxel_size: float = 0.015625    # m; 4.0/256 as in the reference (paper: 1.5 cm)
-    sdf_trunc: float = 0.04         # m; truncation distance
-    block_size: int = 8             # voxels per block side (8^3 voxels, 12.5 cm blocks)
-    block_capacity: int = 65536     # blocks in the pool (~14 KB each); a ScanNet room needs ~20-40k
-    max_touched_blocks: int = 12288  # blocks integrated per frame (more are skipped and counted)
-    max_weight: float = 255.0       # cap of the TSDF weight (keeps the map responsive)
-    bounds_margin: float = 0.5      # m added around the scene bounds estimated from poses and depth
+Float = StrictFloat
+Int = StrictInt
+Bool = StrictBool
 
 
-@dataclasses.dataclass
-class DetectionConfig:
-    schedule: str = "motion"        # motion: when the camera moved/turned enough | every: every Nth frame
-    min_translation: float = 0.05   # m since the last detection frame (motion schedule)
-    min_rotation: float = 5.0       # degrees since the last detection frame (motion schedule)
-    sparse_motion: float = 0.5      # a sequence whose median step between frames is this share of the above is
-                                    # subsampled in time: every frame is fused (motion schedule; 0: off)
-    every: int = 10                 # every Nth frame (schedule `every`; paper: ScanNet 10, SceneNN 5)
-    max_detections: int = 32        # detections per frame kept (highest scores first)
-    min_mask_pixels: int = 1000     # smaller masks are ignored (reference Python: 1000, C++: 100)
-    depth_percentiles: tuple[float, float] = (0.1, 0.9)  # keep mask depth between these quantiles
+def knob(default: Any, doc: str, kind: str = "host", **constraints: Any) -> Any:
+    """One config value: its default, one line of documentation, what reads it (`KINDS`) and its range
+    (pydantic's `gt`, `ge`, `lt`, `le`)."""
+    assert kind in KINDS, kind
+    return Field(default, description=doc, json_schema_extra={"kind": kind}, **constraints)
 
 
-@dataclasses.dataclass
-class AssociationConfig:
-    metric: str = "projection_overlap"  # projection_overlap (|m∩r|/|r|, reference Python) | iou
-    threshold: float = 0.5              # reference Python 0.5 (C++: IoU 0.3)
-    pixel_stride: int = 2               # pixels sampled for projection, association and integration
-    min_projected_pixels: int = 800     # an instance is "in view" above this many full-res pixels
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
-@dataclasses.dataclass
-class InstanceConfig:
-    capacity: int = 1024            # instance table size K
-    voxel_slots: int = 2            # instances one voxel can hold (overlapping instance volumes)
-    contrary_vote_weight: float = 0.5  # a voxel seen outside its instance's mask while that instance is
-                                    # detected loses this per pixel (0: hits alone, the paper's rule)
+class DatasetConfig(_Section):
+    layout: Literal["auto", "scannet", "scenenn"] = knob("auto", "folder layout (auto: detected from the folder)")
+    depth_scale: Float = knob(1000.0, "depth png units per metre (millimetres: 1000)", gt=0)
+    depth_max: Float = knob(4.0, "m; farther depth is dropped (reference: 4.0)", gt=0)
+    frame_stride: Int = knob(1, "read every Nth frame", ge=1)
+    max_frames: Int | None = knob(None, "stop after this many frames (null: all)", ge=1)
 
 
-@dataclasses.dataclass
-class LabelFusionConfig:
-    mode: str = "additive"          # additive (paper's final equation) | bayes (multiplicative)
-    likelihood: str = "statistical"  # statistical | manual | path to a 38x20 CSV
+class TSDFConfig(_Section):
+    voxel_size: Float = knob(0.015625, "m; 4.0/256 as in the reference (paper: 1.5 cm)", "shape", gt=0)
+    sdf_trunc: Float = knob(0.04, "m; truncation distance of the TSDF (must exceed voxel_size)", "shape", gt=0)
+    block_size: Int = knob(8, "voxels per block side (even; 8^3-voxel blocks are 12.5 cm)", "shape", ge=2)
+    block_capacity: Int = knob(65536, "blocks the pool may hold (~14 KB each; a ScanNet room uses ~20-40k)",
+                               "shape", ge=2)
+    max_touched_blocks: Int = knob(12288, "blocks integrated per frame (more are skipped, counted and warned "
+                                   "about)", "shape", ge=1)
+    max_weight: Float = knob(255.0, "cap of the TSDF weight (keeps the map responsive)", "shape", gt=0)
+    bounds_margin: Float = knob(0.5, "m added around the scene bounds estimated from the poses and depth", ge=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "TSDFConfig":
+        if self.block_size % 2:
+            raise ValueError(f"tsdf.block_size must be even (blocks are made of 2x2x2 cells), got {self.block_size}")
+        if self.sdf_trunc <= self.voxel_size:
+            raise ValueError(f"tsdf.sdf_trunc ({self.sdf_trunc}) must exceed tsdf.voxel_size ({self.voxel_size})")
+        return self
 
 
-@dataclasses.dataclass
-class RefinementConfig:
-    enabled: bool = True            # merge, geometry fusion and removal (off: ablation C)
-    merge_every: int = 1            # online merge every Nth detection frame
-    merge_similarity: float = 0.15  # semantic similarity p_a . p_b above this
-    merge_overlap: float = 0.4      # share of the smaller instance inside the larger, inflated
-    geometry_fusion_every: int = 20  # detection frames (paper: 200 frames at every 10th: 20; SceneNN 60)
-    remove_missed: int = 5          # remove instances missed this often while in view ...
-    remove_min_voxels: int = 500    # ... when smaller than this many voxels (SceneNN 8 / 2000)
-    reunite_min_frames: int = 2     # reunite b with a once a's detections covered b this often and at least
-                                    # as often as b was detected itself, whatever the labels (0: off)
-    separate_min_frames: int = 0    # never merge two instances while two detections of one frame showed them
-                                    # apart this often and as often as one detection covered both (0: off;
-                                    # off by default: split masks make it veto the reunion of parts)
+class DetectionConfig(_Section):
+    schedule: Literal["motion", "every"] = knob(
+        "motion", "motion: fuse a frame's detections when the camera moved or turned enough since the last "
+        "detection frame; every: every Nth frame (the paper's rule)")
+    min_translation: Float = knob(0.05, "m moved since the last detection frame (motion schedule)", ge=0)
+    min_rotation: Float = knob(5.0, "degrees turned since the last detection frame (motion schedule)", ge=0)
+    sparse_motion: Float = knob(0.5, "a sequence whose median step between frames is this share of the above is "
+                                "subsampled in time: every frame is fused (motion schedule; 0: off)", ge=0)
+    every: Int = knob(10, "every Nth frame (schedule `every`; paper: ScanNet 10, SceneNN 5)", ge=1)
+    max_detections: Int = knob(32, "detections per frame kept (highest scores first)", "shape", ge=1)
+    min_mask_pixels: Int = knob(1000, "smaller masks are ignored (reference Python: 1000, its C++: 100)", ge=0)
+    depth_percentiles: tuple[Float, Float] = knob(
+        (0.1, 0.9), "a mask's depth outside these quantiles is dropped (mask border bleed)", "engine")
+
+    @model_validator(mode="after")
+    def _check(self) -> "DetectionConfig":
+        low, high = self.depth_percentiles
+        if not 0.0 <= low < high <= 1.0:
+            raise ValueError("detections.depth_percentiles must be [low, high] with 0 <= low < high <= 1, "
+                             f"got {list(self.depth_percentiles)}")
+        return self
 
 
-@dataclasses.dataclass
-class ExportConfig:
-    min_weight: float = 2.0         # exported instance voxels need this slot weight (Kimera baseline: TSDF weight)
-    min_slot_share: float = 0.5     # ... and this share of the voxel's strongest slot (0: any slot)
-    structure_claims_vertices: bool = True  # wall and floor take part in the vertex transfer (then dropped),
-                                    # so a floor vertex nearest to the floor is no object's
-    post_merge_iou: float = 0.2     # post-processing merge: 3D IoU above this ...
-    post_merge_similarity: float = 0.1  # ... and semantic similarity above this
-    min_points: int = 200           # instances with fewer points are dropped
-    support_observations: float = 3.0  # confidence = class probability x (1 - exp(-observations / this)),
-                                    # so one-off instances rank low (0: class probability alone)
-    transfer_radius: float = 0.08   # m; instance labels to mesh vertices by radius search
-    transfer_neighbours: int = 8    # a vertex takes the instance of most of its nearest points (1: nearest)
-    shower_curtain_radius: float = 2.0  # m; a curtain this close to a toilet/bathtub is a shower curtain
-    curtain_by_context: bool = True  # ... and a shower curtain farther from them is a curtain (the matrix
-                                    # cannot tell the two apart; false: the reference's first direction only)
+class AssociationConfig(_Section):
+    metric: Literal["projection_overlap", "iou"] = knob(
+        "projection_overlap", "|mask and projection| / |projection| (reference Python), or iou", "engine")
+    threshold: Float = knob(0.5, "match above this (reference Python: 0.5; its C++: IoU 0.3)", "engine", gt=0, le=1)
+    pixel_stride: Int = knob(2, "pixels sampled for projection, association and instance integration", "shape", ge=1)
+    min_projected_pixels: Int = knob(800, "an instance is in view (active) above this many full-resolution pixels",
+                                     "engine", ge=0)
 
 
-@dataclasses.dataclass
-class PipelineConfig:
-    dataset: DatasetConfig = dataclasses.field(default_factory=DatasetConfig)
-    tsdf: TSDFConfig = dataclasses.field(default_factory=TSDFConfig)
-    detections: DetectionConfig = dataclasses.field(default_factory=DetectionConfig)
-    association: AssociationConfig = dataclasses.field(default_factory=AssociationConfig)
-    instances: InstanceConfig = dataclasses.field(default_factory=InstanceConfig)
-    label_fusion: LabelFusionConfig = dataclasses.field(default_factory=LabelFusionConfig)
-    refinement: RefinementConfig = dataclasses.field(default_factory=RefinementConfig)
-    export: ExportConfig = dataclasses.field(default_factory=ExportConfig)
+class InstanceConfig(_Section):
+    capacity: Int = knob(1024, "instance table rows (overflowing detections are dropped and warned about)",
+                         "shape", ge=2)
+    voxel_slots: Int = knob(2, "instances one voxel can hold (overlapping instance volumes)", "shape", ge=1)
+    contrary_vote_weight: Float = knob(
+        0.5, "a voxel seen outside the mask of its instance's detection loses this per pixel, so one mask-border "
+        "hit never makes it a member (0: the paper's rule)", "engine", ge=0)
+
+
+class LabelFusionConfig(_Section):
+    mode: Literal["additive", "bayes"] = knob(
+        "additive", "the paper's weighted additive update (final equation of Sec. III-D), or bayes", "engine")
+    likelihood: str = knob("statistical", "statistical (the summarized 38x20 matrix), manual (ablation A), or a "
+                           "CSV path")
+
+
+class RefinementConfig(_Section):
+    enabled: Bool = knob(True, "online merge, geometry fusion and removal (false: ablation C)")
+    merge_every: Int = knob(1, "online merge test every Nth detection frame", ge=1)
+    merge_similarity: Float = knob(0.15, "merge needs semantic similarity p_a . p_b above this ...", "engine", ge=0)
+    merge_overlap: Float = knob(0.4, "... and this share of the smaller instance inside the larger one inflated 2x",
+                                "engine", ge=0, le=1)
+    geometry_fusion_every: Int = knob(20, "detection frames between geometry fusions (paper: 200 frames at every "
+                                      "10th): drop instance voxels the global surface does not support", ge=1)
+    geometry_min_weight: Float = knob(1.0, "global TSDF weight a voxel needs to support instance voxels in "
+                                      "geometry fusion", "engine", ge=0)
+    remove_missed: Int = knob(5, "remove an instance missed this many detection frames while in view ...",
+                              "engine", ge=1)
+    remove_min_voxels: Int = knob(500, "... when it has fewer voxels than this", "engine", ge=0)
+    reunite_min_frames: Int = knob(
+        2, "reunite fragments: b joins a once a's detections covered b in this many detection frames and at least "
+        "as often as b was detected itself (0: off)", "engine", ge=0)
+    separate_min_frames: Int = knob(
+        0, ">0: never merge a and b while two detections of one frame showed them apart this often and at least "
+        "as often as one detection covered both (off: split masks would veto the reunion of parts)", "engine", ge=0)
+
+
+class ExportConfig(_Section):
+    min_weight: Float = knob(2.0, "exported instance voxels need this slot weight", ge=0)
+    min_slot_share: Float = knob(0.5, "... and this share of the voxel's strongest slot: a smear on a well-observed "
+                                 "floor, or a table over a chair it swallowed, is dropped (0: any slot)", ge=0, le=1)
+    structure_claims_vertices: Bool = knob(True, "wall and floor instances take part in the vertex transfer (then "
+                                           "dropped): a floor vertex nearest to the floor is no object's")
+    post_merge_iou: Float = knob(0.2, "post-processing merge: 3D IoU above this ...", "engine", ge=0, le=1)
+    post_merge_similarity: Float = knob(0.1, "... and semantic similarity above this", "engine", ge=0)
+    min_points: Int = knob(200, "instances with fewer points are dropped", ge=0)
+    support_observations: Float = knob(
+        3.0, "confidence = class probability x (1 - exp(-observations / this)): one-off instances rank low "
+        "(0: class probability alone)", ge=0)
+    transfer_radius: Float = knob(0.08, "m; instance labels to the mesh vertices by radius search (benchmark)", gt=0)
+    transfer_neighbours: Int = knob(8, "a vertex takes the instance of most of its nearest points within the radius "
+                                    "(1: the nearest point decides)", ge=1)
+    shower_curtain_radius: Float = knob(2.0, "m; a curtain this close to a toilet or bathtub is a shower curtain", ge=0)
+    curtain_by_context: Bool = knob(True, "... and a shower curtain farther from them a curtain (the matrix weighs "
+                                    "the label alike under both; false: the reference's first direction only)")
+
+
+class PipelineConfig(BaseModel):
+    """The whole configuration: one section per part of the system, each knob defined once (`knob`)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    dataset: DatasetConfig = Field(default_factory=DatasetConfig, description="reading the RGB-D sequence")
+    tsdf: TSDFConfig = Field(default_factory=TSDFConfig, description="the global TSDF and the voxel block pool")
+    detections: DetectionConfig = Field(default_factory=DetectionConfig,
+                                        description="which frames' detections are fused, and how they are cleaned")
+    association: AssociationConfig = Field(default_factory=AssociationConfig,
+                                           description="projection-overlap data association")
+    instances: InstanceConfig = Field(default_factory=InstanceConfig, description="instance volumes in the voxels")
+    label_fusion: LabelFusionConfig = Field(default_factory=LabelFusionConfig,
+                                            description="the probabilistic label update")
+    refinement: RefinementConfig = Field(default_factory=RefinementConfig,
+                                         description="merging, geometry fusion and removal of instances")
+    export: ExportConfig = Field(default_factory=ExportConfig,
+                                 description="post-processing and the benchmark export")
 
     def to_dict(self) -> dict[str, Any]:
-        return _plain(dataclasses.asdict(self))
+        return _plain(self.model_dump())
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
@@ -131,6 +192,59 @@ def _plain(value: Any) -> Any:
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
     return value
+
+
+def config_schema() -> dict[str, dict[str, Any]]:
+    """Every knob by section: `{section: {key: {"default", "doc", "kind", "range", "type"}}}`."""
+    schema: dict[str, dict[str, Any]] = {}
+    for section, section_field in PipelineConfig.model_fields.items():
+        model = section_field.annotation
+        assert isinstance(model, type) and issubclass(model, BaseModel)
+        schema[section] = {}
+        for key, field in model.model_fields.items():
+            bounds = []
+            for item in field.metadata:
+                for name, symbol in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+                    if getattr(item, name, None) is not None:
+                        bounds.append(f"{symbol} {getattr(item, name)}")
+            extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
+            schema[section][key] = {"default": _plain(field.default), "doc": field.description or "",
+                                    "kind": extra.get("kind", "host"), "range": ", ".join(bounds),
+                                    "type": _type_name(field.annotation)}
+    return schema
+
+
+def _type_name(annotation: Any) -> str:
+    if getattr(annotation, "__origin__", None) is Literal:
+        return " / ".join(f"`{value}`" for value in annotation.__args__)
+    text = str(annotation).replace("typing.", "")
+    for long, short in (("Annotated[float, Strict(strict=True)]", "float"),
+                        ("Annotated[int, Strict(strict=True)]", "int"),
+                        ("Annotated[bool, Strict(strict=True)]", "bool"), ("<class 'str'>", "str")):
+        text = text.replace(long, short)
+    return text
+
+
+def config_reference_markdown() -> str:
+    """`docs/config.md`: every knob with its default, range, kind and documentation, from the schema."""
+    lines = ["# Configuration reference", "",
+             "Generated from the schema in `fmfusion_jax/config.py` (`config_reference_markdown()`; a test keeps this",
+             "page equal to it). Every value can be set in a YAML config (`configs/scannet.yaml` is the default) or",
+             "on the command line as `--set section.key=value`, or from Python as `Mapper({\"section\": {\"key\": "
+             "value}})`.",
+             "Kinds: `shape` fixes the map's sizes (a change makes another map layout and recompiles), `engine` is",
+             "compiled into the jitted steps (a change recompiles), `host` is read by the Python loop, the readers or",
+             "the export.", ""]
+    descriptions = {name: field.description for name, field in PipelineConfig.model_fields.items()}
+    for section, knobs in config_schema().items():
+        lines += [f"## `{section}`: {descriptions[section]}", "", "| key | default | range | kind | meaning |",
+                  "|---|---|---|---|---|"]
+        for key, info in knobs.items():
+            default = yaml.safe_dump(info["default"], default_flow_style=True).strip().removesuffix("...").strip()
+            lines.append(f"| `{key}` | `{default}` | {info['range'] or info['type']} | {info['kind']} | "
+                         f"{info['doc'].replace('|', '/')} |")
+        lines.append("")
+    return "\n".join(lines)
 
 
 def configs_dir() -> Path:
@@ -173,38 +287,41 @@ def _read_yaml_with_bases(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, 
     return merged
 
 
-def _set_field(config: PipelineConfig, dotted_key: str, value: Any, origin: str) -> None:
-    section_name, _, key = dotted_key.partition(".")
-    sections = {f.name: f for f in dataclasses.fields(config)}
-    if section_name not in sections:
-        raise UserError(f"{origin}: unknown config section '{section_name}'{_suggest(section_name, sections)}")
-    section = getattr(config, section_name)
-    fields = {f.name: f for f in dataclasses.fields(section)}
-    if key not in fields:
-        raise UserError(f"{origin}: unknown config key '{dotted_key}'"
-                        f"{_suggest(key, fields, prefix=section_name + '.')}")
-    setattr(section, key, _coerce(value, getattr(section, key), dotted_key, origin))
+def _merge(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    merged = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
+    for section, values in changes.items():
+        if isinstance(values, dict) and isinstance(merged.get(section), dict):
+            merged[section].update(values)
+        else:
+            merged[section] = values
+    return merged
 
 
-def _coerce(value: Any, default: Any, key: str, origin: str) -> Any:
-    """Checks a value against the type of the default, so `every: ten` fails early."""
-    if default is None or value is None:
-        return value
-    if isinstance(default, bool):
-        if isinstance(value, bool):
-            return value
-    elif isinstance(default, int):
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    elif isinstance(default, float):
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-    elif isinstance(default, str):
-        return str(value)
-    elif isinstance(default, tuple):
-        if isinstance(value, (list, tuple)) and len(value) == len(default):
-            return tuple(type(d)(v) for d, v in zip(default, value))
-    raise UserError(f"{origin}: '{key}' must be like {default!r}, got {value!r}")
+def config_from_dict(values: dict[str, Any], origin: str) -> PipelineConfig:
+    """A `PipelineConfig` from nested `{section: {key: value}}` (missing keys take their defaults); any
+    problem is one `UserError` naming `origin` and the key, with the closest valid key for a typo."""
+    try:
+        return PipelineConfig.model_validate(values)
+    except ValidationError as error:
+        raise UserError(f"{origin}: {_describe(error.errors()[0], values)}") from None
+
+
+def _describe(error: Any, values: dict[str, Any]) -> str:
+    loc = [str(part) for part in error["loc"]]
+    sections = PipelineConfig.model_fields
+    if error["type"] == "extra_forbidden" and len(loc) == 1:
+        return f"unknown config section '{loc[0]}'{_suggest(loc[0], sections)}"
+    if error["type"] == "extra_forbidden" and len(loc) == 2:
+        keys = sections[loc[0]].annotation.model_fields  # type: ignore[union-attr]
+        return f"unknown config key '{'.'.join(loc)}'{_suggest(loc[1], keys, prefix=loc[0] + '.')}"
+    if error["type"] in ("model_type", "model_attributes_type") and len(loc) == 1:
+        return f"section '{loc[0]}' must be a mapping of keys, got {values.get(loc[0])!r}"
+    message = str(error["msg"]).replace("Input should be", "must be").removeprefix("Value error, ")
+    if len(loc) >= 2 and error["type"] != "value_error":
+        key = ".".join(loc[:2])
+        default = sections[loc[0]].annotation.model_fields[loc[1]].default  # type: ignore[union-attr]
+        return f"'{key}' {message} (default {_plain(default)!r}), got {error.get('input')!r}"
+    return message
 
 
 def _suggest(name: str, options: Any, prefix: str = "") -> str:
@@ -213,26 +330,25 @@ def _suggest(name: str, options: Any, prefix: str = "") -> str:
 
 
 def load_config(name_or_path: str | None = None, overrides: list[str] | None = None) -> PipelineConfig:
-    """Reads a config (file or packaged name; None: the defaults) and applies `key=value` overrides."""
-    config = PipelineConfig()
+    """Reads a config (file or packaged name; None: the defaults) and applies `section.key=value` overrides
+    (values parsed as YAML). Errors name the file or the `--set` item."""
+    values: dict[str, Any] = {}
     if name_or_path:
         path = resolve_config_path(name_or_path)
-        for section, values in _read_yaml_with_bases(path).items():
-            if not isinstance(values, dict):
-                raise UserError(f"{path}: section '{section}' must be a mapping")
-            for key, value in values.items():
-                _set_field(config, f"{section}.{key}", value, str(path))
+        values = _read_yaml_with_bases(path)
+        config_from_dict(values, str(path))
     for item in overrides or []:
         key, sep, text = item.partition("=")
-        if not sep or "." not in key:
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot:
             raise UserError(f"--set {item!r}: expected section.key=value, e.g. detections.every=1")
         try:
             value = yaml.safe_load(text)
         except yaml.YAMLError as error:
             raise UserError(f"--set {item!r}: the value is not valid YAML ({str(error).splitlines()[0]})") from None
-        _set_field(config, key.strip(), value, f"--set {item}")
-    validate_config(config)
-    return config
+        values = _merge(values, {section: {name: value}})
+        config_from_dict(values, f"--set {item}")
+    return config_from_dict(values, str(name_or_path or "defaults"))
 
 
 def detection_frame_stride(config: PipelineConfig) -> int:
@@ -242,39 +358,5 @@ def detection_frame_stride(config: PipelineConfig) -> int:
 
 
 def validate_config(config: PipelineConfig) -> None:
-    """Range checks that would otherwise surface as wrong maps or shape errors deep inside JAX."""
-    checks = [
-        (config.label_fusion.mode in ("additive", "bayes"), "label_fusion.mode must be additive or bayes"),
-        (config.association.metric in ("projection_overlap", "iou"),
-         "association.metric must be projection_overlap or iou"),
-        (0.0 < config.association.threshold <= 1.0, "association.threshold must be in (0, 1]"),
-        (config.tsdf.voxel_size > 0 and config.tsdf.sdf_trunc > config.tsdf.voxel_size,
-         "tsdf.sdf_trunc must exceed tsdf.voxel_size > 0"),
-        (config.detections.every >= 1 and config.dataset.frame_stride >= 1, "strides must be >= 1"),
-        (config.detections.schedule in ("motion", "every"), "detections.schedule must be motion or every"),
-        (config.detections.min_translation >= 0 and config.detections.min_rotation >= 0,
-         "detections.min_translation and min_rotation must be >= 0"),
-        (config.detections.sparse_motion >= 0, "detections.sparse_motion must be >= 0"),
-        (config.instances.capacity >= 2 and config.instances.voxel_slots >= 1, "instance capacities too small"),
-        (config.instances.contrary_vote_weight >= 0, "instances.contrary_vote_weight must be >= 0"),
-        (config.export.transfer_neighbours >= 1, "export.transfer_neighbours must be >= 1"),
-        (config.refinement.reunite_min_frames >= 0 and config.refinement.separate_min_frames >= 0,
-         "refinement.reunite_min_frames and separate_min_frames must be >= 0"),
-        (config.tsdf.block_capacity >= 2 and config.tsdf.max_touched_blocks >= 1, "block capacities too small"),
-        (config.tsdf.block_size >= 2 and config.tsdf.block_size % 2 == 0, "tsdf.block_size must be even and >= 2"),
-        (config.tsdf.bounds_margin >= 0, "tsdf.bounds_margin must be >= 0 (metres added around the scene)"),
-        (config.tsdf.max_weight > 0, "tsdf.max_weight must be > 0"),
-        (config.association.pixel_stride >= 1, "association.pixel_stride must be >= 1"),
-        (config.detections.max_detections >= 1 and config.detections.min_mask_pixels >= 0,
-         "detections.max_detections must be >= 1 and min_mask_pixels >= 0"),
-        (len(config.detections.depth_percentiles) == 2
-         and 0.0 <= config.detections.depth_percentiles[0] < config.detections.depth_percentiles[1] <= 1.0,
-         "detections.depth_percentiles must be [low, high] with 0 <= low < high <= 1"),
-        (config.refinement.merge_every >= 1 and config.refinement.geometry_fusion_every >= 1,
-         "refinement.merge_every and geometry_fusion_every must be >= 1 (detection frames)"),
-        (config.export.transfer_radius > 0 and config.export.min_points >= 0,
-         "export.transfer_radius must be > 0 and export.min_points >= 0"),
-    ]
-    for ok, message in checks:
-        if not ok:
-            raise UserError(f"invalid config: {message}")
+    """Checks a config built or changed in Python (ranges and cross-field rules; YAML is checked on load)."""
+    config_from_dict(config.to_dict(), "config")

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from fmfusion_jax.config import PipelineConfig, _set_field, validate_config
+from fmfusion_jax.config import config_from_dict
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.serialization import state_from_arrays, state_to_arrays
-from fmfusion_jax.errors import DataError
+from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.pipeline import FusionResult, MapBuilder
 
 METADATA_KEY = "__metadata__"
@@ -90,15 +90,12 @@ def map_config_from_dict(values: dict[str, Any]):
 
 def pipeline_config_from_dict(values: dict[str, Any], origin: str):
     """A `PipelineConfig` from `PipelineConfig.to_dict()` output, checked like a config file."""
-
-    config = PipelineConfig()
-    for section, items in values.items():
-        if not isinstance(items, dict):
-            raise DataError(f"{origin}: config section '{section}' is not a mapping")
-        for key, value in items.items():
-            _set_field(config, f"{section}.{key}", value, origin)
-    validate_config(config)
-    return config
+    if not isinstance(values, dict):
+        raise DataError(f"{origin}: the config is not a mapping of sections")
+    try:
+        return config_from_dict(values, origin)
+    except UserError as error:
+        raise DataError(str(error)) from None
 
 
 def _plain(value):

@@ -60,6 +60,7 @@ def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
         contrary_vote_weight=config.instances.contrary_vote_weight,
         reunite_min_frames=config.refinement.reunite_min_frames,
         separate_min_frames=config.refinement.separate_min_frames,
+        geometry_min_weight=config.refinement.geometry_min_weight,
     )
 
 

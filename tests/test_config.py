@@ -1,4 +1,7 @@
+from pathlib import Path
+
 import pytest
+import yaml
 
 from fmfusion_jax.config import PipelineConfig, load_config
 from fmfusion_jax.errors import UserError
@@ -27,8 +30,9 @@ def test_overrides_are_typed_and_applied():
 @pytest.mark.parametrize("override, fragment", [
     ("detection.every=1", "did you mean 'detections'"),
     ("detections.evry=1", "did you mean 'detections.every'"),
-    ("detections.every=ten", "must be like 10"),
-    ("label_fusion.mode=magic", "additive or bayes"),
+    ("detections.every=ten", "'detections.every' must be a valid integer \\(default 10\\), got 'ten'"),
+    ("label_fusion.mode=magic", "'additive' or 'bayes'"),
+    ("tsdf=3", "expected section.key=value"),
     ("noequals", "expected section.key=value"),
 ])
 def test_bad_overrides_are_one_line_errors(override, fragment):
@@ -80,3 +84,35 @@ def test_missing_likelihood_file_is_a_user_error(tmp_path):
     (tmp_path / "empty.csv").write_text("")
     with pytest.raises(UserError, match="empty"):
         read_likelihood_csv(tmp_path / "empty.csv")
+
+
+def test_the_schema_is_the_one_definition_of_every_knob():
+    """docs/config.md is generated from the schema; configs/scannet.yaml sets (and documents) every knob, with
+    the schema's defaults but the layout."""
+    from fmfusion_jax.config import config_reference_markdown, config_schema, resolve_config_path
+
+    docs = Path(__file__).resolve().parents[1] / "docs" / "config.md"
+    assert docs.read_text() == config_reference_markdown() + "\n", "regenerate docs/config.md from the schema"
+    written = yaml.safe_load(resolve_config_path("scannet").read_text())
+    schema = config_schema()
+    assert {s: set(keys) for s, keys in schema.items()} == {s: set(written[s]) for s in schema}
+    defaults, scannet = PipelineConfig().to_dict(), load_config("scannet").to_dict()
+    scannet["dataset"]["layout"] = defaults["dataset"]["layout"]
+    assert scannet == defaults
+    assert all(info["doc"] and info["kind"] in ("shape", "engine", "host")
+               for knobs in schema.values() for info in knobs.values())
+
+
+def test_values_set_from_python_are_checked_too():
+    from pydantic import ValidationError
+
+    from fmfusion_jax.config import validate_config
+
+    config = load_config("scannet")
+    with pytest.raises(ValidationError):
+        config.refinement.merge_every = 0
+    with pytest.raises(ValidationError, match="must exceed tsdf.voxel_size"):
+        config.tsdf.sdf_trunc = 0.001  # in range alone, not with the voxel size
+    unchecked = config.model_copy(update={"tsdf": config.tsdf.model_copy(update={"sdf_trunc": 0.001})})
+    with pytest.raises(UserError, match="sdf_trunc"):
+        validate_config(unchecked)

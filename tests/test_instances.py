@@ -1,4 +1,3 @@
-import dataclasses
 
 import numpy as np
 
@@ -33,7 +32,7 @@ def test_postprocessing_rules():
     classes = {inst.instance_id: LABELS.class_names[inst.class_index] for inst in out}
     assert classes == {0: "toilet", 1: "shower curtain", 2: "curtain", 4: "floor", 6: "shower curtain",
                        7: "curtain"}
-    reference = postprocess_instances(instances, LABELS, dataclasses.replace(export, curtain_by_context=False))
+    reference = postprocess_instances(instances, LABELS, export.model_copy(update={"curtain_by_context": False}))
     assert {inst.instance_id: LABELS.class_names[inst.class_index] for inst in reference}[7] == "shower curtain"
     floor = next(inst for inst in out if inst.instance_id == 4)
     assert len(floor.points) == 800

@@ -391,7 +391,7 @@ class KimeraMapper:
         self.config = config
         self.map_config = map_config
         self.label_sets = label_sets or load_label_sets()
-        geometry_only = dataclasses.replace(config, refinement=dataclasses.replace(config.refinement, enabled=False))
+        geometry_only = config.model_copy(update={"refinement": config.refinement.model_copy(update={"enabled": False})})
         self.geometry = MapBuilder(geometry_only, map_config, self.label_sets)
         self.hard_class = hard_association(load_likelihood("manual"))
         self.counts = LabelCounts(self.label_sets.num_classes)

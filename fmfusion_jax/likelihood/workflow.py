@@ -117,8 +117,8 @@ def real_case(scene_dir: str | Path, detections_dir: str | Path | None = None, r
 
 def with_likelihood(config: PipelineConfig, likelihood: str | Path) -> PipelineConfig:
     """The config with `label_fusion.likelihood` set (a packaged name or a CSV path)."""
-    label_fusion = dataclasses.replace(config.label_fusion, likelihood=str(likelihood))
-    return dataclasses.replace(config, label_fusion=label_fusion)
+    label_fusion = config.label_fusion.model_copy(update={"likelihood": str(likelihood)})
+    return config.model_copy(update={"label_fusion": label_fusion})
 
 
 # ---------------------------------------------------------------------------------------------------
