@@ -128,20 +128,37 @@ TAGGER = ModelContract(
     filename="ram.onnx",
     title="RAM image tagger",
     mirrors="recognize-anything RAM (ram_swin_large_14m) wrapped to return its tag logits; community exports "
-            "returning probabilities or RAM's thresholded 0/1 targets are accepted",
+    "returning probabilities or RAM's thresholded 0/1 targets are accepted",
     export_hint="export recognize-anything's RAM with the wrapper of docs/detectors.md (section 'RAM')",
     inputs=(
-        TensorSpec("image", (1, 3, RAM_IMAGE_SIZE, RAM_IMAGE_SIZE), FLOAT,
-                   "RGB resized to 384x384 (aspect not kept), /255, ImageNet mean/std", aliases=("img", "input")),
+        TensorSpec(
+            "image",
+            (1, 3, RAM_IMAGE_SIZE, RAM_IMAGE_SIZE),
+            FLOAT,
+            "RGB resized to 384x384 (aspect not kept), /255, ImageNet mean/std",
+            aliases=("img", "input"),
+        ),
     ),
     outputs=(
-        TensorSpec("logits", (1, "num_tags"), FLOAT, "tag logits, sigmoid gives the probability",
-                   aliases=("tag_logits",), required=False),
-        TensorSpec("probs", (1, "num_tags"), FLOAT, "tag probabilities (sigmoid already applied)",
-                   aliases=("tag_probs", "scores"), required=False),
-        TensorSpec("targets", (1, "num_tags"), FLOAT + INTEGER,
-                   "0/1 per tag, thresholded inside the export (RAM's class thresholds)",
-                   aliases=("tag", "tags"), required=False),
+        TensorSpec(
+            "logits", (1, "num_tags"), FLOAT, "tag logits, sigmoid gives the probability", aliases=("tag_logits",), required=False
+        ),
+        TensorSpec(
+            "probs",
+            (1, "num_tags"),
+            FLOAT,
+            "tag probabilities (sigmoid already applied)",
+            aliases=("tag_probs", "scores"),
+            required=False,
+        ),
+        TensorSpec(
+            "targets",
+            (1, "num_tags"),
+            FLOAT + INTEGER,
+            "0/1 per tag, thresholded inside the export (RAM's class thresholds)",
+            aliases=("tag", "tags"),
+            required=False,
+        ),
     ),
     one_of=(("logits", "probs", "targets"),),
     sidecars=(("ram_tag_list.txt", "RAM's tag vocabulary, one tag per line in logit order (ram/data/)"),),
@@ -153,25 +170,36 @@ GROUNDING = ModelContract(
     title="GroundingDINO open-set detector",
     mirrors="IDEA-Research GroundingDINO exported with tokenized text inputs (OpenVINO / X-AnyLabeling exports)",
     export_hint="export GroundingDINO with the tokenized-text wrapper of docs/detectors.md (section "
-                "'GroundingDINO') and put bert-base-uncased's vocab.txt beside it",
+    "'GroundingDINO') and put bert-base-uncased's vocab.txt beside it",
     inputs=(
-        TensorSpec("img", (1, 3, "height", "width"), FLOAT,
-                   "RGB, shorter side 800 (longer <= 1333) or the file's fixed size, /255, ImageNet mean/std",
-                   aliases=("samples", "images", "image")),
+        TensorSpec(
+            "img",
+            (1, 3, "height", "width"),
+            FLOAT,
+            "RGB, shorter side 800 (longer <= 1333) or the file's fixed size, /255, ImageNet mean/std",
+            aliases=("samples", "images", "image"),
+        ),
         TensorSpec("input_ids", (1, "num_tokens"), INTEGER, "BERT WordPiece ids of '[CLS] a . b . [SEP]'"),
         TensorSpec("attention_mask", (1, "num_tokens"), ("bool",) + INTEGER, "1 for tokens, 0 for padding"),
         TensorSpec("position_ids", (1, "num_tokens"), INTEGER, "positions restarting after each '.' phrase"),
         TensorSpec("token_type_ids", (1, "num_tokens"), INTEGER, "zeros"),
-        TensorSpec("text_token_mask", (1, "num_tokens", "num_tokens"), ("bool",),
-                   "text self-attention: each phrase (with its '.') attends to itself only",
-                   aliases=("text_self_attention_masks",)),
+        TensorSpec(
+            "text_token_mask",
+            (1, "num_tokens", "num_tokens"),
+            ("bool",),
+            "text self-attention: each phrase (with its '.') attends to itself only",
+            aliases=("text_self_attention_masks",),
+        ),
     ),
     outputs=(
-        TensorSpec("logits", (1, "num_queries", "max_text_len"), FLOAT,
-                   "per query and token, sigmoid gives the similarity (max_text_len 256)",
-                   aliases=("pred_logits",)),
-        TensorSpec("boxes", (1, "num_queries", 4), FLOAT, "cx, cy, w, h normalized to the image",
-                   aliases=("pred_boxes",)),
+        TensorSpec(
+            "logits",
+            (1, "num_queries", "max_text_len"),
+            FLOAT,
+            "per query and token, sigmoid gives the similarity (max_text_len 256)",
+            aliases=("pred_logits",),
+        ),
+        TensorSpec("boxes", (1, "num_queries", 4), FLOAT, "cx, cy, w, h normalized to the image", aliases=("pred_boxes",)),
     ),
     sidecars=(("vocab.txt", "bert-base-uncased WordPiece vocabulary (30522 lines)"),),
 )
@@ -181,17 +209,18 @@ SAM_ENCODER = ModelContract(
     filename="sam_encoder.onnx",
     title="SAM image encoder",
     mirrors="segment-anything sam.image_encoder on a preprocessed [1, 3, 1024, 1024] image (samexporter's "
-            "encoder without --use-preprocess)",
+    "encoder without --use-preprocess)",
     export_hint="export sam.image_encoder as in docs/detectors.md (section 'SAM')",
     inputs=(
-        TensorSpec("image", (1, 3, SAM_IMAGE_SIZE, SAM_IMAGE_SIZE), FLOAT,
-                   "RGB, longest side resized to 1024, ImageNet mean/std (x255), zero-padded bottom/right",
-                   aliases=("input_image", "images", "x")),
+        TensorSpec(
+            "image",
+            (1, 3, SAM_IMAGE_SIZE, SAM_IMAGE_SIZE),
+            FLOAT,
+            "RGB, longest side resized to 1024, ImageNet mean/std (x255), zero-padded bottom/right",
+            aliases=("input_image", "images", "x"),
+        ),
     ),
-    outputs=(
-        TensorSpec("image_embeddings", SAM_EMBEDDING_SHAPE, FLOAT, "image embedding",
-                   aliases=("embeddings",)),
-    ),
+    outputs=(TensorSpec("image_embeddings", SAM_EMBEDDING_SHAPE, FLOAT, "image embedding", aliases=("embeddings",)),),
 )
 
 SAM_DECODER = ModelContract(
@@ -202,21 +231,36 @@ SAM_DECODER = ModelContract(
     export_hint="run segment-anything's scripts/export_onnx_model.py (see docs/detectors.md, section 'SAM')",
     inputs=(
         TensorSpec("image_embeddings", SAM_EMBEDDING_SHAPE, FLOAT, "the encoder's output"),
-        TensorSpec("point_coords", ("num_prompts", "num_points", 2), FLOAT,
-                   "box corners (x0, y0), (x1, y1) in the 1024-resized frame"),
+        TensorSpec(
+            "point_coords", ("num_prompts", "num_points", 2), FLOAT, "box corners (x0, y0), (x1, y1) in the 1024-resized frame"
+        ),
         TensorSpec("point_labels", ("num_prompts", "num_points"), FLOAT, "2 (top-left), 3 (bottom-right)"),
         TensorSpec("mask_input", ("mask_batch", 1, SAM_LOW_RES_SIZE, SAM_LOW_RES_SIZE), FLOAT, "zeros"),
         TensorSpec("has_mask_input", ("mask_batch",), FLOAT, "0"),
-        TensorSpec("orig_im_size", (2,), FLOAT + INTEGER, "(H, W) of the frame; masks come back at that size",
-                   required=False),
+        TensorSpec("orig_im_size", (2,), FLOAT + INTEGER, "(H, W) of the frame; masks come back at that size", required=False),
     ),
     outputs=(
-        TensorSpec("masks", ("num_prompts", "num_masks", "height", "width"), FLOAT,
-                   "mask logits at orig_im_size (threshold 0)", required=False),
-        TensorSpec("iou_predictions", ("num_prompts", "num_masks"), FLOAT, "predicted mask IoU (quality)",
-                   aliases=("scores", "iou_preds")),
-        TensorSpec("low_res_masks", ("num_prompts", "num_masks", SAM_LOW_RES_SIZE, SAM_LOW_RES_SIZE), FLOAT,
-                   "mask logits in the padded 256x256 frame", required=False),
+        TensorSpec(
+            "masks",
+            ("num_prompts", "num_masks", "height", "width"),
+            FLOAT,
+            "mask logits at orig_im_size (threshold 0)",
+            required=False,
+        ),
+        TensorSpec(
+            "iou_predictions",
+            ("num_prompts", "num_masks"),
+            FLOAT,
+            "predicted mask IoU (quality)",
+            aliases=("scores", "iou_preds"),
+        ),
+        TensorSpec(
+            "low_res_masks",
+            ("num_prompts", "num_masks", SAM_LOW_RES_SIZE, SAM_LOW_RES_SIZE),
+            FLOAT,
+            "mask logits in the padded 256x256 frame",
+            required=False,
+        ),
     ),
     one_of=(("masks", "low_res_masks"),),
 )

@@ -130,8 +130,14 @@ def sigmoid(x: np.ndarray) -> np.ndarray:
 class GroundingDetector:
     """GroundingDINO through onnxruntime (see the module docstring)."""
 
-    def __init__(self, model: OnnxModel, tokenizer: WordPieceTokenizer, shorter: int = 800, longest: int = 1333,
-                 max_text_len: int = GROUNDING_MAX_TEXT_LEN):
+    def __init__(
+        self,
+        model: OnnxModel,
+        tokenizer: WordPieceTokenizer,
+        shorter: int = 800,
+        longest: int = 1333,
+        max_text_len: int = GROUNDING_MAX_TEXT_LEN,
+    ):
         self.model = model
         self.tokenizer = tokenizer
         self.shorter, self.longest = shorter, longest
@@ -142,8 +148,9 @@ class GroundingDetector:
         self.fixed_tokens = fixed_tokens
         image = model.inputs["img"]
         # (h, w) of the image input when the file fixes both (no None among them), else None
-        self.fixed_size = cast("tuple[int, int] | None",
-                               (image.shape[2], image.shape[3]) if None not in image.shape[2:] else None)
+        self.fixed_size = cast(
+            "tuple[int, int] | None", (image.shape[2], image.shape[3]) if None not in image.shape[2:] else None
+        )
         self.break_ids = [tokenizer.ids[t] for t in PHRASE_BREAKS if t in tokenizer.ids]
 
     @classmethod
@@ -151,8 +158,11 @@ class GroundingDetector:
         """Loads `groundingdino.onnx` and the BERT `vocab.txt` beside it."""
         folder = Path(folder)
         model = OnnxModel(folder / GROUNDING.filename, GROUNDING, providers)
-        vocabulary = require_file(folder / VOCABULARY_FILE, "BERT vocabulary of GroundingDINO",
-                                  "Copy vocab.txt of bert-base-uncased (Hugging Face) beside groundingdino.onnx")
+        vocabulary = require_file(
+            folder / VOCABULARY_FILE,
+            "BERT vocabulary of GroundingDINO",
+            "Copy vocab.txt of bert-base-uncased (Hugging Face) beside groundingdino.onnx",
+        )
         return cls(model, WordPieceTokenizer.from_file(vocabulary), **options)
 
     def input_size(self, height: int, width: int) -> tuple[int, int]:
@@ -183,26 +193,49 @@ class GroundingDetector:
         }
         return feeds, caption
 
-    def __call__(self, image: np.ndarray, labels: Sequence[str], box_threshold: float = 0.35,
-                 text_threshold: float = 0.25, nms_iou: float = 0.5, max_box_fraction: float = 0.95) -> GroundingResult:
+    def __call__(
+        self,
+        image: np.ndarray,
+        labels: Sequence[str],
+        box_threshold: float = 0.35,
+        text_threshold: float = 0.25,
+        nms_iou: float = 0.5,
+        max_box_fraction: float = 0.95,
+    ) -> GroundingResult:
         if not labels:
             return GroundingResult.empty()
         feeds, caption = self.prepare(image, labels)
         if not caption.labels:
             return GroundingResult.empty(caption)
         out = self.model.run(feeds, ["logits", "boxes"])
-        return postprocess_grounding(out["logits"][0], out["boxes"][0], caption, image.shape[0], image.shape[1],
-                                     box_threshold, text_threshold, nms_iou, max_box_fraction)
+        return postprocess_grounding(
+            out["logits"][0],
+            out["boxes"][0],
+            caption,
+            image.shape[0],
+            image.shape[1],
+            box_threshold,
+            text_threshold,
+            nms_iou,
+            max_box_fraction,
+        )
 
 
-def postprocess_grounding(logits: np.ndarray, boxes: np.ndarray, caption: Caption, height: int, width: int,
-                          box_threshold: float = 0.35, text_threshold: float = 0.25, nms_iou: float = 0.5,
-                          max_box_fraction: float = 0.95) -> GroundingResult:
+def postprocess_grounding(
+    logits: np.ndarray,
+    boxes: np.ndarray,
+    caption: Caption,
+    height: int,
+    width: int,
+    box_threshold: float = 0.35,
+    text_threshold: float = 0.25,
+    nms_iou: float = 0.5,
+    max_box_fraction: float = 0.95,
+) -> GroundingResult:
     """Steps 3-5 of the module docstring on one image's `(Q, L)` logits and `(Q, 4)` normalized boxes."""
     logits = np.asarray(logits)
     if logits.ndim != 2 or logits.shape[1] < caption.num_tokens:
-        raise ContractError(f"detector logits of shape {logits.shape}: expected (queries, >= {caption.num_tokens} "
-                            "tokens)")
+        raise ContractError(f"detector logits of shape {logits.shape}: expected (queries, >= {caption.num_tokens} tokens)")
     probs = sigmoid(logits[:, : caption.num_tokens])
     box_scores = probs.max(axis=1)
     candidates = np.flatnonzero(box_scores > box_threshold)

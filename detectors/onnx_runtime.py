@@ -64,21 +64,22 @@ def resolve_providers(providers: str | Sequence[str] = "cpu") -> list[str]:
     if isinstance(providers, str):
         choice = providers.lower()
         if choice not in ("cpu", "cuda", "auto"):
-            raise UserError(f"providers {providers!r}: expected 'cpu', 'cuda', 'auto' or a list of "
-                            "onnxruntime provider names")
+            raise UserError(f"providers {providers!r}: expected 'cpu', 'cuda', 'auto' or a list of onnxruntime provider names")
         if choice == "cpu":
             return [CPU]
         if CUDA in available_providers():
             return [CUDA, CPU]
         if choice == "cuda":
-            logger.warning("CUDAExecutionProvider is not available in this onnxruntime (available: %s); using the "
-                           "CPU (install onnxruntime-gpu for CUDA)", ", ".join(available_providers()))
+            logger.warning(
+                "CUDAExecutionProvider is not available in this onnxruntime (available: %s); using the "
+                "CPU (install onnxruntime-gpu for CUDA)",
+                ", ".join(available_providers()),
+            )
         return [CPU]
     names = list(providers)
     unknown = [name for name in names if name not in available_providers()]
     if unknown:
-        raise UserError(f"onnxruntime providers {unknown} are not available here (available: "
-                        f"{', '.join(available_providers())})")
+        raise UserError(f"onnxruntime providers {unknown} are not available here (available: {', '.join(available_providers())})")
     return names if CPU in names else [*names, CPU]
 
 
@@ -101,8 +102,9 @@ class OnnxModel:
       providers: the providers the session runs on.
     """
 
-    def __init__(self, path: str | Path, contract: ModelContract, providers: str | Sequence[str] = "cpu",
-                 threads: int | None = None):
+    def __init__(
+        self, path: str | Path, contract: ModelContract, providers: str | Sequence[str] = "cpu", threads: int | None = None
+    ):
         import onnxruntime
 
         self.path = Path(path)
@@ -113,8 +115,9 @@ class OnnxModel:
         if threads:
             options.intra_op_num_threads = threads
         try:
-            self.session = onnxruntime.InferenceSession(str(self.path), sess_options=options,
-                                                        providers=resolve_providers(providers))
+            self.session = onnxruntime.InferenceSession(
+                str(self.path), sess_options=options, providers=resolve_providers(providers)
+            )
         except Exception as error:  # onnxruntime raises its own pybind exception types
             raise DataError(f"{self.path}: onnxruntime cannot load this {contract.title} model ({error})") from None
         self.providers = self.session.get_providers()
@@ -147,8 +150,9 @@ class OnnxModel:
         return out
 
 
-def bind_contract(session, contract: ModelContract, path: Path
-                  ) -> tuple[dict[str, BoundTensor], dict[str, BoundTensor], dict[str, int]]:
+def bind_contract(
+    session, contract: ModelContract, path: Path
+) -> tuple[dict[str, BoundTensor], dict[str, BoundTensor], dict[str, int]]:
     """Matches a session's inputs and outputs to `contract`; `ContractError` listing every problem."""
     problems: list[str] = []
     dims: dict[str, int] = {}
@@ -173,8 +177,9 @@ def bind_contract(session, contract: ModelContract, path: Path
             if dtype not in spec.dtypes:
                 problems.append(f"{where} has element type {dtype}, expected {' or '.join(spec.dtypes)}")
             if len(shape) != len(spec.shape):
-                problems.append(f"{where} has rank {len(shape)} {_dims(arg.shape)}, expected rank {len(spec.shape)} "
-                                f"{_dims(spec.shape)}")
+                problems.append(
+                    f"{where} has rank {len(shape)} {_dims(arg.shape)}, expected rank {len(spec.shape)} {_dims(spec.shape)}"
+                )
             else:
                 for axis, (want, have) in enumerate(zip(spec.shape, shape)):
                     if have is None:
@@ -183,8 +188,9 @@ def bind_contract(session, contract: ModelContract, path: Path
                         problems.append(f"{where} has size {have} on axis {axis}, expected {want}")
                     elif isinstance(want, str):
                         if dims.setdefault(want, have) != have:
-                            problems.append(f"{where} has {want} = {have} on axis {axis}, but another tensor has "
-                                            f"{want} = {dims[want]}")
+                            problems.append(
+                                f"{where} has {want} = {have} on axis {axis}, but another tensor has {want} = {dims[want]}"
+                            )
             bound[spec.name] = BoundTensor(spec, arg.name, shape, dtype)
         return bound
 
@@ -202,8 +208,13 @@ def bind_contract(session, contract: ModelContract, path: Path
         found += ["  found outputs:"] + [f"    {_describe_arg(arg)}" for arg in session.get_outputs()]
         raise ContractError(
             f"{path}: does not match the {contract.title} contract (mirrors {contract.mirrors}):\n"
-            + "\n".join(f"  - {p}" for p in problems) + "\n" + contract.describe() + "\n" + "\n".join(found)
-            + f"\n  How to make a matching file: {contract.export_hint} (see docs/detectors.md).")
+            + "\n".join(f"  - {p}" for p in problems)
+            + "\n"
+            + contract.describe()
+            + "\n"
+            + "\n".join(found)
+            + f"\n  How to make a matching file: {contract.export_hint} (see docs/detectors.md)."
+        )
     return inputs, outputs, dims
 
 

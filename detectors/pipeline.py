@@ -94,8 +94,14 @@ class FoundationModels:
       frames: frames detected since the last `reset`.
     """
 
-    def __init__(self, tagger: ImageTagger, detector: GroundingDetector, segmenter: Segmenter,
-                 config: DetectorConfig | None = None, label_sets: LabelSets | None = None):
+    def __init__(
+        self,
+        tagger: ImageTagger,
+        detector: GroundingDetector,
+        segmenter: Segmenter,
+        config: DetectorConfig | None = None,
+        label_sets: LabelSets | None = None,
+    ):
         self.tagger, self.detector, self.segmenter = tagger, detector, segmenter
         self.config = config or DetectorConfig()
         self.label_sets = label_sets or load_label_sets()
@@ -107,19 +113,30 @@ class FoundationModels:
         self.frames = 0
 
     @classmethod
-    def from_folder(cls, models_dir: str | Path, providers: str | Sequence[str] = "cpu",
-                    config: DetectorConfig | None = None, label_sets: LabelSets | None = None) -> "FoundationModels":
+    def from_folder(
+        cls,
+        models_dir: str | Path,
+        providers: str | Sequence[str] = "cpu",
+        config: DetectorConfig | None = None,
+        label_sets: LabelSets | None = None,
+    ) -> "FoundationModels":
         """Loads every model of `models_dir` (layout in docs/detectors.md) on `providers` (cpu | cuda | auto)."""
         models_dir = Path(models_dir)
         if not models_dir.is_dir():
-            raise UserError(f"{models_dir}: models folder not found (expected ram.onnx, ram_tag_list.txt, "
-                            "groundingdino.onnx, vocab.txt, sam_encoder.onnx, sam_decoder.onnx; see docs/detectors.md)")
+            raise UserError(
+                f"{models_dir}: models folder not found (expected ram.onnx, ram_tag_list.txt, "
+                "groundingdino.onnx, vocab.txt, sam_encoder.onnx, sam_decoder.onnx; see docs/detectors.md)"
+            )
         config = config or DetectorConfig()
         tagger = ImageTagger.from_folder(models_dir, providers, threshold=config.tag_threshold)
-        detector = GroundingDetector.from_folder(models_dir, providers, shorter=config.grounding_shorter,
-                                                 longest=config.grounding_longest, max_text_len=config.max_text_len)
-        segmenter = Segmenter.from_folder(models_dir, providers, mask_choice=config.sam_mask_choice,
-                                          batch_size=config.sam_batch)
+        detector = GroundingDetector.from_folder(
+            models_dir,
+            providers,
+            shorter=config.grounding_shorter,
+            longest=config.grounding_longest,
+            max_text_len=config.max_text_len,
+        )
+        segmenter = Segmenter.from_folder(models_dir, providers, mask_choice=config.sam_mask_choice, batch_size=config.sam_batch)
         return cls(tagger, detector, segmenter, config, label_sets)
 
     @property
@@ -141,8 +158,9 @@ class FoundationModels:
     def ground(self, image: np.ndarray, prompt: Sequence[str]) -> GroundingResult:
         config = self.config
         start = time.perf_counter()
-        result = self.detector(image, prompt, config.box_threshold, config.text_threshold, config.nms_iou,
-                               config.max_box_fraction)
+        result = self.detector(
+            image, prompt, config.box_threshold, config.text_threshold, config.nms_iou, config.max_box_fraction
+        )
         self.timings["detector"] += time.perf_counter() - start
         if config.max_detections is not None and len(result.labels) > config.max_detections:
             keep = config.max_detections
@@ -178,6 +196,12 @@ class FoundationModels:
         self.prompts.observe(label for labels in result.labels for label in labels)
         self.frames += 1
         logger.debug("%s: tags %s, prompt %s, %d detections", name, tags.tags, prompt, len(result.labels))
-        return FrameDetections(frame_name=name, masks=masks, labels=[dict(d) for d in result.labels],
-                               boxes=result.boxes.astype(np.float32).reshape(-1, 4), raw_tags=list(tags.raw_tags),
-                               tags=list(tags.tags), prompt=list(prompt))
+        return FrameDetections(
+            frame_name=name,
+            masks=masks,
+            labels=[dict(d) for d in result.labels],
+            boxes=result.boxes.astype(np.float32).reshape(-1, 4),
+            raw_tags=list(tags.raw_tags),
+            tags=list(tags.tags),
+            prompt=list(prompt),
+        )

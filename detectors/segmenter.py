@@ -61,8 +61,7 @@ def preprocess_sam(image: np.ndarray, size: int = SAM_IMAGE_SIZE) -> tuple[np.nd
     return np.ascontiguousarray(padded.transpose(2, 0, 1)[None]), (height, width)
 
 
-def box_prompts(boxes: np.ndarray, image_shape: tuple[int, int], resized_shape: tuple[int, int]
-                ) -> tuple[np.ndarray, np.ndarray]:
+def box_prompts(boxes: np.ndarray, image_shape: tuple[int, int], resized_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Pixel boxes `(N, 4)` -> point coords `(N, 2, 2)` in the resized frame and labels `(N, 2)` (2, 3)."""
     boxes = np.asarray(boxes, np.float32).reshape(-1, 4)
     scale_u = resized_shape[1] / image_shape[1]
@@ -72,8 +71,9 @@ def box_prompts(boxes: np.ndarray, image_shape: tuple[int, int], resized_shape: 
     return coords, labels
 
 
-def upsample_low_res(low_res: np.ndarray, image_shape: tuple[int, int], resized_shape: tuple[int, int],
-                     size: int = SAM_IMAGE_SIZE) -> np.ndarray:
+def upsample_low_res(
+    low_res: np.ndarray, image_shape: tuple[int, int], resized_shape: tuple[int, int], size: int = SAM_IMAGE_SIZE
+) -> np.ndarray:
     """`(N, h0, w0)` mask logits of the padded square frame -> `(N, H, W)` float32 logits of the image.
 
     The inverse of the encoder's preprocessing: bilinear to `size x size`, crop the resized image, bilinear
@@ -103,8 +103,10 @@ class Segmenter:
         produced = encoder.outputs["image_embeddings"].shape
         expected = decoder.inputs["image_embeddings"].shape
         if all(d is not None for d in produced + expected) and produced != expected:
-            raise ContractError(f"{encoder.path} gives embeddings {list(produced)} but {decoder.path} takes "
-                                f"{list(expected)}: encoder and decoder of different SAM models?")
+            raise ContractError(
+                f"{encoder.path} gives embeddings {list(produced)} but {decoder.path} takes "
+                f"{list(expected)}: encoder and decoder of different SAM models?"
+            )
         if not decoder.has_input("orig_im_size") and not decoder.has_output("low_res_masks"):
             raise ContractError(f"{decoder.path}: without an orig_im_size input the decoder must give low_res_masks")
         # A free prompt axis takes batches; a fixed one (the official export: 1) gets exactly that many
@@ -119,8 +121,11 @@ class Segmenter:
     @classmethod
     def from_folder(cls, folder: str | Path, providers="cpu", **options) -> "Segmenter":
         folder = Path(folder)
-        return cls(OnnxModel(folder / SAM_ENCODER.filename, SAM_ENCODER, providers),
-                   OnnxModel(folder / SAM_DECODER.filename, SAM_DECODER, providers), **options)
+        return cls(
+            OnnxModel(folder / SAM_ENCODER.filename, SAM_ENCODER, providers),
+            OnnxModel(folder / SAM_DECODER.filename, SAM_DECODER, providers),
+            **options,
+        )
 
     def embed(self, image: np.ndarray) -> ImageEmbedding:
         """Runs the encoder on `image` `(H, W, 3)` uint8 RGB."""
@@ -157,8 +162,7 @@ class Segmenter:
             quality[start:stop] = iou[: stop - start]
         return masks, quality
 
-    def _decode(self, embedding: ImageEmbedding, coords: np.ndarray, labels: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def _decode(self, embedding: ImageEmbedding, coords: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`(B, H, W)` mask logits and `(B,)` IoUs for `B` prompts (one decoder call)."""
         count = coords.shape[0]
         mask_batch = self.decoder.inputs["mask_input"].shape[0] or 1
@@ -180,14 +184,18 @@ class Segmenter:
         if use_full and out["masks"].shape[2:] != embedding.image_shape:
             # Masks at another size than asked for: take the low-resolution ones back ourselves.
             if "low_res_masks" not in out:
-                raise ContractError(f"{self.decoder.path}: masks of size {out['masks'].shape[2:]} for an image of "
-                                    f"{embedding.image_shape}, and no low_res_masks to take back to the image")
+                raise ContractError(
+                    f"{self.decoder.path}: masks of size {out['masks'].shape[2:]} for an image of "
+                    f"{embedding.image_shape}, and no low_res_masks to take back to the image"
+                )
             use_full = False
         name = "masks" if use_full else "low_res_masks"
         iou = np.asarray(out["iou_predictions"], np.float32).reshape(count, -1)
         if out[name].ndim != 4 or out[name].shape[:2] != iou.shape:
-            raise ContractError(f"{self.decoder.path}: {name} of shape {out[name].shape} and iou_predictions of "
-                                f"shape {out['iou_predictions'].shape} for {count} prompts")
+            raise ContractError(
+                f"{self.decoder.path}: {name} of shape {out[name].shape} and iou_predictions of "
+                f"shape {out['iou_predictions'].shape} for {count} prompts"
+            )
         choice = np.zeros(count, np.int64) if self.mask_choice == "first" else iou.argmax(axis=1)
         rows = np.arange(count)
         chosen = out[name][rows, choice]

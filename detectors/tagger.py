@@ -85,8 +85,7 @@ class ImageTagger:
       thresholds: `(num_tags,)` per-tag thresholds, or one float for all.
     """
 
-    def __init__(self, model: OnnxModel, vocabulary: Sequence[str],
-                 thresholds: np.ndarray | float = RAM_DEFAULT_THRESHOLD):
+    def __init__(self, model: OnnxModel, vocabulary: Sequence[str], thresholds: np.ndarray | float = RAM_DEFAULT_THRESHOLD):
         self.model = model
         self.vocabulary = list(vocabulary)
         count = len(self.vocabulary)
@@ -97,22 +96,24 @@ class ImageTagger:
         self.output = next(name for name in ("logits", "probs", "targets") if model.has_output(name))
         declared = model.dims.get("num_tags")
         if declared is not None and declared != count:
-            raise ContractError(f"{model.path}: the model scores {declared} tags but its vocabulary "
-                                f"{VOCABULARY_FILE} has {count} lines")
+            raise ContractError(
+                f"{model.path}: the model scores {declared} tags but its vocabulary {VOCABULARY_FILE} has {count} lines"
+            )
 
     @classmethod
-    def from_folder(cls, folder: str | Path, providers="cpu",
-                    threshold: float = RAM_DEFAULT_THRESHOLD) -> "ImageTagger":
+    def from_folder(cls, folder: str | Path, providers="cpu", threshold: float = RAM_DEFAULT_THRESHOLD) -> "ImageTagger":
         """Loads `ram.onnx`, `ram_tag_list.txt` and, when present, `ram_tag_list_threshold.txt` from `folder`."""
         folder = Path(folder)
         model = OnnxModel(folder / TAGGER.filename, TAGGER, providers)
-        vocabulary_path = require_file(folder / VOCABULARY_FILE, "RAM tag vocabulary",
-                                       "Copy ram/data/ram_tag_list.txt of recognize-anything beside ram.onnx")
+        vocabulary_path = require_file(
+            folder / VOCABULARY_FILE, "RAM tag vocabulary", "Copy ram/data/ram_tag_list.txt of recognize-anything beside ram.onnx"
+        )
         vocabulary = read_vocabulary(vocabulary_path)
         declared = model.dims.get("num_tags")
         if declared is not None and declared != len(vocabulary):
-            raise ContractError(f"{model.path}: the model scores {declared} tags but its vocabulary "
-                                f"{vocabulary_path} has {len(vocabulary)} lines")
+            raise ContractError(
+                f"{model.path}: the model scores {declared} tags but its vocabulary {vocabulary_path} has {len(vocabulary)} lines"
+            )
         thresholds: np.ndarray | float = threshold
         threshold_path = folder / RAM_THRESHOLD_FILE
         if threshold_path.is_file():
@@ -121,8 +122,9 @@ class ImageTagger:
             except ValueError as error:
                 raise DataError(f"{threshold_path}: not one number per line ({error})") from None
             if len(values) != len(vocabulary):
-                raise DataError(f"{threshold_path}: {len(values)} thresholds for the {len(vocabulary)} tags of "
-                                f"{vocabulary_path.name}")
+                raise DataError(
+                    f"{threshold_path}: {len(values)} thresholds for the {len(vocabulary)} tags of {vocabulary_path.name}"
+                )
             thresholds = np.asarray(values, np.float32)
         return cls(model, vocabulary, thresholds)
 
@@ -132,8 +134,9 @@ class ImageTagger:
         values = self.model.run({"image": batch}, [self.output])[self.output]
         values = np.asarray(values, np.float32).reshape(-1)
         if values.shape[0] != len(self.vocabulary):
-            raise ContractError(f"{self.model.path}: the model scored {values.shape[0]} tags but its vocabulary "
-                                f"has {len(self.vocabulary)}")
+            raise ContractError(
+                f"{self.model.path}: the model scored {values.shape[0]} tags but its vocabulary has {len(self.vocabulary)}"
+            )
         if self.output == "logits":
             values = 1.0 / (1.0 + np.exp(-values.astype(np.float64)))
         return values.astype(np.float32)

@@ -55,9 +55,16 @@ def _is_punctuation(char: str) -> bool:
 
 
 def _is_cjk(code: int) -> bool:
-    return (0x4E00 <= code <= 0x9FFF or 0x3400 <= code <= 0x4DBF or 0x20000 <= code <= 0x2A6DF
-            or 0x2A700 <= code <= 0x2B73F or 0x2B740 <= code <= 0x2B81F or 0x2B820 <= code <= 0x2CEAF
-            or 0xF900 <= code <= 0xFAFF or 0x2F800 <= code <= 0x2FA1F)
+    return (
+        0x4E00 <= code <= 0x9FFF
+        or 0x3400 <= code <= 0x4DBF
+        or 0x20000 <= code <= 0x2A6DF
+        or 0x2A700 <= code <= 0x2B73F
+        or 0x2B740 <= code <= 0x2B81F
+        or 0x2B820 <= code <= 0x2CEAF
+        or 0xF900 <= code <= 0xFAFF
+        or 0x2F800 <= code <= 0x2FA1F
+    )
 
 
 def basic_tokenize(text: str) -> list[str]:
@@ -220,8 +227,8 @@ def text_self_attention(input_ids: np.ndarray, break_ids: Sequence[int]) -> tupl
     previous: int | np.intp = 0
     for col in np.flatnonzero(np.isin(ids, np.asarray(list(break_ids)))):
         if 0 < col < count - 1:
-            mask[previous + 1: col + 1, previous + 1: col + 1] = True
-            positions[previous + 1: col + 1] = np.arange(col - previous)
+            mask[previous + 1 : col + 1, previous + 1 : col + 1] = True
+            positions[previous + 1 : col + 1] = np.arange(col - previous)
         previous = col
     return mask, positions
 

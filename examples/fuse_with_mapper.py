@@ -24,8 +24,14 @@ def fuse(scene_dir: str | Path, detections_dir: str | Path, config="scannet", pr
     """Every frame of the scene integrated into a new Mapper, detections read on the frames it fuses."""
     mapper = Mapper(config)
     dataset = mapper.config.dataset
-    scene = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
-                       depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
+    scene = open_scene(
+        scene_dir,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=dataset.max_frames,
+    )
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
     for position, frame in enumerate(scene.frames()):
         # ask the schedule first: the detections (here a file, on a robot the models) only when they are fused
@@ -61,11 +67,15 @@ def main(argv: list[str] | None = None) -> int:
     mapper = fuse(args.scene, args.detections, args.config)
     instances = mapper.instances()
     names = mapper.label_sets.class_names
-    print(f"{mapper.frames_integrated} frames ({mapper.detection_frames} with detections fused), "
-          f"{len(instances)} instances, the map grew {mapper.growths} times")
+    print(
+        f"{mapper.frames_integrated} frames ({mapper.detection_frames} with detections fused), "
+        f"{len(instances)} instances, the map grew {mapper.growths} times"
+    )
     for instance in sorted(instances, key=lambda i: -i.confidence)[:10]:
-        print(f"  {names[instance.class_index]:>16s}  confidence {instance.confidence:.2f}  "
-              f"{len(instance.points)} voxels  seen {instance.observations} times")
+        print(
+            f"  {names[instance.class_index]:>16s}  confidence {instance.confidence:.2f}  "
+            f"{len(instance.points)} voxels  seen {instance.observations} times"
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     mapper.extract_mesh().export(str(out / "mesh.ply"))

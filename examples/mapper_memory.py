@@ -25,9 +25,13 @@ def measure(scene_dir: str, frames: int | None, sized: bool, config: str) -> dic
     mapper = Mapper(config, bounds=scene.bounds() if sized else None)
     for frame in scene.frames():
         mapper.integrate(frame)
-    return {"frames": mapper.frames_integrated, "map_state_mib": mapper.map_config.memory_bytes() / 2**20,
-            "blocks": int(mapper.state.blocks.num_blocks), "growths": mapper.growths,
-            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    return {
+        "frames": mapper.frames_integrated,
+        "map_state_mib": mapper.map_config.memory_bytes() / 2**20,
+        "blocks": int(mapper.state.blocks.num_blocks),
+        "growths": mapper.growths,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,18 +47,29 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = {}
     for case in ("small", "sized", "whole"):
-        out = subprocess.run([sys.executable, __file__, args.scene, "--frames", str(args.frames), "--config",
-                              args.config, "--case", case], check=True, capture_output=True, text=True).stdout
+        out = subprocess.run(
+            [sys.executable, __file__, args.scene, "--frames", str(args.frames), "--config", args.config, "--case", case],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout
         rows[case] = json.loads(out.strip().splitlines()[-1])
-    titles = {"small": f"growing Mapper, {args.frames} frames", "sized": f"sized for the room, {args.frames} frames",
-              "whole": "growing Mapper, every frame"}
+    titles = {
+        "small": f"growing Mapper, {args.frames} frames",
+        "sized": f"sized for the room, {args.frames} frames",
+        "whole": "growing Mapper, every frame",
+    }
     print("| map | frames | blocks | map state, MiB | peak RSS, MiB | growths |\n|---|---:|---:|---:|---:|---:|")
     for case, row in rows.items():
-        print(f"| {titles[case]} | {row['frames']} | {row['blocks']} | {row['map_state_mib']:.0f} | "
-              f"{row['peak_rss_mib']:.0f} | {row['growths']} |")
+        print(
+            f"| {titles[case]} | {row['frames']} | {row['blocks']} | {row['map_state_mib']:.0f} | "
+            f"{row['peak_rss_mib']:.0f} | {row['growths']} |"
+        )
     small, sized = rows["small"], rows["sized"]
-    print(f"\n{args.frames}-frame map: {small['map_state_mib'] / sized['map_state_mib']:.1%} of the sized map's state, "
-          f"{small['peak_rss_mib'] / sized['peak_rss_mib']:.1%} of its peak RSS")
+    print(
+        f"\n{args.frames}-frame map: {small['map_state_mib'] / sized['map_state_mib']:.1%} of the sized map's state, "
+        f"{small['peak_rss_mib'] / sized['peak_rss_mib']:.1%} of its peak RSS"
+    )
     return 0
 
 

@@ -27,11 +27,29 @@ from fmfusion_jax.simulation.noise import NoiseModel
 from fmfusion_jax.simulation.simulate import simulate_frame
 from fmfusion_jax.types import FrameDetections
 
-PALETTE = np.array([
-    (230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
-    (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212), (0, 128, 128), (220, 190, 255),
-    (170, 110, 40), (255, 250, 200), (128, 0, 0), (170, 255, 195), (128, 128, 0), (255, 215, 180),
-], np.uint8)
+PALETTE = np.array(
+    [
+        (230, 25, 75),
+        (60, 180, 75),
+        (255, 225, 25),
+        (0, 130, 200),
+        (245, 130, 48),
+        (145, 30, 180),
+        (70, 240, 240),
+        (240, 50, 230),
+        (210, 245, 60),
+        (250, 190, 212),
+        (0, 128, 128),
+        (220, 190, 255),
+        (170, 110, 40),
+        (255, 250, 200),
+        (128, 0, 0),
+        (170, 255, 195),
+        (128, 128, 0),
+        (255, 215, 180),
+    ],
+    np.uint8,
+)
 
 
 def _label_anchor(mask: np.ndarray) -> tuple[int, int]:
@@ -90,23 +108,35 @@ def synthetic_room(frame: int) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
     c = label_sets.class_index
     shift = 12 * frame
     ids = np.zeros((480, 640), np.int32)
-    classes = {1: c("wall"), 2: c("wall"), 3: c("floor"), 4: c("bed"), 5: c("cabinet"), 6: c("picture"),
-               7: c("door"), 8: c("window"), 9: c("curtain"), 10: c("table"), 11: c("chair"), 12: c("chair")}
+    classes = {
+        1: c("wall"),
+        2: c("wall"),
+        3: c("floor"),
+        4: c("bed"),
+        5: c("cabinet"),
+        6: c("picture"),
+        7: c("door"),
+        8: c("window"),
+        9: c("curtain"),
+        10: c("table"),
+        11: c("chair"),
+        12: c("chair"),
+    }
     polys = [
-        (1, [(0, 0), (420, 0), (420, 300), (0, 330)]),            # back wall
-        (2, [(420, 0), (640, 0), (640, 400), (420, 300)]),        # right wall
+        (1, [(0, 0), (420, 0), (420, 300), (0, 330)]),  # back wall
+        (2, [(420, 0), (640, 0), (640, 400), (420, 300)]),  # right wall
         (3, [(0, 330), (420, 300), (640, 400), (640, 480), (0, 480)]),  # floor
-        (7, [(450, 60), (540, 80), (540, 350), (450, 310)]),      # door in the right wall
-        (8, [(40, 50), (190, 50), (190, 180), (40, 180)]),        # window
-        (9, [(20, 40), (60, 40), (60, 250), (20, 250)]),          # curtain left of the window
+        (7, [(450, 60), (540, 80), (540, 350), (450, 310)]),  # door in the right wall
+        (8, [(40, 50), (190, 50), (190, 180), (40, 180)]),  # window
+        (9, [(20, 40), (60, 40), (60, 250), (20, 250)]),  # curtain left of the window
         (9, [(180, 40), (215, 40), (215, 250), (180, 250)]),
-        (6, [(260, 70), (360, 70), (360, 140), (260, 140)]),      # picture
-        (4, [(60, 260), (330, 250), (400, 330), (90, 380)]),      # bed
-        (13, [(120, 215), (200, 213), (205, 262), (118, 265)]),   # pillow (not a target class)
-        (5, [(340, 200), (410, 200), (410, 300), (340, 300)]),    # cabinet
-        (10, [(450, 360), (620, 350), (640, 410), (470, 425)]),   # table
-        (11, [(500, 300), (560, 300), (565, 440), (505, 445)]),   # chair behind the table
-        (12, [(560, 380), (620, 385), (615, 478), (555, 478)]),   # chair in front
+        (6, [(260, 70), (360, 70), (360, 140), (260, 140)]),  # picture
+        (4, [(60, 260), (330, 250), (400, 330), (90, 380)]),  # bed
+        (13, [(120, 215), (200, 213), (205, 262), (118, 265)]),  # pillow (not a target class)
+        (5, [(340, 200), (410, 200), (410, 300), (340, 300)]),  # cabinet
+        (10, [(450, 360), (620, 350), (640, 410), (470, 425)]),  # table
+        (11, [(500, 300), (560, 300), (565, 440), (505, 445)]),  # chair behind the table
+        (12, [(560, 380), (620, 385), (615, 478), (555, 478)]),  # chair in front
     ]
     for instance, points in polys:
         cv2.fillPoly(ids, [np.array([(u - shift, v) for u, v in points], np.int32)], int(instance))
@@ -115,7 +145,7 @@ def synthetic_room(frame: int) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
     base = {i: rng.integers(60, 220, 3) for i in range(14)}
     for instance, value in base.items():
         color[ids == instance] = value
-    shade = (np.linspace(0.8, 1.1, 640)[None, :, None] * np.linspace(1.05, 0.85, 480)[:, None, None])
+    shade = np.linspace(0.8, 1.1, 640)[None, :, None] * np.linspace(1.05, 0.85, 480)[:, None, None]
     color = (color * shade).clip(0, 255).astype(np.uint8)
     return color, ids, classes
 
@@ -156,12 +186,15 @@ def main(argv: list[str] | None = None) -> int:
     recent: list[set[str]] = []
     panels = []
     for index, name, color, gt_image, classes in rows:
-        detections = simulate_frame(gt_image, classes, name, index, noise,
-                                    recent_labels=set().union(*recent[-noise.augmentation_window:]))
+        detections = simulate_frame(
+            gt_image, classes, name, index, noise, recent_labels=set().union(*recent[-noise.augmentation_window :])
+        )
         recent.append({label for labels in detections.labels for label in labels})
         left = _caption(draw_ground_truth(color, gt_image, classes), f"{name}: ground-truth instances")
-        right = _caption(draw_detections(color, detections),
-                         f"simulated ({args.preset}, seed {args.seed}): {detections.num_detections} detections")
+        right = _caption(
+            draw_detections(color, detections),
+            f"simulated ({args.preset}, seed {args.seed}): {detections.num_detections} detections",
+        )
         panels.append(np.concatenate([left, np.full((left.shape[0], 8, 3), 255, np.uint8), right], axis=1))
     picture = np.concatenate([np.concatenate([p, np.full((8, p.shape[1], 3), 255, np.uint8)]) for p in panels])
     out = Path(args.out)

@@ -55,10 +55,10 @@ class TSDFConfig(_Section):
     voxel_size: Float = knob(0.015625, "m; 4.0/256 as in the reference (paper: 1.5 cm)", "shape", gt=0)
     sdf_trunc: Float = knob(0.04, "m; truncation distance of the TSDF (must exceed voxel_size)", "shape", gt=0)
     block_size: Int = knob(8, "voxels per block side (even; 8^3-voxel blocks are 12.5 cm)", "shape", ge=2)
-    block_capacity: Int = knob(65536, "blocks the pool may hold (~14 KB each; a ScanNet room uses ~20-40k)",
-                               "shape", ge=2)
-    max_touched_blocks: Int = knob(12288, "blocks integrated per frame (more are skipped, counted and warned "
-                                   "about)", "shape", ge=1)
+    block_capacity: Int = knob(65536, "blocks the pool may hold (~14 KB each; a ScanNet room uses ~20-40k)", "shape", ge=2)
+    max_touched_blocks: Int = knob(
+        12288, "blocks integrated per frame (more are skipped, counted and warned about)", "shape", ge=1
+    )
     max_weight: Float = knob(255.0, "cap of the TSDF weight (keeps the map responsive)", "shape", gt=0)
     bounds_margin: Float = knob(0.5, "m added around the scene bounds estimated from the poses and depth", ge=0)
 
@@ -73,91 +73,132 @@ class TSDFConfig(_Section):
 
 class DetectionConfig(_Section):
     schedule: Literal["motion", "every"] = knob(
-        "motion", "motion: fuse a frame's detections when the camera moved or turned enough since the last "
-        "detection frame; every: every Nth frame (the paper's rule)")
+        "motion",
+        "motion: fuse a frame's detections when the camera moved or turned enough since the last "
+        "detection frame; every: every Nth frame (the paper's rule)",
+    )
     min_translation: Float = knob(0.05, "m moved since the last detection frame (motion schedule)", ge=0)
     min_rotation: Float = knob(5.0, "degrees turned since the last detection frame (motion schedule)", ge=0)
-    sparse_motion: Float = knob(0.5, "a sequence whose median step between frames is this share of the above is "
-                                "subsampled in time: every frame is fused (motion schedule; 0: off)", ge=0)
+    sparse_motion: Float = knob(
+        0.5,
+        "a sequence whose median step between frames is this share of the above is "
+        "subsampled in time: every frame is fused (motion schedule; 0: off)",
+        ge=0,
+    )
     every: Int = knob(10, "every Nth frame (schedule `every`; paper: ScanNet 10, SceneNN 5)", ge=1)
     max_detections: Int = knob(32, "detections per frame kept (highest scores first)", "shape", ge=1)
     min_mask_pixels: Int = knob(1000, "smaller masks are ignored (reference Python: 1000, its C++: 100)", ge=0)
     depth_percentiles: tuple[Float, Float] = knob(
-        (0.1, 0.9), "a mask's depth outside these quantiles is dropped (mask border bleed)", "engine")
+        (0.1, 0.9), "a mask's depth outside these quantiles is dropped (mask border bleed)", "engine"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> "DetectionConfig":
         low, high = self.depth_percentiles
         if not 0.0 <= low < high <= 1.0:
-            raise ValueError("detections.depth_percentiles must be [low, high] with 0 <= low < high <= 1, "
-                             f"got {list(self.depth_percentiles)}")
+            raise ValueError(
+                f"detections.depth_percentiles must be [low, high] with 0 <= low < high <= 1, got {list(self.depth_percentiles)}"
+            )
         return self
 
 
 class AssociationConfig(_Section):
     metric: Literal["projection_overlap", "iou"] = knob(
-        "projection_overlap", "|mask and projection| / |projection| (reference Python), or iou", "engine")
+        "projection_overlap", "|mask and projection| / |projection| (reference Python), or iou", "engine"
+    )
     threshold: Float = knob(0.5, "match above this (reference Python: 0.5; its C++: IoU 0.3)", "engine", gt=0, le=1)
     pixel_stride: Int = knob(2, "pixels sampled for projection, association and instance integration", "shape", ge=1)
-    min_projected_pixels: Int = knob(800, "an instance is in view (active) above this many full-resolution pixels",
-                                     "engine", ge=0)
+    min_projected_pixels: Int = knob(
+        800, "an instance is in view (active) above this many full-resolution pixels", "engine", ge=0
+    )
 
 
 class InstanceConfig(_Section):
-    capacity: Int = knob(1024, "instance table rows (overflowing detections are dropped and warned about)",
-                         "shape", ge=2)
+    capacity: Int = knob(1024, "instance table rows (overflowing detections are dropped and warned about)", "shape", ge=2)
     voxel_slots: Int = knob(2, "instances one voxel can hold (overlapping instance volumes)", "shape", ge=1)
     contrary_vote_weight: Float = knob(
-        0.5, "a voxel seen outside the mask of its instance's detection loses this per pixel, so one mask-border "
-        "hit never makes it a member (0: the paper's rule)", "engine", ge=0)
+        0.5,
+        "a voxel seen outside the mask of its instance's detection loses this per pixel, so one mask-border "
+        "hit never makes it a member (0: the paper's rule)",
+        "engine",
+        ge=0,
+    )
 
 
 class LabelFusionConfig(_Section):
     mode: Literal["additive", "bayes"] = knob(
-        "additive", "the paper's weighted additive update (final equation of Sec. III-D), or bayes", "engine")
-    likelihood: str = knob("statistical", "statistical (the summarized 38x20 matrix), manual (ablation A), or a "
-                           "CSV path")
+        "additive", "the paper's weighted additive update (final equation of Sec. III-D), or bayes", "engine"
+    )
+    likelihood: str = knob("statistical", "statistical (the summarized 38x20 matrix), manual (ablation A), or a CSV path")
 
 
 class RefinementConfig(_Section):
     enabled: Bool = knob(True, "online merge, geometry fusion and removal (false: ablation C)")
     merge_every: Int = knob(1, "online merge test every Nth detection frame", ge=1)
     merge_similarity: Float = knob(0.15, "merge needs semantic similarity p_a . p_b above this ...", "engine", ge=0)
-    merge_overlap: Float = knob(0.4, "... and this share of the smaller instance inside the larger one inflated 2x",
-                                "engine", ge=0, le=1)
-    geometry_fusion_every: Int = knob(20, "detection frames between geometry fusions (paper: 200 frames at every "
-                                      "10th): drop instance voxels the global surface does not support", ge=1)
-    geometry_min_weight: Float = knob(1.0, "global TSDF weight a voxel needs to support instance voxels in "
-                                      "geometry fusion", "engine", ge=0)
-    remove_missed: Int = knob(5, "remove an instance missed this many detection frames while in view ...",
-                              "engine", ge=1)
+    merge_overlap: Float = knob(
+        0.4, "... and this share of the smaller instance inside the larger one inflated 2x", "engine", ge=0, le=1
+    )
+    geometry_fusion_every: Int = knob(
+        20,
+        "detection frames between geometry fusions (paper: 200 frames at every "
+        "10th): drop instance voxels the global surface does not support",
+        ge=1,
+    )
+    geometry_min_weight: Float = knob(
+        1.0, "global TSDF weight a voxel needs to support instance voxels in geometry fusion", "engine", ge=0
+    )
+    remove_missed: Int = knob(5, "remove an instance missed this many detection frames while in view ...", "engine", ge=1)
     remove_min_voxels: Int = knob(500, "... when it has fewer voxels than this", "engine", ge=0)
     reunite_min_frames: Int = knob(
-        2, "reunite fragments: b joins a once a's detections covered b in this many detection frames and at least "
-        "as often as b was detected itself (0: off)", "engine", ge=0)
+        2,
+        "reunite fragments: b joins a once a's detections covered b in this many detection frames and at least "
+        "as often as b was detected itself (0: off)",
+        "engine",
+        ge=0,
+    )
     separate_min_frames: Int = knob(
-        0, ">0: never merge a and b while two detections of one frame showed them apart this often and at least "
-        "as often as one detection covered both (off: split masks would veto the reunion of parts)", "engine", ge=0)
+        0,
+        ">0: never merge a and b while two detections of one frame showed them apart this often and at least "
+        "as often as one detection covered both (off: split masks would veto the reunion of parts)",
+        "engine",
+        ge=0,
+    )
 
 
 class ExportConfig(_Section):
     min_weight: Float = knob(2.0, "exported instance voxels need this slot weight", ge=0)
-    min_slot_share: Float = knob(0.5, "... and this share of the voxel's strongest slot: a smear on a well-observed "
-                                 "floor, or a table over a chair it swallowed, is dropped (0: any slot)", ge=0, le=1)
-    structure_claims_vertices: Bool = knob(True, "wall and floor instances take part in the vertex transfer (then "
-                                           "dropped): a floor vertex nearest to the floor is no object's")
+    min_slot_share: Float = knob(
+        0.5,
+        "... and this share of the voxel's strongest slot: a smear on a well-observed "
+        "floor, or a table over a chair it swallowed, is dropped (0: any slot)",
+        ge=0,
+        le=1,
+    )
+    structure_claims_vertices: Bool = knob(
+        True,
+        "wall and floor instances take part in the vertex transfer (then "
+        "dropped): a floor vertex nearest to the floor is no object's",
+    )
     post_merge_iou: Float = knob(0.2, "post-processing merge: 3D IoU above this ...", "engine", ge=0, le=1)
     post_merge_similarity: Float = knob(0.1, "... and semantic similarity above this", "engine", ge=0)
     min_points: Int = knob(200, "instances with fewer points are dropped", ge=0)
     support_observations: Float = knob(
-        3.0, "confidence = class probability x (1 - exp(-observations / this)): one-off instances rank low "
-        "(0: class probability alone)", ge=0)
+        3.0,
+        "confidence = class probability x (1 - exp(-observations / this)): one-off instances rank low "
+        "(0: class probability alone)",
+        ge=0,
+    )
     transfer_radius: Float = knob(0.08, "m; instance labels to the mesh vertices by radius search (benchmark)", gt=0)
-    transfer_neighbours: Int = knob(8, "a vertex takes the instance of most of its nearest points within the radius "
-                                    "(1: the nearest point decides)", ge=1)
+    transfer_neighbours: Int = knob(
+        8, "a vertex takes the instance of most of its nearest points within the radius (1: the nearest point decides)", ge=1
+    )
     shower_curtain_radius: Float = knob(2.0, "m; a curtain this close to a toilet or bathtub is a shower curtain", ge=0)
-    curtain_by_context: Bool = knob(True, "... and a shower curtain farther from them a curtain (the matrix weighs "
-                                    "the label alike under both; false: the reference's first direction only)")
+    curtain_by_context: Bool = knob(
+        True,
+        "... and a shower curtain farther from them a curtain (the matrix weighs "
+        "the label alike under both; false: the reference's first direction only)",
+    )
 
 
 class PipelineConfig(BaseModel):
@@ -167,17 +208,16 @@ class PipelineConfig(BaseModel):
 
     dataset: DatasetConfig = Field(default_factory=DatasetConfig, description="reading the RGB-D sequence")
     tsdf: TSDFConfig = Field(default_factory=TSDFConfig, description="the global TSDF and the voxel block pool")
-    detections: DetectionConfig = Field(default_factory=DetectionConfig,
-                                        description="which frames' detections are fused, and how they are cleaned")
-    association: AssociationConfig = Field(default_factory=AssociationConfig,
-                                           description="projection-overlap data association")
+    detections: DetectionConfig = Field(
+        default_factory=DetectionConfig, description="which frames' detections are fused, and how they are cleaned"
+    )
+    association: AssociationConfig = Field(default_factory=AssociationConfig, description="projection-overlap data association")
     instances: InstanceConfig = Field(default_factory=InstanceConfig, description="instance volumes in the voxels")
-    label_fusion: LabelFusionConfig = Field(default_factory=LabelFusionConfig,
-                                            description="the probabilistic label update")
-    refinement: RefinementConfig = Field(default_factory=RefinementConfig,
-                                         description="merging, geometry fusion and removal of instances")
-    export: ExportConfig = Field(default_factory=ExportConfig,
-                                 description="post-processing and the benchmark export")
+    label_fusion: LabelFusionConfig = Field(default_factory=LabelFusionConfig, description="the probabilistic label update")
+    refinement: RefinementConfig = Field(
+        default_factory=RefinementConfig, description="merging, geometry fusion and removal of instances"
+    )
+    export: ExportConfig = Field(default_factory=ExportConfig, description="post-processing and the benchmark export")
 
     def to_dict(self) -> dict[str, Any]:
         return _plain(self.model_dump())
@@ -208,9 +248,13 @@ def config_schema() -> dict[str, dict[str, Any]]:
                     if getattr(item, name, None) is not None:
                         bounds.append(f"{symbol} {getattr(item, name)}")
             extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
-            schema[section][key] = {"default": _plain(field.default), "doc": field.description or "",
-                                    "kind": extra.get("kind", "host"), "range": ", ".join(bounds),
-                                    "type": _type_name(field.annotation)}
+            schema[section][key] = {
+                "default": _plain(field.default),
+                "doc": field.description or "",
+                "kind": extra.get("kind", "host"),
+                "range": ", ".join(bounds),
+                "type": _type_name(field.annotation),
+            }
     return schema
 
 
@@ -218,31 +262,42 @@ def _type_name(annotation: Any) -> str:
     if getattr(annotation, "__origin__", None) is Literal:
         return " / ".join(f"`{value}`" for value in annotation.__args__)
     text = str(annotation).replace("typing.", "")
-    for long, short in (("Annotated[float, Strict(strict=True)]", "float"),
-                        ("Annotated[int, Strict(strict=True)]", "int"),
-                        ("Annotated[bool, Strict(strict=True)]", "bool"), ("<class 'str'>", "str")):
+    for long, short in (
+        ("Annotated[float, Strict(strict=True)]", "float"),
+        ("Annotated[int, Strict(strict=True)]", "int"),
+        ("Annotated[bool, Strict(strict=True)]", "bool"),
+        ("<class 'str'>", "str"),
+    ):
         text = text.replace(long, short)
     return text
 
 
 def config_reference_markdown() -> str:
     """`docs/config.md`: every knob with its default, range, kind and documentation, from the schema."""
-    lines = ["# Configuration reference", "",
-             "Generated from the schema in `fmfusion_jax/config.py` (`config_reference_markdown()`; a test keeps this",
-             "page equal to it). Every value can be set in a YAML config (`configs/scannet.yaml` is the default) or",
-             "on the command line as `--set section.key=value`, or from Python as `Mapper({\"section\": {\"key\": "
-             "value}})`.",
-             "Kinds: `shape` fixes the map's sizes (a change makes another map layout and recompiles), `engine` is",
-             "compiled into the jitted steps (a change recompiles), `host` is read by the Python loop, the readers or",
-             "the export.", ""]
+    lines = [
+        "# Configuration reference",
+        "",
+        "Generated from the schema in `fmfusion_jax/config.py` (`config_reference_markdown()`; a test keeps this",
+        "page equal to it). Every value can be set in a YAML config (`configs/scannet.yaml` is the default) or",
+        'on the command line as `--set section.key=value`, or from Python as `Mapper({"section": {"key": value}})`.',
+        "Kinds: `shape` fixes the map's sizes (a change makes another map layout and recompiles), `engine` is",
+        "compiled into the jitted steps (a change recompiles), `host` is read by the Python loop, the readers or",
+        "the export.",
+        "",
+    ]
     descriptions = {name: field.description for name, field in PipelineConfig.model_fields.items()}
     for section, knobs in config_schema().items():
-        lines += [f"## `{section}`: {descriptions[section]}", "", "| key | default | range | kind | meaning |",
-                  "|---|---|---|---|---|"]
+        lines += [
+            f"## `{section}`: {descriptions[section]}",
+            "",
+            "| key | default | range | kind | meaning |",
+            "|---|---|---|---|---|",
+        ]
         for key, info in knobs.items():
             default = yaml.safe_dump(info["default"], default_flow_style=True).strip().removesuffix("...").strip()
-            lines.append(f"| `{key}` | `{default}` | {info['range'] or info['type']} | {info['kind']} | "
-                         f"{info['doc'].replace('|', '/')} |")
+            lines.append(
+                f"| `{key}` | `{default}` | {info['range'] or info['type']} | {info['kind']} | {info['doc'].replace('|', '/')} |"
+            )
         lines.append("")
     return "\n".join(lines)
 

@@ -53,10 +53,10 @@ class DemoResult:
     out_dir: Path
     scene_dir: Path
     detections_dir: Path
-    summary: dict             # the run summary (run.json)
-    text: str                 # what `fmfusion demo` prints
+    summary: dict  # the run summary (run.json)
+    text: str  # what `fmfusion demo` prints
     seconds: dict[str, float]  # wall time of each stage
-    fusion: FusionResult      # the fused map
+    fusion: FusionResult  # the fused map
 
 
 def _surface_area(room_size: Sequence[float]) -> float:
@@ -64,8 +64,13 @@ def _surface_area(room_size: Sequence[float]) -> float:
     return 2 * w * d + 2 * (w + d) * h
 
 
-def demo_config(num_frames: int = DEFAULT_FRAMES, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT,
-                overrides: Sequence[str] = (), room_size: Sequence[float] | None = None) -> PipelineConfig:
+def demo_config(
+    num_frames: int = DEFAULT_FRAMES,
+    width: int = DEFAULT_WIDTH,
+    height: int = DEFAULT_HEIGHT,
+    overrides: Sequence[str] = (),
+    room_size: Sequence[float] | None = None,
+) -> PipelineConfig:
     """`configs/demo.yaml` for a demo of `num_frames` frames of `width x height`, then `overrides`.
 
     demo.yaml holds the values for 120 frames of 640x480. Over a longer loop consecutive frames are
@@ -100,9 +105,11 @@ def demo_noise(seed: int, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIG
 
     noise = NoiseModel.preset("default")
     area_scale = (width * height) / (DEFAULT_WIDTH * DEFAULT_HEIGHT)
-    return noise.replace(seed=int(seed),
-                         min_mask_pixels=max(10, round(noise.min_mask_pixels * area_scale)),
-                         small_object_pixels=max(20, round(noise.small_object_pixels * area_scale)))
+    return noise.replace(
+        seed=int(seed),
+        min_mask_pixels=max(10, round(noise.min_mask_pixels * area_scale)),
+        small_object_pixels=max(20, round(noise.small_object_pixels * area_scale)),
+    )
 
 
 def _prepare(out_dir: Path) -> None:
@@ -115,8 +122,9 @@ def _prepare(out_dir: Path) -> None:
     if not entries:
         return
     if not (out_dir / MARKER).is_file():
-        raise UserError(f"{out_dir} is not empty and is not a previous demo's output (no {MARKER}): "
-                        "choose a new or empty folder with --out")
+        raise UserError(
+            f"{out_dir} is not empty and is not a previous demo's output (no {MARKER}): choose a new or empty folder with --out"
+        )
     for path in entries:
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
@@ -124,9 +132,17 @@ def _prepare(out_dir: Path) -> None:
             path.unlink()
 
 
-def run_demo(out_dir: str | Path = DEFAULT_OUT, seed: int = 0, num_objects: int = DEFAULT_OBJECTS,
-             num_frames: int = DEFAULT_FRAMES, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT,
-             overrides: Sequence[str] = (), progress: bool = True, depth_noise: bool = True) -> DemoResult:
+def run_demo(
+    out_dir: str | Path = DEFAULT_OUT,
+    seed: int = 0,
+    num_objects: int = DEFAULT_OBJECTS,
+    num_frames: int = DEFAULT_FRAMES,
+    width: int = DEFAULT_WIDTH,
+    height: int = DEFAULT_HEIGHT,
+    overrides: Sequence[str] = (),
+    progress: bool = True,
+    depth_noise: bool = True,
+) -> DemoResult:
     """Generates a scene and its detections, fuses, writes and scores the map (see the module docstring).
 
     Args:
@@ -140,8 +156,10 @@ def run_demo(out_dir: str | Path = DEFAULT_OUT, seed: int = 0, num_objects: int 
       depth_noise: simulate depth-sensor noise.
     """
     if num_frames < 2 or num_objects < 1 or width < 32 or height < 24:
-        raise UserError(f"demo needs at least 2 frames, 1 object and 32x24 pixels (got {num_frames} frames, "
-                        f"{num_objects} objects, {width}x{height})")
+        raise UserError(
+            f"demo needs at least 2 frames, 1 object and 32x24 pixels (got {num_frames} frames, "
+            f"{num_objects} objects, {width}x{height})"
+        )
     demo_config(num_frames, width, height, overrides)  # bad overrides fail before anything is written
     out_dir = Path(out_dir)
     _prepare(out_dir)
@@ -163,8 +181,14 @@ def run_demo(out_dir: str | Path = DEFAULT_OUT, seed: int = 0, num_objects: int 
         seconds[name] = round(now - clock, 2)
         clock = now
 
-    record = {"seed": seed, "objects": num_objects, "frames": num_frames, "width": width, "height": height,
-              "overrides": list(overrides)}
+    record = {
+        "seed": seed,
+        "objects": num_objects,
+        "frames": num_frames,
+        "width": width,
+        "height": height,
+        "overrides": list(overrides),
+    }
     (out_dir / MARKER).write_text(json.dumps(record, indent=1) + "\n")
     try:
         scene = generate_scene(seed, num_objects=num_objects)
@@ -172,19 +196,34 @@ def run_demo(out_dir: str | Path = DEFAULT_OUT, seed: int = 0, num_objects: int 
         raise UserError(f"cannot generate the room: {error}") from None
     log.info("demo room: %s", scene.summary())
     config = demo_config(num_frames, width, height, overrides, room_size=scene.room_size)
-    scene_dir = write_scannet_scene(scene, out_dir / scene_name(seed), num_frames=num_frames, width=width,
-                                    height=height, seed=seed, depth_noise=depth_noise, progress=progress)
+    scene_dir = write_scannet_scene(
+        scene,
+        out_dir / scene_name(seed),
+        num_frames=num_frames,
+        width=width,
+        height=height,
+        seed=seed,
+        depth_noise=depth_noise,
+        progress=progress,
+    )
     lap("generate_scene")
     log.info("demo scene written into %s (%.1f s)", scene_dir, seconds["generate_scene"])
 
     dataset = config.dataset
-    opened = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
-                        depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
+    opened = open_scene(
+        scene_dir,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=dataset.max_frames,
+    )
     gt = load_scannet_ground_truth(scene_dir)
     noise = demo_noise(seed, width, height)
     detections_dir = out_dir / DETECTIONS_DIR
-    simulate_scene(opened, gt, detections_dir, noise, every=detection_frame_stride(config) * dataset.frame_stride,
-                   progress=progress)
+    simulate_scene(
+        opened, gt, detections_dir, noise, every=detection_frame_stride(config) * dataset.frame_stride, progress=progress
+    )
     lap("simulate_detections")
     log.info("detections simulated into %s (%.1f s)", detections_dir, seconds["simulate_detections"])
 
@@ -199,10 +238,11 @@ def run_demo(out_dir: str | Path = DEFAULT_OUT, seed: int = 0, num_objects: int 
 
     lines = summarize_run(summary, result, seconds["total"], out_dir).split("\n")
     stages = ", ".join(f"{name.replace('_', ' ')} {value:.1f} s" for name, value in seconds.items() if name != "total")
-    lines[-1:-1] = [f"demo room: {scene.summary()}",
-                    f"demo: {seconds['total']:.1f} s in all ({stages})",
-                    f"scene (ScanNet layout, with ground truth) in {scene_dir}, "
-                    f"simulated detections in {detections_dir}"]
+    lines[-1:-1] = [
+        f"demo room: {scene.summary()}",
+        f"demo: {seconds['total']:.1f} s in all ({stages})",
+        f"scene (ScanNet layout, with ground truth) in {scene_dir}, simulated detections in {detections_dir}",
+    ]
     lines.append(f"look first at {out_dir / 'overview.png'}")
     text = "\n".join(lines)
     return DemoResult(out_dir, scene_dir, detections_dir, summary, text, seconds, result)

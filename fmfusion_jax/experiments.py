@@ -104,44 +104,122 @@ class Method:
 #: any slot by the nearest point. (The motion schedule needs no override: the experiments' configs fix the
 #: detection stride.)
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
-    "instances.contrary_vote_weight=0", "refinement.reunite_min_frames=0", "refinement.separate_min_frames=0",
-    "export.support_observations=0", "export.min_slot_share=0", "export.structure_claims_vertices=false",
-    "export.transfer_neighbours=1", "export.curtain_by_context=false")
+    "instances.contrary_vote_weight=0",
+    "refinement.reunite_min_frames=0",
+    "refinement.separate_min_frames=0",
+    "export.support_observations=0",
+    "export.min_slot_share=0",
+    "export.structure_claims_vertices=false",
+    "export.transfer_neighbours=1",
+    "export.curtain_by_context=false",
+)
 
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("kimera", "Kimera + Cluster-All", baseline="kimera", likelihood="hard association (0.9)",
-           refine="Cluster-All", paper_map50=24.7),
-    Method("ablation-a", "A: manual likelihood", ("label_fusion.likelihood=manual",), likelihood="manual (0.9/0.1)",
-           paper_map50=35.9),
-    Method("ablation-b", "B: no prompt augmentation", detections=DETECTIONS_NO_AUGMENTATION,
-           prompt_augmentation="no", paper_map50=34.1),
-    Method("ablation-c", "C: no refinement", ("refinement.enabled=false",), refine="no", paper_map50=23.4),
-    Method("previous", "FM-Fusion v0.1", PREVIOUS_MAP_OVERRIDES),
-    Method("full", "FM-Fusion", paper_map50=40.3),
-    Method("full-bayes", "FM-Fusion, Bayes update", ("label_fusion.mode=bayes",), likelihood="statistical (Bayes)"),
-)}
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method(
+            "kimera",
+            "Kimera + Cluster-All",
+            baseline="kimera",
+            likelihood="hard association (0.9)",
+            refine="Cluster-All",
+            paper_map50=24.7,
+        ),
+        Method(
+            "ablation-a",
+            "A: manual likelihood",
+            ("label_fusion.likelihood=manual",),
+            likelihood="manual (0.9/0.1)",
+            paper_map50=35.9,
+        ),
+        Method(
+            "ablation-b",
+            "B: no prompt augmentation",
+            detections=DETECTIONS_NO_AUGMENTATION,
+            prompt_augmentation="no",
+            paper_map50=34.1,
+        ),
+        Method("ablation-c", "C: no refinement", ("refinement.enabled=false",), refine="no", paper_map50=23.4),
+        Method("previous", "FM-Fusion v0.1", PREVIOUS_MAP_OVERRIDES),
+        Method("full", "FM-Fusion", paper_map50=40.3),
+        Method("full-bayes", "FM-Fusion, Bayes update", ("label_fusion.mode=bayes",), likelihood="statistical (Bayes)"),
+    )
+}
 #: Methods run when none are named (the paper's rows).
 DEFAULT_METHODS = ("kimera", "ablation-a", "ablation-b", "ablation-c", "full")
 
 #: Table I's column titles of the 18 benchmark classes (the paper's abbreviations).
 CLASS_ABBREVIATIONS = {
-    "cabinet": "cab.", "bed": "bed", "chair": "cha.", "sofa": "sof.", "table": "tab.", "door": "door",
-    "window": "win.", "bookshelf": "bkf.", "picture": "pic.", "counter": "cou.", "desk": "desk", "curtain": "cur.",
-    "refrigerator": "ref.", "shower curtain": "show.", "toilet": "toi.", "sink": "sink", "bathtub": "bath.",
+    "cabinet": "cab.",
+    "bed": "bed",
+    "chair": "cha.",
+    "sofa": "sof.",
+    "table": "tab.",
+    "door": "door",
+    "window": "win.",
+    "bookshelf": "bkf.",
+    "picture": "pic.",
+    "counter": "cou.",
+    "desk": "desk",
+    "curtain": "cur.",
+    "refrigerator": "ref.",
+    "shower curtain": "show.",
+    "toilet": "toi.",
+    "sink": "sink",
+    "bathtub": "bath.",
     "otherfurniture": "oth.",
 }
 #: The paper's Table I rows with RAM-Grounded-SAM detections (AP50 %, 30 ScanNet validation scans), the 18
 #: classes in `CLASS_ABBREVIATIONS` order, then mAP50.
 PAPER_TABLE_ONE = {
-    "G-SAM & Kimera": (32.5, 21.0, 16.8, 54.5, 21.7, 26.0, 31.5, 45.3, 21.9, 8.7, 3.9, 24.8, 29.6, 0.0, 50.0, 9.4,
-                       46.2, 0.0, 24.7),
-    "G-SAM & Ours": (4.6, 46.2, 49.2, 39.6, 37.3, 19.5, 12.0, 50.4, 44.0, 3.8, 8.9, 15.5, 66.7, 82.2, 100.0, 41.5,
-                     75.0, 30.7, 40.3),
+    "G-SAM & Kimera": (
+        32.5,
+        21.0,
+        16.8,
+        54.5,
+        21.7,
+        26.0,
+        31.5,
+        45.3,
+        21.9,
+        8.7,
+        3.9,
+        24.8,
+        29.6,
+        0.0,
+        50.0,
+        9.4,
+        46.2,
+        0.0,
+        24.7,
+    ),
+    "G-SAM & Ours": (
+        4.6,
+        46.2,
+        49.2,
+        39.6,
+        37.3,
+        19.5,
+        12.0,
+        50.4,
+        44.0,
+        3.8,
+        8.9,
+        15.5,
+        66.7,
+        82.2,
+        100.0,
+        41.5,
+        75.0,
+        30.7,
+        40.3,
+    ),
 }
 
 
 # --------------------------------------------------------------------------------------------------
 # What to run.
+
 
 def resolve_methods(names: Sequence[str] | None) -> tuple[Method, ...]:
     """The `Method`s named, in `METHODS` order (the tables' row order); an unknown name is a UserError."""
@@ -167,12 +245,18 @@ def default_real_scenes() -> list[Path]:
     return []
 
 
-def generated_specs(count: int, num_frames: int = DEFAULT_GENERATED_FRAMES, num_objects: int = DEFAULT_GENERATED_OBJECTS,
-                    width: int = 640, height: int = 480) -> list[GeneratedSceneSpec]:
+def generated_specs(
+    count: int,
+    num_frames: int = DEFAULT_GENERATED_FRAMES,
+    num_objects: int = DEFAULT_GENERATED_OBJECTS,
+    width: int = 640,
+    height: int = 480,
+) -> list[GeneratedSceneSpec]:
     """Generated scenes with seeds 1..count."""
     if count < 0 or num_frames < 2 or num_objects < 1:
-        raise UserError(f"generated scenes need count >= 0, frames >= 2 and objects >= 1 (got {count}, {num_frames}, "
-                        f"{num_objects})")
+        raise UserError(
+            f"generated scenes need count >= 0, frames >= 2 and objects >= 1 (got {count}, {num_frames}, {num_objects})"
+        )
     return [GeneratedSceneSpec(seed, num_objects, num_frames, width, height) for seed in range(1, count + 1)]
 
 
@@ -225,8 +309,10 @@ def scene_sources(real_scenes: Sequence[str | Path], generated: Sequence[Generat
         if not path.is_dir():
             raise UserError(f"scene folder {path} not found")
         if not (path / f"{path.name}_vh_clean_2.ply").is_file():
-            raise UserError(f"{path} has no ground-truth mesh {path.name}_vh_clean_2.ply: the experiment scores "
-                            "every run against the scene's ground truth")
+            raise UserError(
+                f"{path} has no ground-truth mesh {path.name}_vh_clean_2.ply: the experiment scores "
+                "every run against the scene's ground truth"
+            )
         sources.append(SceneSource(path.name, "real", path=path))
     sources += [SceneSource(spec.name, "generated", spec=spec) for spec in generated]
     names = [s.name for s in sources]
@@ -241,6 +327,7 @@ def scene_sources(real_scenes: Sequence[str | Path], generated: Sequence[Generat
 # --------------------------------------------------------------------------------------------------
 # Running.
 
+
 @dataclasses.dataclass
 class RunOutcome:
     """One (scene, method) run: its predictions on the scene's mesh, its summary (run.json) and its score on
@@ -251,8 +338,9 @@ class RunOutcome:
     score: BenchmarkResult
 
 
-def run_method(method: Method, scene, detections_dir: Path, config: PipelineConfig, gt, out_dir: Path,
-               progress: bool = True) -> RunOutcome:
+def run_method(
+    method: Method, scene, detections_dir: Path, config: PipelineConfig, gt, out_dir: Path, progress: bool = True
+) -> RunOutcome:
     """Maps an opened `scene` with `method`, exports its benchmark predictions into `out_dir`, scores them on
     this scene alone, and writes run.json, config.yaml and instances.json.
 
@@ -282,18 +370,26 @@ def run_method(method: Method, scene, detections_dir: Path, config: PipelineConf
 
         result = run_kimera(scene, source, config, progress=progress, label_sets=label_sets)
         instances = result.instances
-        details = {"frames": result.frames_integrated, "detection_frames": result.detection_frames,
-                   "counters": result.counters, "label_seconds": result.seconds,
-                   "timings_ms": result.geometry.timings.summary()}
+        details = {
+            "frames": result.frames_integrated,
+            "detection_frames": result.detection_frames,
+            "counters": result.counters,
+            "label_seconds": result.seconds,
+            "timings_ms": result.geometry.timings.summary(),
+        }
     else:
         from fmfusion_jax.pipeline import extract_map_instances
         from fmfusion_jax.runner import capacity_used, fuse_scene
 
         result = fuse_scene(scene, source, config, progress=progress)
         instances = extract_map_instances(result, label_sets)
-        details = {"frames": result.frames_integrated, "detection_frames": result.detection_frames,
-                   "counters": result.counters, "timings_ms": result.timings.summary(),
-                   "capacity_used": capacity_used(result)}
+        details = {
+            "frames": result.frames_integrated,
+            "detection_frames": result.detection_frames,
+            "counters": result.counters,
+            "timings_ms": result.timings.summary(),
+            "capacity_used": capacity_used(result),
+        }
     map_seconds = time.perf_counter() - start
     del result  # the map (up to ~1 GB for a ScanNet room) is not needed any more
 
@@ -302,11 +398,18 @@ def run_method(method: Method, scene, detections_dir: Path, config: PipelineConf
     write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
     map_outputs.write_instances_json(out_dir / "instances.json", instances, label_sets)
     (out_dir / "config.yaml").write_text(config.to_yaml())
-    summary = {"scene": scene.name, "method": method.name, "title": method.title, "detections": str(detections_dir),
-               "overrides": list(method.overrides), "instances": len(instances),
-               "benchmark_predictions": int(predictions.num_instances),
-               "seconds": {"map": round(map_seconds, 2), "total": round(time.perf_counter() - start, 2)},
-               **details, "score": score.to_json_dict()}
+    summary = {
+        "scene": scene.name,
+        "method": method.name,
+        "title": method.title,
+        "detections": str(detections_dir),
+        "overrides": list(method.overrides),
+        "instances": len(instances),
+        "benchmark_predictions": int(predictions.num_instances),
+        "seconds": {"map": round(map_seconds, 2), "total": round(time.perf_counter() - start, 2)},
+        **details,
+        "score": score.to_json_dict(),
+    }
     (out_dir / RUN_RECORD).write_text(json.dumps(summary, indent=1, default=float))
     return RunOutcome(predictions, summary, score)
 
@@ -315,8 +418,9 @@ def _replace_run_dir(run_dir: Path) -> None:
     """Empties a run folder left by an earlier experiment (it holds run.json); refuses any other non-empty one."""
     if run_dir.is_dir() and any(run_dir.iterdir()):
         if not (run_dir / RUN_RECORD).is_file():
-            raise UserError(f"{run_dir} is not empty and is not an experiment's run folder (no {RUN_RECORD}): "
-                            "choose another --out")
+            raise UserError(
+                f"{run_dir} is not empty and is not an experiment's run folder (no {RUN_RECORD}): choose another --out"
+            )
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
 
@@ -346,10 +450,17 @@ class ExperimentResult:
     @property
     def text(self) -> str:
         """What `fmfusion experiment` prints: the two tables and where the files are."""
-        return "\n".join([table_one(self.methods, self.pooled), "", table_two(self.methods, self.pooled), "",
-                          f"AP in % over {len(self.scene_names)} scenes ({', '.join(self.scene_names)}); "
-                          f"written: {self.out_dir / 'experiment.md'}, {self.out_dir / 'experiment.json'}, "
-                          f"runs in {self.out_dir / 'runs'}"])
+        return "\n".join(
+            [
+                table_one(self.methods, self.pooled),
+                "",
+                table_two(self.methods, self.pooled),
+                "",
+                f"AP in % over {len(self.scene_names)} scenes ({', '.join(self.scene_names)}); "
+                f"written: {self.out_dir / 'experiment.md'}, {self.out_dir / 'experiment.json'}, "
+                f"runs in {self.out_dir / 'runs'}",
+            ]
+        )
 
 
 def _stderr_report(line: str) -> None:
@@ -379,14 +490,28 @@ class PreparedSource:
     def record(self) -> dict:
         """The scene's entry in experiment.json."""
         source, spec = self.source, self.source.spec
-        return {"name": source.name, "kind": source.kind, "scene_dir": str(self.scene.path), "frames": len(self.scene),
-                "gt_vertices": int(self.gt.num_vertices), "spec": dataclasses.asdict(spec) if spec else None,
-                "config": REAL_SCENE_CONFIG if source.kind == "real" else "demo (scaled to the scene)",
-                "detections": {v: str(p.detections_dir) for v, p in self.detections.items()}, "noise": self.noise}
+        return {
+            "name": source.name,
+            "kind": source.kind,
+            "scene_dir": str(self.scene.path),
+            "frames": len(self.scene),
+            "gt_vertices": int(self.gt.num_vertices),
+            "spec": dataclasses.asdict(spec) if spec else None,
+            "config": REAL_SCENE_CONFIG if source.kind == "real" else "demo (scaled to the scene)",
+            "detections": {v: str(p.detections_dir) for v, p in self.detections.items()},
+            "noise": self.noise,
+        }
 
 
-def prepare_source(source: SceneSource, variants: Sequence[str], cache_dir: Path, seed: int,
-                   base_config: PipelineConfig, progress: bool, report: Callable[[str], None]) -> PreparedSource:
+def prepare_source(
+    source: SceneSource,
+    variants: Sequence[str],
+    cache_dir: Path,
+    seed: int,
+    base_config: PipelineConfig,
+    progress: bool,
+    report: Callable[[str], None],
+) -> PreparedSource:
     """Makes (or finds in `cache_dir`) the scene and its simulated detections of each variant, on the
     detection frames of `base_config`, then opens the scene and reads its ground truth."""
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
@@ -398,10 +523,11 @@ def prepare_source(source: SceneSource, variants: Sequence[str], cache_dir: Path
     default_noise = source.noise(seed)
     detections, noise = {}, {}
     for variant in variants:
-        variant_noise = (default_noise if variant == DETECTIONS_DEFAULT
-                         else default_noise.replace(prompt_augmentation=False))
-        report(f"preparing {source.name}: {'scene and ' if source.kind == 'generated' else ''}{variant} detections "
-               f"(cached in {cache_dir})")
+        variant_noise = default_noise if variant == DETECTIONS_DEFAULT else default_noise.replace(prompt_augmentation=False)
+        report(
+            f"preparing {source.name}: {'scene and ' if source.kind == 'generated' else ''}{variant} detections "
+            f"(cached in {cache_dir})"
+        )
         if source.kind == "real":
             assert source.path is not None  # a real scene has its folder
             detections[variant] = prepare_real(source.path, cache_dir, variant_noise, every, variant, progress)
@@ -411,17 +537,30 @@ def prepare_source(source: SceneSource, variants: Sequence[str], cache_dir: Path
         noise[variant] = variant_noise.to_dict()
     scene_dir = next(iter(detections.values())).scene_dir
     dataset = base_config.dataset
-    scene = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
-                       depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
+    scene = open_scene(
+        scene_dir,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=dataset.max_frames,
+    )
     gt = load_scannet_ground_truth(scene_dir)
     return PreparedSource(source, detections, noise, scene, gt, round(time.perf_counter() - start, 2))
 
 
-def run_experiment(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str | Path] = (),
-                   generated: Sequence[GeneratedSceneSpec] = (), methods: Sequence[str] | None = None, seed: int = 0,
-                   cache_dir: str | Path | None = None, overrides: Sequence[str] = (),
-                   real_max_frames: int | None = None, progress: bool = True,
-                   report: Callable[[str], None] | None = None) -> ExperimentResult:
+def run_experiment(
+    out_dir: str | Path = DEFAULT_OUT,
+    real_scenes: Sequence[str | Path] = (),
+    generated: Sequence[GeneratedSceneSpec] = (),
+    methods: Sequence[str] | None = None,
+    seed: int = 0,
+    cache_dir: str | Path | None = None,
+    overrides: Sequence[str] = (),
+    real_max_frames: int | None = None,
+    progress: bool = True,
+    report: Callable[[str], None] | None = None,
+) -> ExperimentResult:
     """Runs every method on every scene, scores them, and writes experiment.md / experiment.json.
 
     Args:
@@ -455,8 +594,7 @@ def run_experiment(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
     configs: dict[str, dict[str, dict[str, Any]]] = {}
     total_runs = len(sources) * len(chosen)
     for source in sources:
-        ready = prepare_source(source, variants, cache_dir, seed, source.config(overrides, real_max_frames), progress,
-                               report)
+        ready = prepare_source(source, variants, cache_dir, seed, source.config(overrides, real_max_frames), progress, report)
         gt_ids[source.name] = ready.gt.benchmark_ids()
         timings[source.name] = {"prepare": ready.seconds}
         runs[source.name], configs[source.name] = {}, {}
@@ -464,11 +602,20 @@ def run_experiment(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
             config = source.config(list(overrides) + list(method.overrides), real_max_frames)
             where = f"[{sum(map(len, runs.values())) + 1}/{total_runs}] {source.name}: {method.name}"
             report(f"{where} ({method.title})")
-            outcome = run_method(method, ready.scene, ready.detections[method.detections].detections_dir, config,
-                                 ready.gt, out_dir / "runs" / source.name / method.name, progress)
+            outcome = run_method(
+                method,
+                ready.scene,
+                ready.detections[method.detections].detections_dir,
+                config,
+                ready.gt,
+                out_dir / "runs" / source.name / method.name,
+                progress,
+            )
             summary = outcome.summary
-            report(f"{where} done in {summary['seconds']['total']:.1f} s: {summary['instances']} instances, "
-                   f"mAP50 {_fraction(summary['score']['mAP50'])}, mAP25 {_fraction(summary['score']['mAP25'])}")
+            report(
+                f"{where} done in {summary['seconds']['total']:.1f} s: {summary['instances']} instances, "
+                f"mAP50 {_fraction(summary['score']['mAP50'])}, mAP25 {_fraction(summary['score']['mAP25'])}"
+            )
             runs[source.name][method.name] = outcome
             configs[source.name][method.name] = config.to_dict()
             timings[source.name][method.name] = summary["seconds"]["total"]
@@ -479,15 +626,27 @@ def run_experiment(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
     pooled, per_scene = score_methods(chosen, names, gt_ids, runs)
     seconds = round(time.perf_counter() - start, 1)
     record = {
-        "seed": seed, "overrides": list(overrides), "real_max_frames": real_max_frames,
+        "seed": seed,
+        "overrides": list(overrides),
+        "real_max_frames": real_max_frames,
         "methods": {m.name: dataclasses.asdict(m) for m in chosen},
         "scenes": scene_records,
-        "results": {m.name: {"pooled": pooled[m.name].to_json_dict(),
-                             "per_scene": {s: per_scene[s][m.name].to_json_dict() for s in names}} for m in chosen},
-        "configs": configs, "timings_s": timings, "total_seconds": seconds,
-        "paper": {"table_one_ap50": {row: dict(zip([*CLASS_ABBREVIATIONS.values(), "mAP50"], values))
-                                     for row, values in PAPER_TABLE_ONE.items()},
-                  "table_two_map50": {m.name: m.paper_map50 for m in METHODS.values() if m.paper_map50 is not None}},
+        "results": {
+            m.name: {
+                "pooled": pooled[m.name].to_json_dict(),
+                "per_scene": {s: per_scene[s][m.name].to_json_dict() for s in names},
+            }
+            for m in chosen
+        },
+        "configs": configs,
+        "timings_s": timings,
+        "total_seconds": seconds,
+        "paper": {
+            "table_one_ap50": {
+                row: dict(zip([*CLASS_ABBREVIATIONS.values(), "mAP50"], values)) for row, values in PAPER_TABLE_ONE.items()
+            },
+            "table_two_map50": {m.name: m.paper_map50 for m in METHODS.values() if m.paper_map50 is not None},
+        },
         "units": "AP as fractions in [0, 1] (null: no ground truth of the class); experiment.md gives them in %",
     }
     markdown = experiment_markdown(chosen, pooled, per_scene, scene_records, seed, seconds)
@@ -509,8 +668,9 @@ def score_methods(methods: Sequence[Method], scene_names: Sequence[str], gt_ids:
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 
     names = tuple(scene_names)
-    pooled = {m.name: evaluate_scenes([(gt_ids[s], runs[s][m.name].predictions) for s in names], scene_names=names)
-              for m in methods}
+    pooled = {
+        m.name: evaluate_scenes([(gt_ids[s], runs[s][m.name].predictions) for s in names], scene_names=names) for m in methods
+    }
     per_scene = {s: {m.name: runs[s][m.name].score for m in methods} for s in names}
     return pooled, per_scene
 
@@ -529,6 +689,7 @@ def _check_config(kind: str, sources: Sequence[SceneSource], overrides: list[str
 # --------------------------------------------------------------------------------------------------
 # Tables.
 
+
 def _percent(value: float | None) -> str:
     """AP as the paper prints it (%, one decimal); "-" where the class has no ground truth."""
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:.1f}"
@@ -539,8 +700,10 @@ def _fraction(value: float | None) -> str:
 
 
 def _markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]], align_first_left: bool = True) -> str:
-    lines = ["| " + " | ".join(header) + " |",
-             "|" + "|".join([":---" if align_first_left else "---:"] + ["---:"] * (len(header) - 1)) + "|"]
+    lines = [
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join([":---" if align_first_left else "---:"] + ["---:"] * (len(header) - 1)) + "|",
+    ]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
     return "\n".join(lines)
 
@@ -563,8 +726,18 @@ def table_one(methods: Sequence[Method], results: dict) -> str:
 def table_two(methods: Sequence[Method], results: dict) -> str:
     """Table II's layout: rows the methods with their prompt augmentation, likelihood and refinement, then
     mAP, mAP50 and mAP25 (%)."""
-    rows = [[m.title, m.prompt_augmentation, m.likelihood, m.refine, _percent(results[m.name].mAP),
-             _percent(results[m.name].mAP50), _percent(results[m.name].mAP25)] for m in methods]
+    rows = [
+        [
+            m.title,
+            m.prompt_augmentation,
+            m.likelihood,
+            m.refine,
+            _percent(results[m.name].mAP),
+            _percent(results[m.name].mAP50),
+            _percent(results[m.name].mAP25),
+        ]
+        for m in methods
+    ]
     return _markdown_table(["Method", "Prm. Aug.", "Likelihood", "Refine", "mAP", "mAP50", "mAP25"], rows)
 
 
@@ -577,54 +750,67 @@ def per_scene_table(methods: Sequence[Method], per_scene: dict) -> str:
 
 def paper_tables() -> str:
     """The paper's figures (real RAM-Grounded-SAM detections, 30 ScanNet validation scans), for reference."""
-    one = _markdown_table(["Method", *CLASS_ABBREVIATIONS.values(), "mAP50"],
-                          [[row, *(f"{v:.1f}" for v in values)] for row, values in PAPER_TABLE_ONE.items()])
-    two = _markdown_table(["Method", "Prm. Aug.", "Likelihood", "Refine", "mAP50"],
-                          [[m.title, m.prompt_augmentation, m.likelihood, m.refine, f"{m.paper_map50:.1f}"]
-                           for m in METHODS.values() if m.paper_map50 is not None])
+    one = _markdown_table(
+        ["Method", *CLASS_ABBREVIATIONS.values(), "mAP50"],
+        [[row, *(f"{v:.1f}" for v in values)] for row, values in PAPER_TABLE_ONE.items()],
+    )
+    two = _markdown_table(
+        ["Method", "Prm. Aug.", "Likelihood", "Refine", "mAP50"],
+        [
+            [m.title, m.prompt_augmentation, m.likelihood, m.refine, f"{m.paper_map50:.1f}"]
+            for m in METHODS.values()
+            if m.paper_map50 is not None
+        ],
+    )
     return one + "\n\n" + two
 
 
-def experiment_markdown(methods: Sequence[Method], pooled: dict, per_scene: dict, scenes: Sequence[dict], seed: int,
-                        seconds: float) -> str:
+def experiment_markdown(
+    methods: Sequence[Method], pooled: dict, per_scene: dict, scenes: Sequence[dict], seed: int, seconds: float
+) -> str:
     """experiment.md: the two tables, per-scene mAP50, the scenes, and the paper's figures."""
     scene_lines = []
     for s in scenes:
-        what = ("real ScanNet scene" if s["kind"] == "real"
-                else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
-                     f"{s['spec']['width']}x{s['spec']['height']}")
+        what = (
+            "real ScanNet scene"
+            if s["kind"] == "real"
+            else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
+            f"{s['spec']['width']}x{s['spec']['height']}"
+        )
         scene_lines.append(f"- `{s['name']}`: {what}, {s['frames']} frames, config {s['config']}")
-    return "\n".join([
-        "# FM-Fusion: baseline and ablations",
-        "",
-        f"Scenes ({len(scenes)}); detections simulated from each scene's ground truth (noise preset `default`, "
-        f"seed {seed}; ablation B: the same without prompt augmentation):",
-        "",
-        *scene_lines,
-        "",
-        "ScanNet 3D instance benchmark, each method scored over all scenes together (per class, then the mean "
-        "over the classes with ground truth). AP in %; \"-\": no ground truth of the class in these scenes.",
-        "",
-        "## Table I: AP50 per class",
-        "",
-        table_one(methods, pooled),
-        "",
-        "## Table II: baseline and ablations",
-        "",
-        table_two(methods, pooled),
-        "",
-        "## mAP50 per scene",
-        "",
-        per_scene_table(methods, per_scene),
-        "",
-        "## The paper's figures, for reference",
-        "",
-        "Real RAM-Grounded-SAM detections on 30 ScanNet validation scans (Tables I and II of the paper). The "
-        "numbers above come from simulated detections on a few scenes: compare the order of the methods, not "
-        "the values.",
-        "",
-        paper_tables(),
-        "",
-        f"Total time: {seconds:.0f} s (per run: experiment.json, `timings_s`; they include JIT compilation).",
-        "",
-    ])
+    return "\n".join(
+        [
+            "# FM-Fusion: baseline and ablations",
+            "",
+            f"Scenes ({len(scenes)}); detections simulated from each scene's ground truth (noise preset `default`, "
+            f"seed {seed}; ablation B: the same without prompt augmentation):",
+            "",
+            *scene_lines,
+            "",
+            "ScanNet 3D instance benchmark, each method scored over all scenes together (per class, then the mean "
+            'over the classes with ground truth). AP in %; "-": no ground truth of the class in these scenes.',
+            "",
+            "## Table I: AP50 per class",
+            "",
+            table_one(methods, pooled),
+            "",
+            "## Table II: baseline and ablations",
+            "",
+            table_two(methods, pooled),
+            "",
+            "## mAP50 per scene",
+            "",
+            per_scene_table(methods, per_scene),
+            "",
+            "## The paper's figures, for reference",
+            "",
+            "Real RAM-Grounded-SAM detections on 30 ScanNet validation scans (Tables I and II of the paper). The "
+            "numbers above come from simulated detections on a few scenes: compare the order of the methods, not "
+            "the values.",
+            "",
+            paper_tables(),
+            "",
+            f"Total time: {seconds:.0f} s (per run: experiment.json, `timings_s`; they include JIT compilation).",
+            "",
+        ]
+    )

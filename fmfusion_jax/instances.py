@@ -60,8 +60,9 @@ def drop_small_instances(instances: list[MapInstance], min_points: int) -> list[
     return [inst for inst in instances if len(inst.points) >= min_points]
 
 
-def apply_shower_curtain_rule(instances: list[MapInstance], label_sets: LabelSets, radius: float,
-                              both_ways: bool = True) -> list[MapInstance]:
+def apply_shower_curtain_rule(
+    instances: list[MapInstance], label_sets: LabelSets, radius: float, both_ways: bool = True
+) -> list[MapInstance]:
     """Curtain or shower curtain by the bathroom context: a curtain whose centre lies within `radius` of a
     toilet's or bathtub's centre is a shower curtain; with `both_ways`, a shower curtain farther than that
     from every toilet and bathtub (or in a room without one) is a curtain.
@@ -74,13 +75,13 @@ def apply_shower_curtain_rule(instances: list[MapInstance], label_sets: LabelSet
     curtain = label_sets.class_index("curtain")
     shower = label_sets.class_index("shower curtain")
     anchors = [label_sets.class_index("toilet"), label_sets.class_index("bathtub")]
-    anchor_centres = np.asarray([inst.points.mean(axis=0) for inst in instances
-                                 if inst.class_index in anchors and len(inst.points)]).reshape(-1, 3)
+    anchor_centres = np.asarray(
+        [inst.points.mean(axis=0) for inst in instances if inst.class_index in anchors and len(inst.points)]
+    ).reshape(-1, 3)
     out = []
     for inst in instances:
         if inst.class_index in (curtain, shower) and len(inst.points):
-            near = bool(len(anchor_centres)) and \
-                np.linalg.norm(anchor_centres - inst.points.mean(axis=0), axis=1).min() < radius
+            near = bool(len(anchor_centres)) and np.linalg.norm(anchor_centres - inst.points.mean(axis=0), axis=1).min() < radius
             source, target = (curtain, shower) if near else (shower, curtain)
             if inst.class_index == source and (near or both_ways):
                 distribution = inst.distribution.copy()
@@ -108,11 +109,11 @@ def merge_same_class(instances: list[MapInstance], class_index: int) -> list[Map
     return [inst for inst in instances if inst.class_index != class_index] + [merged]
 
 
-def postprocess_instances(instances: list[MapInstance], label_sets: LabelSets,
-                          export: ExportConfig) -> list[MapInstance]:
+def postprocess_instances(instances: list[MapInstance], label_sets: LabelSets, export: ExportConfig) -> list[MapInstance]:
     """The reference's export post-processing, in its order."""
     instances = drop_small_instances(instances, export.min_points)
-    instances = apply_shower_curtain_rule(instances, label_sets, export.shower_curtain_radius,
-                                          both_ways=export.curtain_by_context)
+    instances = apply_shower_curtain_rule(
+        instances, label_sets, export.shower_curtain_radius, both_ways=export.curtain_by_context
+    )
     instances = merge_same_class(instances, label_sets.class_index("floor"))
     return sorted(instances, key=lambda inst: inst.instance_id)

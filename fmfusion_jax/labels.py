@@ -88,8 +88,10 @@ def read_likelihood_csv(path: str | Path, label_sets: LabelSets | None = None) -
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as error:
-        raise UserError(f"{path}: cannot read the likelihood matrix ({getattr(error, 'strerror', None) or error}); "
-                        "label_fusion.likelihood is statistical, manual or the path of a CSV") from None
+        raise UserError(
+            f"{path}: cannot read the likelihood matrix ({getattr(error, 'strerror', None) or error}); "
+            "label_fusion.likelihood is statistical, manual or the path of a CSV"
+        ) from None
     lines = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
     if not lines:
         raise UserError(f"{path}: an empty likelihood matrix file")
@@ -109,8 +111,7 @@ def read_likelihood_csv(path: str | Path, label_sets: LabelSets | None = None) -
     return matrix
 
 
-def write_likelihood_csv(path: str | Path, matrix: np.ndarray, label_sets: LabelSets | None = None,
-                         comment: str = "") -> Path:
+def write_likelihood_csv(path: str | Path, matrix: np.ndarray, label_sets: LabelSets | None = None, comment: str = "") -> Path:
     """Writes a `(num_open, num_classes)` matrix in the format `read_likelihood_csv` reads.
 
     `comment` lines go first as `# ...`; values are written with `repr`, so a read gives the same floats.

@@ -30,8 +30,7 @@ MAP_FORMAT = "fmfusion-jax map state"
 MAP_FORMAT_VERSION = 1
 
 
-def write_state_file(path: str | Path, arrays: dict[str, np.ndarray], metadata: dict[str, Any],
-                     compresslevel: int = 1) -> Path:
+def write_state_file(path: str | Path, arrays: dict[str, np.ndarray], metadata: dict[str, Any], compresslevel: int = 1) -> Path:
     """Writes `arrays` and the JSON-serializable `metadata` to `path` (`.npz`); returns the path.
 
     The file is written beside the target and renamed into place, so a crash never leaves half a file.
@@ -114,8 +113,13 @@ def write_map_file(path: str | Path, state, map_config, config, progress: dict[s
         a `MapBuilder` can continue the schedules where they stopped.
     """
 
-    metadata = {"format": MAP_FORMAT, "version": MAP_FORMAT_VERSION, "map_config": map_config_to_dict(map_config),
-                "pipeline_config": config.to_dict(), "progress": progress or {}}
+    metadata = {
+        "format": MAP_FORMAT,
+        "version": MAP_FORMAT_VERSION,
+        "map_config": map_config_to_dict(map_config),
+        "pipeline_config": config.to_dict(),
+        "progress": progress or {},
+    }
     return write_state_file(path, state_to_arrays(state, map_config), metadata)
 
 
@@ -123,9 +127,9 @@ def write_map_file(path: str | Path, state, map_config, config, progress: dict[s
 class SavedMap:
     """A map read back by `read_map_file`."""
 
-    state: Any              # MapState
-    map_config: Any         # MapConfig
-    config: Any             # PipelineConfig
+    state: Any  # MapState
+    map_config: Any  # MapConfig
+    config: Any  # PipelineConfig
     progress: dict[str, Any]
 
 
@@ -136,14 +140,14 @@ def read_map_file(path: str | Path) -> SavedMap:
     if metadata.get("format") != MAP_FORMAT:
         raise DataError(f"{path}: not a map state file (format {metadata.get('format')!r})")
     if metadata.get("version") != MAP_FORMAT_VERSION:
-        raise DataError(f"{path}: map state version {metadata.get('version')}, this fmfusion reads "
-                        f"version {MAP_FORMAT_VERSION}")
+        raise DataError(f"{path}: map state version {metadata.get('version')}, this fmfusion reads version {MAP_FORMAT_VERSION}")
     try:
         map_config = map_config_from_dict(metadata["map_config"])
         state = state_from_arrays(arrays, map_config)
     except (KeyError, TypeError, ValueError) as error:
-        raise DataError(f"{path}: cannot read this map state ({error}); damaged, or written by another "
-                        "version of fmfusion") from None
+        raise DataError(
+            f"{path}: cannot read this map state ({error}); damaged, or written by another version of fmfusion"
+        ) from None
     config = pipeline_config_from_dict(metadata.get("pipeline_config", {}), f"{path} (pipeline config)")
     return SavedMap(state, map_config, config, dict(metadata.get("progress", {})))
 

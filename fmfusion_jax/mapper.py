@@ -105,15 +105,24 @@ def as_intrinsics(intrinsics: "CameraIntrinsics | np.ndarray | Sequence", height
     return k
 
 
-def as_frame(frame: RGBDFrame | None = None, *, depth=None, color=None, T_world_camera=None, intrinsics=None,
-             index: int = 0, name: str | None = None) -> RGBDFrame:
+def as_frame(
+    frame: RGBDFrame | None = None,
+    *,
+    depth=None,
+    color=None,
+    T_world_camera=None,
+    intrinsics=None,
+    index: int = 0,
+    name: str | None = None,
+) -> RGBDFrame:
     """An `RGBDFrame` from itself or from arrays: depth `(H, W)` metres, colour `(H, W, 3)` uint8 RGB (None:
     grey), `T_world_camera` `(4, 4)` camera-to-world, intrinsics (see `as_intrinsics`). Wrong units, shapes and
     non-rigid poses are UserErrors that say what to fix."""
     if frame is not None:
         if not isinstance(frame, RGBDFrame):
-            raise UserError(f"integrate: expected an RGBDFrame (or depth=..., T_world_camera=... arrays), got "
-                            f"{type(frame).__name__}")
+            raise UserError(
+                f"integrate: expected an RGBDFrame (or depth=..., T_world_camera=... arrays), got {type(frame).__name__}"
+            )
         return frame
     if depth is None or T_world_camera is None or intrinsics is None:
         raise UserError("integrate: give a frame, or depth=, T_world_camera= and intrinsics=")
@@ -139,10 +148,12 @@ def as_frame(frame: RGBDFrame | None = None, *, depth=None, color=None, T_world_
         raise UserError(f"{name}: T_world_camera must be a finite 4x4 matrix, got shape {pose.shape}")
     rotation = pose[:3, :3]
     if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
-        raise UserError(f"{name}: T_world_camera's rotation is not a rotation (check the pose's convention and "
-                        "that it maps camera to world)")
-    return RGBDFrame(index=index, name=name, color=color, depth=depth, T_world_camera=pose,
-                     intrinsics=as_intrinsics(intrinsics, height, width))
+        raise UserError(
+            f"{name}: T_world_camera's rotation is not a rotation (check the pose's convention and that it maps camera to world)"
+        )
+    return RGBDFrame(
+        index=index, name=name, color=color, depth=depth, T_world_camera=pose, intrinsics=as_intrinsics(intrinsics, height, width)
+    )
 
 
 def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
@@ -151,7 +162,7 @@ def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
     stride, trunc = map_config.alloc_pixel_stride, map_config.sdf_trunc
     k = frame.intrinsics
     d = frame.depth[::stride, ::stride]
-    v, u = np.mgrid[0:frame.depth.shape[0]:stride, 0:frame.depth.shape[1]:stride]
+    v, u = np.mgrid[0 : frame.depth.shape[0] : stride, 0 : frame.depth.shape[1] : stride]
     ok = (d >= map_config.depth_min) & (d <= map_config.depth_max)
     if not ok.any():
         return np.zeros((0, 3), np.int64)
@@ -181,10 +192,15 @@ class Mapper:
       label_sets, likelihood: the label sets and the `(O, C)` likelihood (default: the config's).
     """
 
-    def __init__(self, config: "str | Path | Mapping[str, Any] | PipelineConfig | None" = None,
-                 intrinsics: "CameraIntrinsics | np.ndarray | Sequence | None" = None, *,
-                 bounds: "tuple[ArrayLike, ArrayLike] | None" = None,
-                 label_sets: LabelSets | None = None, likelihood: np.ndarray | None = None):
+    def __init__(
+        self,
+        config: "str | Path | Mapping[str, Any] | PipelineConfig | None" = None,
+        intrinsics: "CameraIntrinsics | np.ndarray | Sequence | None" = None,
+        *,
+        bounds: "tuple[ArrayLike, ArrayLike] | None" = None,
+        label_sets: LabelSets | None = None,
+        likelihood: np.ndarray | None = None,
+    ):
         self.config = as_config(config)
         self.label_sets = label_sets or load_label_sets()
         self._likelihood = likelihood
@@ -200,8 +216,17 @@ class Mapper:
     # ------------------------------------------------------------------------------------------------
     # Fusing.
 
-    def integrate(self, frame: RGBDFrame | None = None, detections: FrameDetections | None = None, *,
-                  depth=None, color=None, T_world_camera=None, intrinsics=None, name: str | None = None) -> bool:
+    def integrate(
+        self,
+        frame: RGBDFrame | None = None,
+        detections: FrameDetections | None = None,
+        *,
+        depth=None,
+        color=None,
+        T_world_camera=None,
+        intrinsics=None,
+        name: str | None = None,
+    ) -> bool:
         """Integrates one frame into the global TSDF and, when the detection schedule says the frame is due,
         fuses its `detections`. Returns whether the detections were fused.
 
@@ -211,9 +236,15 @@ class Mapper:
         """
         if self._result is not None:
             raise UserError("this map is finalized: integrate frames before finalize(), or start a new Mapper")
-        frame = as_frame(frame, depth=depth, color=color, T_world_camera=T_world_camera,
-                         intrinsics=self._intrinsics if intrinsics is None else intrinsics,
-                         index=self.frames_integrated, name=name)
+        frame = as_frame(
+            frame,
+            depth=depth,
+            color=color,
+            T_world_camera=T_world_camera,
+            intrinsics=self._intrinsics if intrinsics is None else intrinsics,
+            index=self.frames_integrated,
+            name=name,
+        )
         due = detections is not None and self.detection_due(frame.T_world_camera)
         self._prepare(frame)
         assert self._builder is not None
@@ -295,9 +326,12 @@ class Mapper:
         """Writes the map (state, configs, schedules) to an `.npz` file that `Mapper.load` continues."""
         builder = self._require_builder()
         state = self._result.state if self._result is not None else builder.state
-        progress = {**builder.snapshot(state).progress(), "finalized": self._result is not None,
-                    "grows": self._bounds is None,
-                    "schedule": self._schedule.state()}
+        progress = {
+            **builder.snapshot(state).progress(),
+            "finalized": self._result is not None,
+            "grows": self._bounds is None,
+            "schedule": self._schedule.state(),
+        }
         return write_map_file(path, state, builder.map_config, builder.config, progress)
 
     @classmethod
@@ -334,8 +368,9 @@ class Mapper:
         if self._builder is not None:
             built = self._builder.map_config
             if (height, width) != (built.image_height, built.image_width):
-                raise UserError(f"{frame.name}: image {width}x{height}, the map's frames are "
-                                f"{built.image_width}x{built.image_height}")
+                raise UserError(
+                    f"{frame.name}: image {width}x{height}, the map's frames are {built.image_width}x{built.image_height}"
+                )
             if self._bounds is None:
                 self._grow_for(frame)
             return
@@ -351,8 +386,11 @@ class Mapper:
             map_config = dataclasses.replace(
                 growth.config_for_block_range(layout, lo, hi),
                 block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * len(keys) + 1))),
-                instance_capacity=min(layout.instance_capacity,
-                                      max(MIN_INSTANCE_ROWS, _next_power_of_two(2 * self.config.detections.max_detections))))
+                instance_capacity=min(
+                    layout.instance_capacity,
+                    max(MIN_INSTANCE_ROWS, _next_power_of_two(2 * self.config.detections.max_detections)),
+                ),
+            )
         self._builder = MapBuilder(self.config, map_config, self.label_sets, self._likelihood)
         log.info("map: %s", map_config.describe())
 
@@ -377,13 +415,14 @@ class Mapper:
         if blocks_needed > pool and pool < ceiling.block_capacity:
             pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(blocks_needed)))
         rows = old.instance_capacity
-        if (int(builder.state.instances.valid.sum()) + self.config.detections.max_detections > rows
-                and rows < ceiling.instance_capacity):
+        if (
+            int(builder.state.instances.valid.sum()) + self.config.detections.max_detections > rows
+            and rows < ceiling.instance_capacity
+        ):
             rows = min(ceiling.instance_capacity, 2 * rows)
         if (new_lo == lo).all() and (new_hi == hi).all() and pool == old.block_capacity and rows == old.instance_capacity:
             return
-        new = dataclasses.replace(growth.config_for_block_range(old, new_lo, new_hi), block_capacity=pool,
-                                  instance_capacity=rows)
+        new = dataclasses.replace(growth.config_for_block_range(old, new_lo, new_hi), block_capacity=pool, instance_capacity=rows)
         builder.state = growth.grow_state(builder.state, old, new)
         builder.map_config = new
         self.growths += 1
@@ -393,14 +432,14 @@ class Mapper:
 # ----------------------------------------------------------------------------------------------------
 # Many maps at once.
 
+
 def _tree_where(keep_new: jax.Array, new, old):
     """Per leaf `new if keep_new else old` (`keep_new` a scalar bool: one map of a vmapped batch)."""
     return jax.tree.map(lambda a, b: jnp.where(keep_new, a, b), new, old)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("states",))
-def _batch_frame(states, frames, batches, likelihood, has_frame, has_detections, config: MapConfig,
-                 fusion: step.FusionConfig):
+def _batch_frame(states, frames, batches, likelihood, has_frame, has_detections, config: MapConfig, fusion: step.FusionConfig):
     """One frame for every map of a batch: the detection step where a map has detections, the TSDF alone where
     it has none, nothing where it has no frame. (A detection step with no valid detection integrates the TSDF
     and leaves the voxels' instance slots as they are; only its table, whose missed counts it would advance,
@@ -446,9 +485,16 @@ class MapperBatch:
         batch.mapper(0).instances()                   # map 0 as an ordinary Mapper
     """
 
-    def __init__(self, config: "str | Path | Mapping[str, Any] | PipelineConfig | None", batch_size: int, *,
-                 bounds: "tuple[Sequence[float], Sequence[float]]", image_shape: tuple[int, int],
-                 label_sets: LabelSets | None = None, likelihood: np.ndarray | None = None):
+    def __init__(
+        self,
+        config: "str | Path | Mapping[str, Any] | PipelineConfig | None",
+        batch_size: int,
+        *,
+        bounds: "tuple[Sequence[float], Sequence[float]]",
+        image_shape: tuple[int, int],
+        label_sets: LabelSets | None = None,
+        likelihood: np.ndarray | None = None,
+    ):
         if batch_size < 1:
             raise UserError(f"batch_size must be >= 1, got {batch_size}")
         self.config = as_config(config)
@@ -461,8 +507,9 @@ class MapperBatch:
         self.states = jax.tree.map(lambda leaf: jnp.stack([leaf] * batch_size), single)
         # one builder per map keeps its counts, refinement schedule and capacity warnings; the maps' states
         # live stacked in `states`, so the builders hold none (not even the unbatched initial one: a room's worth)
-        self._builders = [MapBuilder(self.config, self.map_config, self.label_sets, likelihood, state=single)
-                          for _ in range(batch_size)]
+        self._builders = [
+            MapBuilder(self.config, self.map_config, self.label_sets, likelihood, state=single) for _ in range(batch_size)
+        ]
         for builder in self._builders:
             builder.state = None  # type: ignore[assignment]  # never stepped: the batch steps `states`
         del single
@@ -471,15 +518,18 @@ class MapperBatch:
         self._schedules = [DetectionSchedule(self.config) for _ in range(batch_size)]
         self._results: list[FusionResult] | None = None
 
-    def integrate(self, frames: "Sequence[RGBDFrame | None]",
-                  detections: "Sequence[FrameDetections | None] | None" = None) -> list[bool]:
+    def integrate(
+        self, frames: "Sequence[RGBDFrame | None]", detections: "Sequence[FrameDetections | None] | None" = None
+    ) -> list[bool]:
         """Integrates one frame per map (None: that map waits) and fuses each due map's detections.
         Returns, per map, whether its detections were fused."""
         if self._results is not None:
             raise UserError("this batch is finalized: integrate frames before finalize()")
         if len(frames) != self.batch_size or (detections is not None and len(detections) != self.batch_size):
-            raise UserError(f"integrate: expected {self.batch_size} frames and detections (one per map, None to "
-                            f"skip), got {len(frames)} and {len(detections) if detections is not None else 0}")
+            raise UserError(
+                f"integrate: expected {self.batch_size} frames and detections (one per map, None to "
+                f"skip), got {len(frames)} and {len(detections) if detections is not None else 0}"
+            )
         detections = list(detections) if detections is not None else [None] * self.batch_size
         adapter = self._builders[0].adapter
         template = next((f for f in frames if f is not None), None)
@@ -488,15 +538,26 @@ class MapperBatch:
         inputs, batches, has_frame, due = [], [], [], []
         for i, (frame, dets) in enumerate(zip(frames, detections)):
             builder = self._builders[i]
-            fused = (frame is not None and dets is not None
-                     and self._schedules[i].due(builder.frames_integrated, np.asarray(frame.T_world_camera)))
+            fused = (
+                frame is not None
+                and dets is not None
+                and self._schedules[i].due(builder.frames_integrated, np.asarray(frame.T_world_camera))
+            )
             inputs.append(adapter.frame(frame if frame is not None else template))
             batches.append(adapter.detections(dets if fused else None))
             has_frame.append(frame is not None)
             due.append(fused)
         stack = lambda items: jax.tree.map(lambda *leaves: np.stack(leaves), *items)  # noqa: E731
-        self.states, stats = _batch_frame(self.states, stack(inputs), stack(batches), self._likelihood,
-                                          np.array(has_frame), np.array(due), self.map_config, self.fusion_config)
+        self.states, stats = _batch_frame(
+            self.states,
+            stack(inputs),
+            stack(batches),
+            self._likelihood,
+            np.array(has_frame),
+            np.array(due),
+            self.map_config,
+            self.fusion_config,
+        )
         stats = jax.device_get(stats)
         merge_due, geometry_due = np.zeros(self.batch_size, bool), np.zeros(self.batch_size, bool)
         for i, frame in enumerate(frames):
@@ -507,24 +568,22 @@ class MapperBatch:
             self._schedules[i].advance(frame.T_world_camera)
             if due[i]:
                 self._schedules[i].fused(frame.T_world_camera)
-                merge_due[i], geometry_due[i] = builder.record_detection_frame(
-                    jax.tree.map(lambda x, i=i: x[i], stats))
+                merge_due[i], geometry_due[i] = builder.record_detection_frame(jax.tree.map(lambda x, i=i: x[i], stats))
         if merge_due.any():
-            self.states, refine_stats = _batch_refinement(self.states, merge_due, self.map_config, self.fusion_config,
-                                                          "refine")
+            self.states, refine_stats = _batch_refinement(self.states, merge_due, self.map_config, self.fusion_config, "refine")
             refine_stats = jax.device_get(refine_stats)
             for i, frame in enumerate(frames):
                 if merge_due[i] and frame is not None:
                     self._builders[i]._count_refinement(frame.name, jax.tree.map(lambda x, i=i: x[i], refine_stats))
         if geometry_due.any():
-            self.states, _ = _batch_refinement(self.states, geometry_due, self.map_config, self.fusion_config,
-                                               "geometry")
+            self.states, _ = _batch_refinement(self.states, geometry_due, self.map_config, self.fusion_config, "geometry")
         # the overflow counters of every map in one small transfer (not each map's state sliced out)
         counts = jax.device_get(CapacityMonitor.counts_of(self.states))
         for i, frame in enumerate(frames):
             if frame is not None:
-                self._builders[i].monitor.check_counts({name: value[i] for name, value in counts.items()},
-                                                       self.map_config, self._builders[i].frames_integrated)
+                self._builders[i].monitor.check_counts(
+                    {name: value[i] for name, value in counts.items()}, self.map_config, self._builders[i].frames_integrated
+                )
         return due
 
     def finalize(self) -> list[FusionResult]:
@@ -532,8 +591,7 @@ class MapperBatch:
         if self._results is None:
             if self.config.refinement.enabled:
                 everyone = np.ones(self.batch_size, bool)
-                self.states, stats = _batch_refinement(self.states, everyone, self.map_config, self.fusion_config,
-                                                       "finalize")
+                self.states, stats = _batch_refinement(self.states, everyone, self.map_config, self.fusion_config, "finalize")
                 stats = jax.device_get(stats)
                 for i, builder in enumerate(self._builders):
                     builder._count_refinement("final", jax.tree.map(lambda x, i=i: x[i], stats))
@@ -544,8 +602,13 @@ class MapperBatch:
         """Map `index` as an ordinary `Mapper` (a copy: it continues on its own; finalized if the batch is)."""
         builder = self._builders[index]
         mapper = Mapper(self.config, bounds=self._bounds, label_sets=self.label_sets)
-        own = MapBuilder(self.config, self.map_config, self.label_sets, np.asarray(self._likelihood),
-                         state=jax.tree.map(jnp.copy, self._map_state(index)))
+        own = MapBuilder(
+            self.config,
+            self.map_config,
+            self.label_sets,
+            np.asarray(self._likelihood),
+            state=jax.tree.map(jnp.copy, self._map_state(index)),
+        )
         own.restore_progress(builder.snapshot(own.state).progress())
         mapper._builder, mapper._ceiling = own, self.map_config
         mapper._schedule.restore(self._schedules[index].state())

@@ -39,23 +39,38 @@ DetectionSource = Callable[[RGBDFrame], "FrameDetections | None"]
 def build_map_config(config: PipelineConfig, bounds_min, bounds_max, height: int, width: int) -> MapConfig:
     """The engine's static sizes for a scene with these world bounds and image size."""
     return MapConfig.for_bounds(
-        bounds_min, bounds_max, margin=config.tsdf.bounds_margin,
-        voxel_size=config.tsdf.voxel_size, block_size=config.tsdf.block_size, sdf_trunc=config.tsdf.sdf_trunc,
-        depth_max=config.dataset.depth_max, max_weight=config.tsdf.max_weight,
-        block_capacity=config.tsdf.block_capacity, max_touched_blocks=config.tsdf.max_touched_blocks,
-        image_height=height, image_width=width, pixel_stride=config.association.pixel_stride,
-        instance_capacity=config.instances.capacity, instance_slots=config.instances.voxel_slots,
+        bounds_min,
+        bounds_max,
+        margin=config.tsdf.bounds_margin,
+        voxel_size=config.tsdf.voxel_size,
+        block_size=config.tsdf.block_size,
+        sdf_trunc=config.tsdf.sdf_trunc,
+        depth_max=config.dataset.depth_max,
+        max_weight=config.tsdf.max_weight,
+        block_capacity=config.tsdf.block_capacity,
+        max_touched_blocks=config.tsdf.max_touched_blocks,
+        image_height=height,
+        image_width=width,
+        pixel_stride=config.association.pixel_stride,
+        instance_capacity=config.instances.capacity,
+        instance_slots=config.instances.voxel_slots,
     )
 
 
 def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
     lo, hi = config.detections.depth_percentiles
     return step.FusionConfig(
-        association_metric=config.association.metric, association_threshold=config.association.threshold,
-        min_projected_pixels=float(config.association.min_projected_pixels), depth_low=lo, depth_high=hi,
-        label_mode=config.label_fusion.mode, merge_similarity=config.refinement.merge_similarity,
-        merge_overlap=config.refinement.merge_overlap, remove_missed=config.refinement.remove_missed,
-        remove_min_voxels=config.refinement.remove_min_voxels, post_merge_iou=config.export.post_merge_iou,
+        association_metric=config.association.metric,
+        association_threshold=config.association.threshold,
+        min_projected_pixels=float(config.association.min_projected_pixels),
+        depth_low=lo,
+        depth_high=hi,
+        label_mode=config.label_fusion.mode,
+        merge_similarity=config.refinement.merge_similarity,
+        merge_overlap=config.refinement.merge_overlap,
+        remove_missed=config.refinement.remove_missed,
+        remove_min_voxels=config.refinement.remove_min_voxels,
+        post_merge_iou=config.export.post_merge_iou,
         post_merge_similarity=config.export.post_merge_similarity,
         contrary_vote_weight=config.instances.contrary_vote_weight,
         reunite_min_frames=config.refinement.reunite_min_frames,
@@ -68,16 +83,20 @@ def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:
     """A frame as engine arrays; wrong image sizes and non-finite poses are errors naming the frame."""
     expected = (map_config.image_height, map_config.image_width)
     if frame.depth.shape != expected or frame.color.shape[:2] != expected:
-        raise UserError(f"{frame.name}: depth {frame.depth.shape} / colour {frame.color.shape[:2]} differ from "
-                        f"the sequence's image size {expected}")
+        raise UserError(
+            f"{frame.name}: depth {frame.depth.shape} / colour {frame.color.shape[:2]} differ from "
+            f"the sequence's image size {expected}"
+        )
     if not np.all(np.isfinite(frame.T_world_camera)):
         raise UserError(f"{frame.name}: pose is not finite")
     k = frame.intrinsics
     return step.FrameInputs(
-        depth=jnp.asarray(frame.depth, jnp.float32), color=jnp.asarray(frame.color, jnp.uint8),
+        depth=jnp.asarray(frame.depth, jnp.float32),
+        color=jnp.asarray(frame.color, jnp.uint8),
         T_world_camera=jnp.asarray(frame.T_world_camera, jnp.float32),
         intrinsics=jnp.asarray([k.fx, k.fy, k.cx, k.cy], jnp.float32),
-        frame_index=jnp.asarray(frame.index, jnp.int32))
+        frame_index=jnp.asarray(frame.index, jnp.int32),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,8 +113,7 @@ class HostAdapter:
 
     @classmethod
     def for_map(cls, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets) -> HostAdapter:
-        return cls(map_config, tuple(label_sets.open_labels), config.detections.max_detections,
-                   config.detections.min_mask_pixels)
+        return cls(map_config, tuple(label_sets.open_labels), config.detections.max_detections, config.detections.min_mask_pixels)
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -109,8 +127,9 @@ class HostAdapter:
         if detections is None:
             detections = FrameDetections("-", np.zeros((0, *self.image_shape), bool), [], np.zeros((0, 4), np.float32))
         if detections.image_shape != self.image_shape:
-            raise UserError(f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are "
-                            f"{self.image_shape}")
+            raise UserError(
+                f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are {self.image_shape}"
+            )
         return pack_detections(detections, self.open_labels, self.max_detections, self.min_mask_pixels)
 
 
@@ -136,9 +155,10 @@ class StageTimer:
         return float(np.median(samples))
 
     def summary(self) -> dict[str, dict[str, float]]:
-        return {name: {"median_ms": self.median_ms(name), "first_call_ms": first,
-                       "calls": 1 + len(self.samples_ms.get(name, []))}
-                for name, first in self.first_ms.items()}
+        return {
+            name: {"median_ms": self.median_ms(name), "first_call_ms": first, "calls": 1 + len(self.samples_ms.get(name, []))}
+            for name, first in self.first_ms.items()
+        }
 
 
 @dataclasses.dataclass
@@ -155,8 +175,12 @@ class CapacityMonitor:
     def counts_of(state: MapState) -> dict[str, Any]:
         """The four overflow counters of `state` (device scalars; with a leading batch axis for a batch)."""
         blocks = state.blocks
-        return {"dropped_blocks": blocks.dropped_blocks, "touched_overflow": blocks.touched_overflow,
-                "out_of_bounds": blocks.out_of_bounds, "table_overflow": state.instances.overflow}
+        return {
+            "dropped_blocks": blocks.dropped_blocks,
+            "touched_overflow": blocks.touched_overflow,
+            "out_of_bounds": blocks.out_of_bounds,
+            "table_overflow": state.instances.overflow,
+        }
 
     def check(self, state: MapState, map_config: MapConfig, frames_integrated: int) -> None:
         self.check_counts(self.counts_of(state), map_config, frames_integrated)
@@ -164,22 +188,34 @@ class CapacityMonitor:
     def check_counts(self, counts: dict[str, Any], map_config: MapConfig, frames_integrated: int) -> None:
         """Warns about the counters of `counts_of` (one map's) that overflowed for the first time."""
         stride = map_config.alloc_pixel_stride
-        samples = frames_integrated * map_config.alloc_depth_samples * (
-            -(-map_config.image_height // stride)) * (-(-map_config.image_width // stride))
+        samples = (
+            frames_integrated
+            * map_config.alloc_depth_samples
+            * (-(-map_config.image_height // stride))
+            * (-(-map_config.image_width // stride))
+        )
         outside = int(counts["out_of_bounds"])
         counters = {
-            "dropped_blocks": (int(counts["dropped_blocks"]),
-                               f"the voxel block pool is full ({map_config.block_capacity} blocks): raise "
-                               "tsdf.block_capacity; parts of the scene are not mapped"),
-            "touched_overflow": (int(counts["touched_overflow"]),
-                                 f"a frame touched more than {map_config.max_touched_blocks} blocks: raise "
-                                 "tsdf.max_touched_blocks; those blocks were skipped for that frame"),
-            "out_of_bounds": (outside if outside > self.out_of_bounds_tolerance * samples else 0,
-                              f"{outside} of {samples} depth samples fell outside the scene bounds estimated "
-                              "from the poses and depth: raise tsdf.bounds_margin"),
-            "table_overflow": (int(counts["table_overflow"]),
-                               f"the instance table is full ({map_config.instance_capacity} instances): raise "
-                               "instances.capacity; new detections were dropped"),
+            "dropped_blocks": (
+                int(counts["dropped_blocks"]),
+                f"the voxel block pool is full ({map_config.block_capacity} blocks): raise "
+                "tsdf.block_capacity; parts of the scene are not mapped",
+            ),
+            "touched_overflow": (
+                int(counts["touched_overflow"]),
+                f"a frame touched more than {map_config.max_touched_blocks} blocks: raise "
+                "tsdf.max_touched_blocks; those blocks were skipped for that frame",
+            ),
+            "out_of_bounds": (
+                outside if outside > self.out_of_bounds_tolerance * samples else 0,
+                f"{outside} of {samples} depth samples fell outside the scene bounds estimated "
+                "from the poses and depth: raise tsdf.bounds_margin",
+            ),
+            "table_overflow": (
+                int(counts["table_overflow"]),
+                f"the instance table is full ({map_config.instance_capacity} instances): raise "
+                "instances.capacity; new detections were dropped",
+            ),
         }
         for name, (value, message) in counters.items():
             if value > 0 and name not in self.reported:
@@ -202,8 +238,11 @@ class FusionResult:
 
     def progress(self) -> dict:
         """How far fusion got (what a saved map keeps so that `MapBuilder.restore_progress` continues it)."""
-        return {"frames_integrated": self.frames_integrated, "detection_frames": self.detection_frames,
-                "counters": dict(self.counters)}
+        return {
+            "frames_integrated": self.frames_integrated,
+            "detection_frames": self.detection_frames,
+            "counters": dict(self.counters),
+        }
 
 
 class MapBuilder:
@@ -213,9 +252,17 @@ class MapBuilder:
     the capacity warnings; the state itself is an immutable pytree replaced on every step.
     """
 
-    def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None,
-                 likelihood: np.ndarray | jax.Array | None = None, state: MapState | None = None, *,
-                 timer: StageTimer | None = None, fuse_detections: Callable[..., Any] = step.fuse_detections):
+    def __init__(
+        self,
+        config: PipelineConfig,
+        map_config: MapConfig,
+        label_sets: LabelSets | None = None,
+        likelihood: np.ndarray | jax.Array | None = None,
+        state: MapState | None = None,
+        *,
+        timer: StageTimer | None = None,
+        fuse_detections: Callable[..., Any] = step.fuse_detections,
+    ):
         """`state`: start from this map (e.g. `map_file.load_map`) instead of an empty one; it must have
         been made with the same `map_config`. Its buffers are donated to the first step.
 
@@ -246,19 +293,26 @@ class MapBuilder:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.map_config)
         else:
             batch = adapter.detections(detections)
-            self.state, stats = self.timer.run("fusion", self.fuse_detections, self.state, inputs, batch,
-                                               self.likelihood, self.map_config, self.fusion_config)
+            self.state, stats = self.timer.run(
+                "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.map_config, self.fusion_config
+            )
             stats = jax.device_get(stats)  # one transfer for the counters and the log line
             merge_due, geometry_due = self.record_detection_frame(stats)
-            log.info("%s: %d detections, %d matched, %d new instances, %d in view", frame.name,
-                     int(stats.detections), int(stats.matched), int(stats.created), int(stats.in_view))
+            log.info(
+                "%s: %d detections, %d matched, %d new instances, %d in view",
+                frame.name,
+                int(stats.detections),
+                int(stats.matched),
+                int(stats.created),
+                int(stats.in_view),
+            )
             if merge_due:
-                self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.map_config,
-                                                          self.fusion_config)
+                self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.map_config, self.fusion_config)
                 self._count_refinement(frame.name, refine_stats)
             if geometry_due:
-                self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.map_config,
-                                            self.fusion_config)
+                self.state = self.timer.run(
+                    "geometry_fusion", step.fuse_geometry, self.state, self.map_config, self.fusion_config
+                )
         self.frames_integrated += 1
         self.monitor.check(self.state, self.map_config, self.frames_integrated)
 
@@ -274,8 +328,10 @@ class MapBuilder:
         for name in ("created", "matched", "detections"):
             self.counters[name] += int(getattr(stats, name))
         refinement = self.config.refinement
-        return (refinement.enabled and self.detection_frames % refinement.merge_every == 0,
-                refinement.enabled and self.detection_frames % refinement.geometry_fusion_every == 0)
+        return (
+            refinement.enabled and self.detection_frames % refinement.merge_every == 0,
+            refinement.enabled and self.detection_frames % refinement.geometry_fusion_every == 0,
+        )
 
     def _count_refinement(self, where: str, stats: step.RefineStats) -> None:
         removed, merged = int(stats.removed), int(stats.merged)
@@ -286,8 +342,16 @@ class MapBuilder:
 
     def snapshot(self, state: MapState) -> FusionResult:
         """`state` (this builder's, or a copy of it) with the builder's configs, timings and counts."""
-        return FusionResult(state, self.map_config, self.fusion_config, self.config, self.timer,
-                            self.frames_integrated, self.detection_frames, dict(self.counters))
+        return FusionResult(
+            state,
+            self.map_config,
+            self.fusion_config,
+            self.config,
+            self.timer,
+            self.frames_integrated,
+            self.detection_frames,
+            dict(self.counters),
+        )
 
     def restore_progress(self, progress: dict) -> None:
         """Continues the counts of a saved map (`FusionResult.progress`): frames, detection frames, counters."""
@@ -298,8 +362,7 @@ class MapBuilder:
     def result(self) -> FusionResult:
         """Finalizes (geometry fusion and post-merge when refinement is on) and returns the map."""
         if self.config.refinement.enabled:
-            self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.map_config,
-                                               self.fusion_config)
+            self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.map_config, self.fusion_config)
             self._count_refinement("final", stats)
         return self.snapshot(self.state)
 
@@ -334,7 +397,7 @@ class DetectionSchedule:
 
     def __init__(self, config: PipelineConfig):
         self.detections = config.detections
-        self._last_pose: np.ndarray | None = None      # T_world_camera of the last detection frame fused
+        self._last_pose: np.ndarray | None = None  # T_world_camera of the last detection frame fused
         self._previous_pose: np.ndarray | None = None  # T_world_camera of the last frame read
         self._steps: collections.deque[float] = collections.deque(maxlen=self.RATE_WINDOW)
 
@@ -373,14 +436,19 @@ class DetectionSchedule:
         """Camera motion from a to b in detection steps: 1.0 = `min_translation` or `min_rotation`."""
         metres, degrees = camera_motion(T_world_a, T_world_b)
         det = self.detections
-        return max(metres / det.min_translation if det.min_translation > 0 else np.inf,
-                   degrees / det.min_rotation if det.min_rotation > 0 else np.inf)
+        return max(
+            metres / det.min_translation if det.min_translation > 0 else np.inf,
+            degrees / det.min_rotation if det.min_rotation > 0 else np.inf,
+        )
 
     def state(self) -> dict[str, Any]:
         """The schedule's memory as plain JSON values (for saved maps)."""
         pose = lambda p: None if p is None else np.asarray(p).tolist()  # noqa: E731
-        return {"last_detection_pose": pose(self._last_pose), "previous_pose": pose(self._previous_pose),
-                "steps": list(self._steps)}
+        return {
+            "last_detection_pose": pose(self._last_pose),
+            "previous_pose": pose(self._previous_pose),
+            "steps": list(self._steps),
+        }
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continues from `state()` (a map saved before the schedule kept its rate has the detection pose only)."""
@@ -390,8 +458,9 @@ class DetectionSchedule:
         self._steps = collections.deque((float(s) for s in state.get("steps", [])), maxlen=self.RATE_WINDOW)
 
 
-def scheduled_detections(frames: Iterable[RGBDFrame], detection_source: DetectionSource,
-                         config: PipelineConfig) -> Iterator[tuple[RGBDFrame, "FrameDetections | None"]]:
+def scheduled_detections(
+    frames: Iterable[RGBDFrame], detection_source: DetectionSource, config: PipelineConfig
+) -> Iterator[tuple[RGBDFrame, "FrameDetections | None"]]:
     """`(frame, detections or None)` for every frame, the detections read only on due frames
     (`DetectionSchedule`)."""
     schedule = DetectionSchedule(config)
@@ -403,8 +472,12 @@ def scheduled_detections(frames: Iterable[RGBDFrame], detection_source: Detectio
         yield frame, detections
 
 
-def fuse_sequence(frames: Iterable[RGBDFrame], detection_source: DetectionSource, builder: MapBuilder,
-                  progress: Callable[[int], None] | None = None) -> FusionResult:
+def fuse_sequence(
+    frames: Iterable[RGBDFrame],
+    detection_source: DetectionSource,
+    builder: MapBuilder,
+    progress: Callable[[int], None] | None = None,
+) -> FusionResult:
     """Runs the loop over `frames` and returns the finalized map."""
     for frame, detections in scheduled_detections(frames, detection_source, builder.config):
         builder.add_frame(frame, detections)
@@ -413,22 +486,29 @@ def fuse_sequence(frames: Iterable[RGBDFrame], detection_source: DetectionSource
     return builder.result()
 
 
-def extract_map_instances(result: FusionResult, label_sets: LabelSets | None = None,
-                          postprocess: bool = True) -> list[MapInstance]:
+def extract_map_instances(
+    result: FusionResult, label_sets: LabelSets | None = None, postprocess: bool = True
+) -> list[MapInstance]:
     """The map's instances as host-side objects, post-processed as the reference does before export."""
     label_sets = label_sets or load_label_sets()
     state = jax.device_get(result.state)
     distribution = np.asarray(step.class_distribution(result.state, result.fusion_config))
     export = result.config.export
-    points = extraction.extract_instance_points(state, result.map_config, min_weight=export.min_weight,
-                                                min_share=export.min_slot_share)
+    points = extraction.extract_instance_points(
+        state, result.map_config, min_weight=export.min_weight, min_share=export.min_slot_share
+    )
     table = state.instances
     instances = [
-        MapInstance(instance_id=int(k), distribution=distribution[k], points=np.asarray(points[int(k)], np.float32),
-                    observations=int(table.observations[k]),
-                    open_label_histogram=np.asarray(table.open_label_histogram[k]),
-                    support=observation_support(int(table.observations[k]), result.config.export.support_observations))
-        for k in np.flatnonzero(np.asarray(table.valid)) if k in points
+        MapInstance(
+            instance_id=int(k),
+            distribution=distribution[k],
+            points=np.asarray(points[int(k)], np.float32),
+            observations=int(table.observations[k]),
+            open_label_histogram=np.asarray(table.open_label_histogram[k]),
+            support=observation_support(int(table.observations[k]), result.config.export.support_observations),
+        )
+        for k in np.flatnonzero(np.asarray(table.valid))
+        if k in points
     ]
     if postprocess:
         instances = postprocess_instances(instances, label_sets, result.config.export)

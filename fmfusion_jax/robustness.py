@@ -80,12 +80,15 @@ _REFERENCE_AREA = 640 * 480
 # --------------------------------------------------------------------------------------------------
 # Noise of each (scene, zoo entry), and its cache name.
 
+
 def scale_noise_to_image(noise, width: int, height: int):
     """`noise` with its pixel-count parameters scaled from 640x480 to `width x height`, as `demo.demo_noise`
     scales the default model's (generated rooms may be rendered smaller)."""
     area_scale = (width * height) / _REFERENCE_AREA
-    return noise.replace(min_mask_pixels=max(10, round(noise.min_mask_pixels * area_scale)),
-                         small_object_pixels=max(20, round(noise.small_object_pixels * area_scale)))
+    return noise.replace(
+        min_mask_pixels=max(10, round(noise.min_mask_pixels * area_scale)),
+        small_object_pixels=max(20, round(noise.small_object_pixels * area_scale)),
+    )
 
 
 def entry_noise(source: SceneSource, entry: ZooEntry, variant: str = DETECTIONS_DEFAULT):
@@ -108,6 +111,7 @@ def detections_tag(entry_name: str, noise) -> str:
 
 # --------------------------------------------------------------------------------------------------
 # Summaries (pure functions of the pooled scores).
+
 
 def family_order(entries: Sequence[ZooEntry]) -> list[str]:
     """The families present, in report order (`FAMILIES`, then `MIXED`, then any other)."""
@@ -182,10 +186,13 @@ def family_rows(summary: dict, methods: Sequence[str], metric: str = "AP50") -> 
     rows = []
     for family, info in first.items():
         if len(info["entries"]) > 1:
-            rows.append((f"{family} (mean of {len(info['entries'])})",
-                         {m: summary[m]["families"][family]["mean"][metric] for m in methods}))
-            rows.append((f"{family} (worst)", {m: summary[m]["families"][family]["worst"][metric]["value"]
-                                               for m in methods}))
+            rows.append(
+                (
+                    f"{family} (mean of {len(info['entries'])})",
+                    {m: summary[m]["families"][family]["mean"][metric] for m in methods},
+                )
+            )
+            rows.append((f"{family} (worst)", {m: summary[m]["families"][family]["worst"][metric]["value"] for m in methods}))
         else:
             rows.append((family, {m: summary[m]["families"][family]["mean"][metric] for m in methods}))
     rows.append(("mean", {m: summary[m]["mean"][metric] for m in methods}))
@@ -193,18 +200,21 @@ def family_rows(summary: dict, methods: Sequence[str], metric: str = "AP50") -> 
     return rows
 
 
-def verdict(summary: dict, methods: Sequence[str], metric: str = "AP50", new: str = "full",
-            old: str = "previous") -> dict:
+def verdict(summary: dict, methods: Sequence[str], metric: str = "AP50", new: str = "full", old: str = "previous") -> dict:
     """Who wins on the mean, on the worst entry and on each family (`metric`), and whether `new` beats
     `old` (strictly) on every family; `where_not` lists the families where it does not."""
+
     def winners(get):
         return best_methods({m: get(m) for m in methods})
 
-    record = {"metric": metric,
-              "mean": winners(lambda m: summary[m]["mean"][metric]),
-              "worst": winners(lambda m: summary[m]["worst"][metric]["value"]),
-              "families": {f: winners(lambda m, f=f: summary[m]["families"][f]["mean"][metric])
-                           for f in summary[methods[0]]["families"]}}
+    record = {
+        "metric": metric,
+        "mean": winners(lambda m: summary[m]["mean"][metric]),
+        "worst": winners(lambda m: summary[m]["worst"][metric]["value"]),
+        "families": {
+            f: winners(lambda m, f=f: summary[m]["families"][f]["mean"][metric]) for f in summary[methods[0]]["families"]
+        },
+    }
     if new in methods and old in methods:
         where_not = []
         for family in summary[new]["families"]:
@@ -219,6 +229,7 @@ def verdict(summary: dict, methods: Sequence[str], metric: str = "AP50", new: st
 # --------------------------------------------------------------------------------------------------
 # Reports.
 
+
 def _pct(value: float | None) -> str:
     return "-" if value is None or math.isnan(value) else f"{100 * value:.1f}"
 
@@ -230,8 +241,10 @@ def entries_table(entries: Sequence[ZooEntry], scores: dict, summary: dict, meth
     rows = []
     for family in family_order(entries):
         for i, entry in enumerate(e for e in entries if e.family == family):
-            rows.append([family if i == 0 else "", entry.name]
-                        + [_pct(scores[entry.name][m.name][metric]) for m in methods for metric, _ in METRICS])
+            rows.append(
+                [family if i == 0 else "", entry.name]
+                + [_pct(scores[entry.name][m.name][metric]) for m in methods for metric, _ in METRICS]
+            )
     rows.append(["**mean**", ""] + [_pct(summary[m.name]["mean"][metric]) for m in methods for metric, _ in METRICS])
     worst = [summary[m.name]["worst"][metric] for m in methods for metric, _ in METRICS]
     rows.append(["**worst**", ""] + [f"{_pct(w['value'])} ({w['entry']})" if w["entry"] else "-" for w in worst])
@@ -252,16 +265,16 @@ def verdict_lines(record: dict) -> list[str]:
     """The verdict as sentences."""
     metric = record["metric"]
     join = lambda names: " = ".join(names) if names else "-"  # noqa: E731 - ties are shown as equals
-    lines = [f"- Best {metric} on the mean over the zoo: {join(record['mean'])}; on the worst entry: "
-             f"{join(record['worst'])}.",
-             "- Best per family: " + ", ".join(f"{f}: {join(w)}" for f, w in record["families"].items()) + "."]
+    lines = [
+        f"- Best {metric} on the mean over the zoo: {join(record['mean'])}; on the worst entry: {join(record['worst'])}.",
+        "- Best per family: " + ", ".join(f"{f}: {join(w)}" for f, w in record["families"].items()) + ".",
+    ]
     beats = record.get("beats")
     if beats:
         new, old = beats["new"], beats["old"]
         line = f"- {new} beats {old} on every family ({metric}): {'yes' if beats['every_family'] else 'no'}"
         if beats["where_not"]:
-            line += ", where not: " + ", ".join(f"{w['family']} ({_pct(w[new])} vs {_pct(w[old])})"
-                                                 for w in beats["where_not"])
+            line += ", where not: " + ", ".join(f"{w['family']} ({_pct(w[new])} vs {_pct(w[old])})" for w in beats["where_not"])
         lines.append(line + ".")
     return lines
 
@@ -279,58 +292,75 @@ def noise_table(entries: Sequence[ZooEntry]) -> str:
     return _markdown_table(header, rows) if rows else "(every entry is the default preset)"
 
 
-def robustness_markdown(entries: Sequence[ZooEntry], scores: dict, summary: dict, verdict_record: dict,
-                        methods: Sequence[Method], scenes: Sequence[dict], noise_seed: int,
-                        seconds: float, runs: int) -> str:
+def robustness_markdown(
+    entries: Sequence[ZooEntry],
+    scores: dict,
+    summary: dict,
+    verdict_record: dict,
+    methods: Sequence[Method],
+    scenes: Sequence[dict],
+    noise_seed: int,
+    seconds: float,
+    runs: int,
+) -> str:
     """robustness.md."""
     scene_lines = []
     for s in scenes:
-        what = ("real ScanNet scene" if s["kind"] == "real"
-                else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
-                     f"{s['spec']['width']}x{s['spec']['height']}")
+        what = (
+            "real ScanNet scene"
+            if s["kind"] == "real"
+            else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
+            f"{s['spec']['width']}x{s['spec']['height']}"
+        )
         scene_lines.append(f"- `{s['name']}`: {what}, {s['frames']} frames, config {s['config']}")
-    return "\n".join([
-        "# Robustness to detection noise",
-        "",
-        f"Methods: {', '.join(f'`{m.name}` ({m.title})' for m in methods)}. Zoo: {len(entries)} noise models "
-        f"(`simulation.zoo.noise_zoo`, seed {noise_seed}), detections simulated on every frame of "
-        f"{len(scenes)} scene{'' if len(scenes) == 1 else 's'}. Per entry the runs are pooled over the scenes by the "
-        "ScanNet benchmark; "
-        "AP in %.",
-        "",
-        "## Scores per zoo entry",
-        "",
-        entries_table(entries, scores, summary, methods),
-        "",
-        "## AP50 per family (best in bold)",
-        "",
-        family_table(summary, methods),
-        "",
-        *verdict_lines(verdict_record),
-        "",
-        "## Scenes and noise models",
-        "",
-        *scene_lines,
-        "",
-        "<details><summary>Noise parameters of each zoo entry (those differing from the default preset)"
-        "</summary>",
-        "",
-        noise_table(entries),
-        "",
-        "</details>",
-        "",
-        f"{runs} runs in {seconds:.0f} s ({seconds / max(runs, 1):.1f} s per run with simulation and scoring; "
-        "timings per run in robustness.json).",
-        "",
-    ])
+    return "\n".join(
+        [
+            "# Robustness to detection noise",
+            "",
+            f"Methods: {', '.join(f'`{m.name}` ({m.title})' for m in methods)}. Zoo: {len(entries)} noise models "
+            f"(`simulation.zoo.noise_zoo`, seed {noise_seed}), detections simulated on every frame of "
+            f"{len(scenes)} scene{'' if len(scenes) == 1 else 's'}. Per entry the runs are pooled over the scenes by the "
+            "ScanNet benchmark; "
+            "AP in %.",
+            "",
+            "## Scores per zoo entry",
+            "",
+            entries_table(entries, scores, summary, methods),
+            "",
+            "## AP50 per family (best in bold)",
+            "",
+            family_table(summary, methods),
+            "",
+            *verdict_lines(verdict_record),
+            "",
+            "## Scenes and noise models",
+            "",
+            *scene_lines,
+            "",
+            "<details><summary>Noise parameters of each zoo entry (those differing from the default preset)</summary>",
+            "",
+            noise_table(entries),
+            "",
+            "</details>",
+            "",
+            f"{runs} runs in {seconds:.0f} s ({seconds / max(runs, 1):.1f} s per run with simulation and scoring; "
+            "timings per run in robustness.json).",
+            "",
+        ]
+    )
 
 
 # Colours (BGR) of the bars, one per method in order.
 _PALETTE = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140))
 
 
-def bar_chart(groups: Sequence[str], series: Mapping[str, Sequence[float | None]], title: str,
-              height: int = 420, separator_before: int | None = None) -> np.ndarray:
+def bar_chart(
+    groups: Sequence[str],
+    series: Mapping[str, Sequence[float | None]],
+    title: str,
+    height: int = 420,
+    separator_before: int | None = None,
+) -> np.ndarray:
     """`(H, W, 3)` uint8 BGR grouped bar chart: one group per name of `groups`, one bar per series (values
     fractions in [0, 1], shown in %; None: no bar), with a 0-100 % axis and a legend; a vertical line
     before group `separator_before` (the summaries)."""
@@ -354,8 +384,9 @@ def bar_chart(groups: Sequence[str], series: Mapping[str, Sequence[float | None]
             if value is None or math.isnan(value):
                 continue
             x = x0 + s * bar_w
-            cv2.rectangle(image, (x, y_of(min(max(value, 0.0), 1.0))), (x + bar_w - 2, y_of(0.0)),
-                          _PALETTE[s % len(_PALETTE)], -1)
+            cv2.rectangle(
+                image, (x, y_of(min(max(value, 0.0), 1.0))), (x + bar_w - 2, y_of(0.0)), _PALETTE[s % len(_PALETTE)], -1
+            )
         # group names written at a slant would need rotation; two lines of short text read well enough
         label, second = (group, "") if len(group) <= 10 else (group[:10], group[10:20])
         cv2.putText(image, label, (x0, height - bottom + 16), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
@@ -377,13 +408,16 @@ def bar_chart(groups: Sequence[str], series: Mapping[str, Sequence[float | None]
 def robustness_chart(entries: Sequence[ZooEntry], scores: dict, summary: dict, methods: Sequence[str]) -> np.ndarray:
     """AP50 per zoo entry and method, then the zoo's mean and worst."""
     groups = [e.name for e in entries] + ["mean", "worst"]
-    series = {m: [scores[e.name][m]["AP50"] for e in entries]
-              + [summary[m]["mean"]["AP50"], summary[m]["worst"]["AP50"]["value"]] for m in methods}
+    series = {
+        m: [scores[e.name][m]["AP50"] for e in entries] + [summary[m]["mean"]["AP50"], summary[m]["worst"]["AP50"]["value"]]
+        for m in methods
+    }
     return bar_chart(groups, series, "AP50 (%) per noise model of the zoo", separator_before=len(entries))
 
 
 # --------------------------------------------------------------------------------------------------
 # Running.
+
 
 def cache_frames(scene, max_bytes: int = FRAME_CACHE_BYTES) -> bool:
     """Decodes every frame of `scene` once and serves later reads from memory (read-only arrays, so a
@@ -428,15 +462,27 @@ def open_source(source: SceneSource, cache_dir: Path, config, progress: bool) ->
         assert source.spec is not None  # a generated scene has its spec
         scene_dir = generated_scene(source.spec, cache_dir, progress)
     dataset = config.dataset
-    scene = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
-                       depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
+    scene = open_scene(
+        scene_dir,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=dataset.max_frames,
+    )
     gt = load_scannet_ground_truth(scene_dir)
     cached = cache_frames(scene)
-    record = {"name": source.name, "kind": source.kind, "scene_dir": str(scene_dir), "frames": len(scene),
-              "gt_vertices": int(gt.num_vertices), "frames_cached": cached,
-              "spec": dataclasses.asdict(source.spec) if source.spec else None,
-              "config": REAL_SCENE_CONFIG if source.kind == "real" else "demo (scaled to the scene)",
-              "detections": {}}
+    record = {
+        "name": source.name,
+        "kind": source.kind,
+        "scene_dir": str(scene_dir),
+        "frames": len(scene),
+        "gt_vertices": int(gt.num_vertices),
+        "frames_cached": cached,
+        "spec": dataclasses.asdict(source.spec) if source.spec else None,
+        "config": REAL_SCENE_CONFIG if source.kind == "real" else "demo (scaled to the scene)",
+        "detections": {},
+    }
     return OpenedScene(source, scene, gt, gt.benchmark_ids(), record)
 
 
@@ -453,8 +499,7 @@ def entry_detections(opened: OpenedScene, entry: ZooEntry, variant: str, cache_d
     else:
         assert source.spec is not None  # a generated scene has its spec
         prepared = prepare_generated(source.spec, cache_dir, noise, 1, tag, progress)
-    opened.record["detections"][f"{entry.name}/{variant}"] = {"dir": str(prepared.detections_dir),
-                                                              "noise": noise.to_dict()}
+    opened.record["detections"][f"{entry.name}/{variant}"] = {"dir": str(prepared.detections_dir), "noise": noise.to_dict()}
     return prepared.detections_dir
 
 
@@ -463,8 +508,13 @@ def _copy_run(outcome: RunOutcome, method: Method, same_as: str, src: Path, dst:
     _replace_run_dir(dst)
     shutil.rmtree(dst)
     shutil.copytree(src, dst)
-    summary = {**outcome.summary, "method": method.name, "title": method.title,
-               "overrides": list(method.overrides), "same_run_as": same_as}
+    summary = {
+        **outcome.summary,
+        "method": method.name,
+        "title": method.title,
+        "overrides": list(method.overrides),
+        "same_run_as": same_as,
+    }
     (dst / RUN_RECORD).write_text(json.dumps(summary, indent=1, default=float))
     return RunOutcome(outcome.predictions, summary, outcome.score)
 
@@ -491,17 +541,32 @@ class RobustnessResult:
     @property
     def text(self) -> str:
         """What the command prints: the per-family table, the verdict and where the files are."""
-        return "\n".join([family_table(self.summary, self.methods), "", *verdict_lines(self.verdict), "",
-                          f"written: {self.out_dir / 'robustness.md'}, {self.out_dir / 'robustness.json'}, "
-                          f"{self.out_dir / 'robustness.png'}, runs in {self.out_dir / 'runs'}"])
+        return "\n".join(
+            [
+                family_table(self.summary, self.methods),
+                "",
+                *verdict_lines(self.verdict),
+                "",
+                f"written: {self.out_dir / 'robustness.md'}, {self.out_dir / 'robustness.json'}, "
+                f"{self.out_dir / 'robustness.png'}, runs in {self.out_dir / 'runs'}",
+            ]
+        )
 
 
-def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str | Path] = (),
-                   generated: Sequence[GeneratedSceneSpec] = (), methods: Sequence[str] | None = None,
-                   entries: Sequence[ZooEntry] | None = None, noise_seed: int = 0, mixed: int = DEFAULT_MIXED,
-                   cache_dir: str | Path | None = None, overrides: Sequence[str] = (),
-                   real_max_frames: int | None = None, progress: bool = True,
-                   report: Callable[[str], None] | None = None) -> RobustnessResult:
+def run_robustness(
+    out_dir: str | Path = DEFAULT_OUT,
+    real_scenes: Sequence[str | Path] = (),
+    generated: Sequence[GeneratedSceneSpec] = (),
+    methods: Sequence[str] | None = None,
+    entries: Sequence[ZooEntry] | None = None,
+    noise_seed: int = 0,
+    mixed: int = DEFAULT_MIXED,
+    cache_dir: str | Path | None = None,
+    overrides: Sequence[str] = (),
+    real_max_frames: int | None = None,
+    progress: bool = True,
+    report: Callable[[str], None] | None = None,
+) -> RobustnessResult:
     """Runs every method on every (scene, zoo entry), scores and summarizes them, and writes the reports.
 
     Args:
@@ -550,11 +615,9 @@ def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
             detections = {}
             for method in chosen:
                 if method.detections not in detections:
-                    what = ("detections" if method.detections == DETECTIONS_DEFAULT
-                            else "detections without prompt augmentation")
+                    what = "detections" if method.detections == DETECTIONS_DEFAULT else "detections without prompt augmentation"
                     report(f"{source.name} / {entry.name}: {what} (simulated once, cached in {cache_dir})")
-                    detections[method.detections] = entry_detections(opened, entry, method.detections, cache_dir,
-                                                                      progress=False)
+                    detections[method.detections] = entry_detections(opened, entry, method.detections, cache_dir, progress=False)
                 config = source.config(list(overrides) + list(method.overrides), real_max_frames)
                 run_dir = out_dir / "runs" / source.name / entry.name / method.name
                 key = (method.baseline, method.detections, config.to_yaml())
@@ -562,18 +625,24 @@ def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
                     other = seen[key]
                     outcome = _copy_run(outcomes[other], method, other, run_dir.parent / other, run_dir)
                 else:
-                    outcome = run_method(method, opened.scene, detections[method.detections], config, opened.gt,
-                                         run_dir, progress=False)
+                    outcome = run_method(
+                        method, opened.scene, detections[method.detections], config, opened.gt, run_dir, progress=False
+                    )
                     seen[key] = method.name
                 outcomes[method.name] = outcome
                 timings[source.name][f"{entry.name}/{method.name}"] = outcome.summary["seconds"]["total"]
                 done += 1
                 elapsed = time.perf_counter() - start
-                what = (f"{outcome.summary['seconds']['total']:.1f} s" if seen[key] == method.name
-                        else f"same config and detections as {seen[key]}, map copied")
-                report(f"[{done}/{total}] {source.name} / {entry.name} / {method.name}: {what}, "
-                       f"mAP50 {_pct(outcome.score.mAP50)} %; elapsed {_duration(elapsed)}, "
-                       f"ETA {_duration(elapsed / done * (total - done))}")
+                what = (
+                    f"{outcome.summary['seconds']['total']:.1f} s"
+                    if seen[key] == method.name
+                    else f"same config and detections as {seen[key]}, map copied"
+                )
+                report(
+                    f"[{done}/{total}] {source.name} / {entry.name} / {method.name}: {what}, "
+                    f"mAP50 {_pct(outcome.score.mAP50)} %; elapsed {_duration(elapsed)}, "
+                    f"ETA {_duration(elapsed / done * (total - done))}"
+                )
         scene_records.append(opened.record)
         del opened  # its frames and ground truth are not needed any more
 
@@ -581,28 +650,36 @@ def run_robustness(out_dir: str | Path = DEFAULT_OUT, real_scenes: Sequence[str 
     scores, pooled_json, per_scene_ap50 = {}, {}, {}
     for entry in entries:
         pooled, per_scene = score_methods(chosen, scene_names, gt_ids, runs[entry.name])
-        scores[entry.name] = {m.name: {metric: _as_fraction(getattr(pooled[m.name], attr)) for metric, attr in METRICS}
-                              for m in chosen}
+        scores[entry.name] = {
+            m.name: {metric: _as_fraction(getattr(pooled[m.name], attr)) for metric, attr in METRICS} for m in chosen
+        }
         pooled_json[entry.name] = {m.name: pooled[m.name].to_json_dict() for m in chosen}
-        per_scene_ap50[entry.name] = {s: {m.name: _as_fraction(per_scene[s][m.name].mAP50) for m in chosen}
-                                      for s in scene_names}
+        per_scene_ap50[entry.name] = {s: {m.name: _as_fraction(per_scene[s][m.name].mAP50) for m in chosen} for s in scene_names}
     method_names = [m.name for m in chosen]
     summary = summarize(entries, scores, method_names)
     verdict_record = verdict(summary, method_names)
     seconds = round(time.perf_counter() - start, 1)
     record = {
-        "noise_seed": entries[0].noise.seed, "mixed": sum(e.family == MIXED for e in entries),
-        "overrides": list(overrides), "real_max_frames": real_max_frames,
+        "noise_seed": entries[0].noise.seed,
+        "mixed": sum(e.family == MIXED for e in entries),
+        "overrides": list(overrides),
+        "real_max_frames": real_max_frames,
         "methods": {m.name: dataclasses.asdict(m) for m in chosen},
         "zoo": [{"name": e.name, "family": e.family, "noise": e.noise.to_dict()} for e in entries],
         "scenes": scene_records,
-        "scores": scores, "per_scene_ap50": per_scene_ap50, "pooled": pooled_json,
-        "summary": summary, "verdict": verdict_record,
-        "timings_s": timings, "runs": total, "total_seconds": seconds,
+        "scores": scores,
+        "per_scene_ap50": per_scene_ap50,
+        "pooled": pooled_json,
+        "summary": summary,
+        "verdict": verdict_record,
+        "timings_s": timings,
+        "runs": total,
+        "total_seconds": seconds,
         "units": "AP as fractions in [0, 1] (null: no score); robustness.md gives them in %",
     }
-    markdown = robustness_markdown(entries, scores, summary, verdict_record, chosen, scene_records,
-                                   entries[0].noise.seed, seconds, total)
+    markdown = robustness_markdown(
+        entries, scores, summary, verdict_record, chosen, scene_records, entries[0].noise.seed, seconds, total
+    )
     write_reports(out_dir, markdown, record, robustness_chart(entries, scores, summary, method_names))
     log.info("robustness evaluation written into %s (%.1f s)", out_dir, seconds)
     return RobustnessResult(out_dir, entries, chosen, scores, summary, verdict_record, markdown, record)

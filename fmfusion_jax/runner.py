@@ -59,9 +59,14 @@ class Checkpoint:
         """Writes the map, then the info that names it (each atomically: a crash leaves the previous pair)."""
         self.folder.mkdir(parents=True, exist_ok=True)
         mapper.save(self.folder / self.MAP_FILE)
-        info = {"scene": str(scene.path), "frames": len(scene), "position": position,
-                "frames_integrated": mapper.frames_integrated, "skipped": [list(item) for item in skipped],
-                "config": mapper.config.to_dict()}
+        info = {
+            "scene": str(scene.path),
+            "frames": len(scene),
+            "position": position,
+            "frames_integrated": mapper.frames_integrated,
+            "skipped": [list(item) for item in skipped],
+            "config": mapper.config.to_dict(),
+        }
         partial = self.folder / (self.INFO_FILE + ".partial")
         partial.write_text(json.dumps(info, indent=1))
         partial.replace(self.folder / self.INFO_FILE)
@@ -81,8 +86,16 @@ class SceneFusion:
     fuses.
     """
 
-    def __init__(self, scene: Scene, detection_source: DetectionSource, config: PipelineConfig, *,
-                 on_error: str = "skip", checkpoint: Checkpoint | None = None, resume: bool = False):
+    def __init__(
+        self,
+        scene: Scene,
+        detection_source: DetectionSource,
+        config: PipelineConfig,
+        *,
+        on_error: str = "skip",
+        checkpoint: Checkpoint | None = None,
+        resume: bool = False,
+    ):
         from fmfusion_jax.mapper import Mapper
 
         if on_error not in ON_ERROR_POLICIES:
@@ -99,12 +112,16 @@ class SceneFusion:
                 raise UserError(f"nothing to resume: no checkpoint in {checkpoint.folder if checkpoint else '-'}")
             info = checkpoint.info()
             if info.get("config") != config.to_dict():
-                raise UserError(f"{checkpoint.folder / checkpoint.INFO_FILE}: the checkpoint was made with another "
-                                "config; resume with the same --config and --set values")
+                raise UserError(
+                    f"{checkpoint.folder / checkpoint.INFO_FILE}: the checkpoint was made with another "
+                    "config; resume with the same --config and --set values"
+                )
             if info.get("frames") != len(scene) or Path(info.get("scene", "")).name != scene.name:
-                raise UserError(f"{checkpoint.folder / checkpoint.INFO_FILE}: the checkpoint is of "
-                                f"{info.get('scene')} ({info.get('frames')} frames), not of {scene.path} "
-                                f"({len(scene)} frames)")
+                raise UserError(
+                    f"{checkpoint.folder / checkpoint.INFO_FILE}: the checkpoint is of "
+                    f"{info.get('scene')} ({info.get('frames')} frames), not of {scene.path} "
+                    f"({len(scene)} frames)"
+                )
             self.mapper = Mapper.load(checkpoint.folder / checkpoint.MAP_FILE)
             self.position = int(info["position"])
             self.skipped = [(str(name), str(reason)) for name, reason in info.get("skipped", [])]
@@ -114,8 +131,7 @@ class SceneFusion:
             check_depth_units(scene, sample)
             self.mapper = Mapper(config, bounds=scene.bounds(sample=sample))
 
-    def run(self, progress: Callable[[int], None] | None = None,
-            should_stop: Callable[[], bool] | None = None) -> bool:
+    def run(self, progress: Callable[[int], None] | None = None, should_stop: Callable[[], bool] | None = None) -> bool:
         """Fuses the frames from `position` on; True when the scene is done, False when `should_stop()` said
         stop (checked between frames; a checkpoint is written then, when the run has one)."""
         if progress and self.position:
@@ -129,16 +145,22 @@ class SceneFusion:
             self.position += 1
             if progress:
                 progress(1)
-            if self.checkpoint is not None and self.checkpoint.every and self.position % self.checkpoint.every == 0 \
-                    and self.position < len(self.scene):
+            if (
+                self.checkpoint is not None
+                and self.checkpoint.every
+                and self.position % self.checkpoint.every == 0
+                and self.position < len(self.scene)
+            ):
                 self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
         return True
 
     def finalize(self) -> FusionResult:
         """The finalized map of the frames fused so far (no frame can be added afterwards)."""
         if self.mapper.frames_integrated == 0:
-            raise UserError(f"{self.scene.path}: no frame could be fused ({len(self.skipped)} skipped; first: "
-                            f"{self.skipped[0][0] if self.skipped else '-'})")
+            raise UserError(
+                f"{self.scene.path}: no frame could be fused ({len(self.skipped)} skipped; first: "
+                f"{self.skipped[0][0] if self.skipped else '-'})"
+            )
         return self.mapper.finalize()
 
     def _fuse_frame(self, i: int) -> None:
@@ -147,10 +169,10 @@ class SceneFusion:
             frame = self.scene.read_frame(i)
         except DataError as error:
             self._bad_input(name, str(error), "skipping frame")
-            if self.mapper.frames_integrated == 0 and len(self.skipped) - len(self.scene.skipped) >= \
-                    _MAX_LEADING_BAD_FRAMES:
-                raise UserError(f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: "
-                                f"{self.skipped[len(self.scene.skipped)][1]}") from None
+            if self.mapper.frames_integrated == 0 and len(self.skipped) - len(self.scene.skipped) >= _MAX_LEADING_BAD_FRAMES:
+                raise UserError(
+                    f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: {self.skipped[len(self.scene.skipped)][1]}"
+                ) from None
             return
         detections = None
         if self.mapper.detection_due(frame.T_world_camera):
@@ -167,8 +189,9 @@ class SceneFusion:
         self.skipped.append((name, reason))
 
 
-def fuse_scene(scene: Scene, detection_source: DetectionSource, config: PipelineConfig,
-               progress: bool = True, on_error: str = "skip") -> FusionResult:
+def fuse_scene(
+    scene: Scene, detection_source: DetectionSource, config: PipelineConfig, progress: bool = True, on_error: str = "skip"
+) -> FusionResult:
     """Fuses every frame of `scene` (`SceneFusion`, bad frames skipped with a warning) and finalizes the map."""
     fusion = SceneFusion(scene, detection_source, config, on_error=on_error)
     with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
@@ -200,15 +223,15 @@ def check_depth_units(scene: Scene, sample: DepthSample) -> None:
     or centimetres read as millimetres is 'all within 4 mm' or 'within 40 cm'; depth in finer units than
     said lies mostly beyond `depth_max`), before minutes of fusion build an empty or wrong map."""
     share, p99 = sample.valid_fraction, float(sample.depth_percentiles[-1])
-    hint = (f"check dataset.depth_scale (now {scene.depth_scale:g} raw units per metre; millimetres: 1000, "
-            f"TUM: 5000) and dataset.depth_max ({scene.depth_max:g} m)")
+    hint = (
+        f"check dataset.depth_scale (now {scene.depth_scale:g} raw units per metre; millimetres: 1000, "
+        f"TUM: 5000) and dataset.depth_max ({scene.depth_max:g} m)"
+    )
     where = f"{scene.path / 'depth'} ({len(sample.frame_names)} frames sampled)"
     if share < _MIN_VALID_DEPTH_SHARE:
-        raise UserError(f"{where}: only {100 * share:.2f}% of the pixels have depth within "
-                        f"{scene.depth_max:g} m; {hint}")
+        raise UserError(f"{where}: only {100 * share:.2f}% of the pixels have depth within {scene.depth_max:g} m; {hint}")
     if p99 < _NEAR_DEPTH_LIMIT:
-        raise UserError(f"{where}: 99% of the depth is closer than {p99:.3g} m, which no room-scale scene is; "
-                        f"{hint}")
+        raise UserError(f"{where}: 99% of the depth is closer than {p99:.3g} m, which no room-scale scene is; {hint}")
 
 
 def ground_truth_mesh_path(scene: Scene) -> Path | None:
@@ -218,9 +241,22 @@ def ground_truth_mesh_path(scene: Scene) -> Path | None:
 
 #: Everything `write_outputs` may write (files and folders): removed before a run writes into a folder again,
 #: so no file of an earlier run (an instance that no longer exists, a report without ground truth) stays.
-OUTPUT_NAMES = ("config.yaml", "instances.json", "semantic.ply", "instances.ply", "instances", "mesh.ply",
-                MAP_STATE_FILE, "overview.png", "run.json", "benchmark", "report.json", "explain.md", "explain.json",
-                "explain.png")
+OUTPUT_NAMES = (
+    "config.yaml",
+    "instances.json",
+    "semantic.ply",
+    "instances.ply",
+    "instances",
+    "mesh.ply",
+    MAP_STATE_FILE,
+    "overview.png",
+    "run.json",
+    "benchmark",
+    "report.json",
+    "explain.md",
+    "explain.json",
+    "explain.png",
+)
 
 
 def clear_outputs(out_dir: Path) -> None:
@@ -233,8 +269,9 @@ def clear_outputs(out_dir: Path) -> None:
             path.unlink()
 
 
-def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state: bool = True,
-                  skipped: list[tuple[str, str]] | None = None) -> dict:
+def write_outputs(
+    result: FusionResult, scene: Scene, out_dir: Path, save_state: bool = True, skipped: list[tuple[str, str]] | None = None
+) -> dict:
     """Writes every output of a run into `out_dir`; returns the run summary (also saved as run.json).
 
     Outputs: config.yaml, instances.json, semantic.ply, instances.ply, instances/*.ply, mesh.ply,
@@ -267,19 +304,24 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
     if len(faces) == 0:
         log.warning("%s: the global surface is empty (no depth fused?): mesh.ply has no face", scene.name)
     if not instances:
-        log.warning("%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply "
-                    "are empty", scene.name)
+        log.warning(
+            "%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply are empty", scene.name
+        )
     lap("mesh")
     if save_state:
         save_map(out_dir / MAP_STATE_FILE, result)
         lap("map_state")
 
     summary: dict[str, Any] = {
-        "scene": scene.name, "frames": result.frames_integrated, "detection_frames": result.detection_frames,
-        "instances": len(instances), "counters": result.counters, "timings_ms": result.timings.summary(),
-        "map": result.map_config.describe(), "capacity_used": capacity_used(result),
-        "skipped_frames": [{"frame": name, "reason": reason}
-                           for name, reason in (scene.skipped if skipped is None else skipped)],
+        "scene": scene.name,
+        "frames": result.frames_integrated,
+        "detection_frames": result.detection_frames,
+        "instances": len(instances),
+        "counters": result.counters,
+        "timings_ms": result.timings.summary(),
+        "map": result.map_config.describe(),
+        "capacity_used": capacity_used(result),
+        "skipped_frames": [{"frame": name, "reason": reason} for name, reason in (scene.skipped if skipped is None else skipped)],
     }
     gt = load_ground_truth(scene)
     if isinstance(gt, str):
@@ -288,8 +330,16 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
     elif gt is not None:
         summary["benchmark"] = _export_and_score(instances, gt, scene, result, out_dir, label_sets)
         lap("benchmark")
-    _write_overview(out_dir / "overview.png", scene.name, instances, (vertices, faces, colors), gt, result,
-                    summary.get("benchmark", {}), label_sets)
+    _write_overview(
+        out_dir / "overview.png",
+        scene.name,
+        instances,
+        (vertices, faces, colors),
+        gt,
+        result,
+        summary.get("benchmark", {}),
+        label_sets,
+    )
     lap("overview")
     summary["export_seconds"] = timings
     (out_dir / "run.json").write_text(json.dumps(summary, indent=1, default=float))
@@ -300,10 +350,15 @@ def write_outputs(result: FusionResult, scene: Scene, out_dir: Path, save_state:
 def capacity_used(result: FusionResult) -> dict[str, int]:
     """How full the fixed capacities got (to size tsdf.block_capacity and instances.capacity)."""
     blocks, table = result.state.blocks, result.state.instances
-    return {"blocks": int(blocks.num_blocks), "block_capacity": result.map_config.block_capacity,
-            "dropped_blocks": int(blocks.dropped_blocks), "touched_overflow": int(blocks.touched_overflow),
-            "instances_live": int(table.valid.sum()), "instance_capacity": result.map_config.instance_capacity,
-            "table_overflow": int(table.overflow)}
+    return {
+        "blocks": int(blocks.num_blocks),
+        "block_capacity": result.map_config.block_capacity,
+        "dropped_blocks": int(blocks.dropped_blocks),
+        "touched_overflow": int(blocks.touched_overflow),
+        "instances_live": int(table.valid.sum()),
+        "instance_capacity": result.map_config.instance_capacity,
+        "table_overflow": int(table.overflow),
+    }
 
 
 def load_ground_truth(scene: Scene):
@@ -320,18 +375,18 @@ def load_ground_truth(scene: Scene):
         return str(error)
 
 
-def _write_overview(path: Path, scene_name: str, instances, mesh, gt, result: FusionResult, benchmark: dict,
-                    label_sets) -> None:
+def _write_overview(path: Path, scene_name: str, instances, mesh, gt, result: FusionResult, benchmark: dict, label_sets) -> None:
     vertices, faces, colors = mesh
-    panels = [overview.map_overview_panel(instances, label_sets, vertices, colors, faces,
-                                             result.map_config.voxel_size)]
+    panels = [overview.map_overview_panel(instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)]
     if gt is not None:
-        panels.append(overview.ground_truth_overview_panel(gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids,
-                                                              gt.instance_ids, label_sets))
+        panels.append(
+            overview.ground_truth_overview_panel(
+                gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids, gt.instance_ids, label_sets
+            )
+        )
     title = f"{scene_name}: {result.frames_integrated} frames"
     if "mAP" in benchmark:
-        title += (f"  |  AP {benchmark['mAP']:.3f}   AP50 {benchmark['mAP50']:.3f}   "
-                  f"AP25 {benchmark['mAP25']:.3f}")
+        title += f"  |  AP {benchmark['mAP']:.3f}   AP50 {benchmark['mAP50']:.3f}   AP25 {benchmark['mAP25']:.3f}"
     try:
         overview.write_overview(path, panels, label_sets, title)
     except OSError as error:
@@ -348,9 +403,14 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
     """
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 
-    predictions = map_outputs.benchmark_predictions(instances, label_sets, gt.vertices, config.export.transfer_radius,
-                                                    config.export.structure_claims_vertices,
-                                                    config.export.transfer_neighbours)
+    predictions = map_outputs.benchmark_predictions(
+        instances,
+        label_sets,
+        gt.vertices,
+        config.export.transfer_radius,
+        config.export.structure_claims_vertices,
+        config.export.transfer_neighbours,
+    )
     gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
     return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
 
@@ -364,8 +424,14 @@ def _export_and_score(instances, gt, scene: Scene, result: FusionResult, out_dir
     txt = write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
     report = score.to_json_dict()
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
-    return {"predictions": str(txt), "mAP": score.mAP, "mAP50": score.mAP50, "mAP25": score.mAP25,
-            "table": score.to_table(), "explain": _explain(gt, gt_ids, predictions, scene.name, out_dir)}
+    return {
+        "predictions": str(txt),
+        "mAP": score.mAP,
+        "mAP50": score.mAP50,
+        "mAP25": score.mAP25,
+        "table": score.to_table(),
+        "explain": _explain(gt, gt_ids, predictions, scene.name, out_dir),
+    }
 
 
 def _explain(gt, gt_ids, predictions, scene_name: str, out_dir: Path) -> dict:
@@ -378,8 +444,11 @@ def _explain(gt, gt_ids, predictions, scene_name: str, out_dir: Path) -> dict:
     start = time.perf_counter()
     explanation = explain_scene(gt_ids, predictions, gt.vertices, scene_name=scene_name)
     write_explanation(out_dir, explanation, gt_ids, predictions, gt.vertices, gt.faces)
-    return {"objects": explanation.status_counts(), "predictions": explanation.kind_counts(),
-            "seconds": round(time.perf_counter() - start, 3)}
+    return {
+        "objects": explanation.status_counts(),
+        "predictions": explanation.kind_counts(),
+        "seconds": round(time.perf_counter() - start, 3),
+    }
 
 
 def prepare_output_dir(out_dir: str | Path, create: bool = True) -> Path:
@@ -410,10 +479,19 @@ class RunOutcome:
     folder: Path
 
 
-def run_and_export(scene: Scene, detection_source: DetectionSource, config: PipelineConfig, out_dir: Path,
-                   progress: bool = True, *, on_error: str = "skip", checkpoint_every: int = 0,
-                   resume: bool = False, restart: bool = False,
-                   should_stop: Callable[[], bool] | None = None) -> RunOutcome:
+def run_and_export(
+    scene: Scene,
+    detection_source: DetectionSource,
+    config: PipelineConfig,
+    out_dir: Path,
+    progress: bool = True,
+    *,
+    on_error: str = "skip",
+    checkpoint_every: int = 0,
+    resume: bool = False,
+    restart: bool = False,
+    should_stop: Callable[[], bool] | None = None,
+) -> RunOutcome:
     """`fmfusion run`: fuse, write, and summarize.
 
     The outputs are built in `OUT.partial` and renamed to `OUT` when complete, replacing an earlier run's
@@ -429,16 +507,17 @@ def run_and_export(scene: Scene, detection_source: DetectionSource, config: Pipe
     if staging.exists() and not resume:
         if checkpoint.exists() and not restart:
             info = checkpoint.info()
-            raise UserError(f"{staging} holds an unfinished run (checkpoint at frame {info.get('position')} of "
-                            f"{info.get('frames')}): add --resume to continue it, or --restart to discard it")
+            raise UserError(
+                f"{staging} holds an unfinished run (checkpoint at frame {info.get('position')} of "
+                f"{info.get('frames')}): add --resume to continue it, or --restart to discard it"
+            )
         shutil.rmtree(staging)  # a run that failed before its first checkpoint: nothing to keep
     fusion = SceneFusion(scene, detection_source, config, on_error=on_error, checkpoint=checkpoint, resume=resume)
     staging.mkdir(parents=True, exist_ok=True)
     with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
         complete = fusion.run(update, should_stop)
     if not complete:
-        log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene),
-                    staging)
+        log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
     result = fusion.finalize()
     try:
         summary = write_outputs(result, scene, staging, skipped=fusion.skipped)
@@ -467,21 +546,27 @@ def _replace_folder(new: Path, target: Path) -> None:
 
 def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: Path) -> str:
     """The lines `fmfusion run` / `fmfusion demo` print at the end: AP table, counts, timings, outputs."""
-    lines = [f"{summary['scene']}: {summary['frames']} frames, {summary['detection_frames']} with detections, "
-             f"{summary['instances']} instances "
-             f"(created {result.counters['created']}, merged {result.counters['merged']}, "
-             f"removed {result.counters['removed']}) in {seconds:.1f} s"]
+    lines = [
+        f"{summary['scene']}: {summary['frames']} frames, {summary['detection_frames']} with detections, "
+        f"{summary['instances']} instances "
+        f"(created {result.counters['created']}, merged {result.counters['merged']}, "
+        f"removed {result.counters['removed']}) in {seconds:.1f} s"
+    ]
     timings = result.timings.summary()
     stage = "fusion" if "fusion" in timings else "tsdf"
     if stage in timings:
         frames_per_s = summary["frames"] / max(seconds, 1e-9)
-        lines.append(f"{'fusion' if stage == 'fusion' else 'integration'} step: median "
-                     f"{timings[stage]['median_ms']:.1f} ms/frame (first call incl. compile "
-                     f"{timings[stage]['first_call_ms'] / 1e3:.1f} s); {frames_per_s:.1f} frames/s overall")
+        lines.append(
+            f"{'fusion' if stage == 'fusion' else 'integration'} step: median "
+            f"{timings[stage]['median_ms']:.1f} ms/frame (first call incl. compile "
+            f"{timings[stage]['first_call_ms'] / 1e3:.1f} s); {frames_per_s:.1f} frames/s overall"
+        )
     skipped = summary.get("skipped_frames", [])
     if skipped:
-        lines.append(f"warning: {len(skipped)} frames skipped or partly skipped for bad input (listed in run.json; "
-                     f"first: {skipped[0]['frame']}: {skipped[0]['reason']})")
+        lines.append(
+            f"warning: {len(skipped)} frames skipped or partly skipped for bad input (listed in run.json; "
+            f"first: {skipped[0]['frame']}: {skipped[0]['reason']})"
+        )
     if result.detection_frames == 0:
         lines.append("warning: no frame had detections, so the map has no instances: check the detections folder")
     benchmark = summary.get("benchmark", {})
@@ -491,8 +576,19 @@ def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: 
         lines.append(f"not scored: {benchmark['error']}")
     if summary["instances"] == 0 and result.detection_frames:
         lines.append("warning: the map has no instance although detections were fused")
-    listed = ["overview.png", "instances.json", "semantic.ply", "instances.ply", "mesh.ply", MAP_STATE_FILE,
-              "run.json", "report.json", "explain.md", "explain.json", "explain.png"]
+    listed = [
+        "overview.png",
+        "instances.json",
+        "semantic.ply",
+        "instances.ply",
+        "mesh.ply",
+        MAP_STATE_FILE,
+        "run.json",
+        "report.json",
+        "explain.md",
+        "explain.json",
+        "explain.png",
+    ]
     written = [name for name in listed if (out_dir / name).is_file() or name == "run.json"]
     lines.append(f"outputs in {out_dir}: {', '.join(written)}")
     return "\n".join(lines)

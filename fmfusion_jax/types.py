@@ -89,9 +89,7 @@ class FrameDetections:
     def __post_init__(self) -> None:
         n = len(self.labels)
         if self.masks.ndim != 3 or self.masks.shape[0] != n:
-            raise ValueError(
-                f"{self.frame_name}: masks have shape {self.masks.shape}, expected ({n}, H, W) for {n} detections"
-            )
+            raise ValueError(f"{self.frame_name}: masks have shape {self.masks.shape}, expected ({n}, H, W) for {n} detections")
         if self.boxes.shape != (n, 4):
             raise ValueError(f"{self.frame_name}: boxes have shape {self.boxes.shape}, expected ({n}, 4)")
 
@@ -116,4 +114,3 @@ class FrameDetections:
     @staticmethod
     def empty(frame_name: str, height: int, width: int) -> "FrameDetections":
         return FrameDetections(frame_name, np.zeros((0, height, width), bool), [], np.zeros((0, 4), np.float32))
-

@@ -15,8 +15,10 @@ SHARED_SCANNET = Path(os.environ.get("FMFUSION_SCANNET_DIR", REPO_ROOT.parent / 
 def scannet_root() -> Path:
     """`../shared/data/scannet` (or $FMFUSION_SCANNET_DIR); skips the test when it is absent."""
     if not (SHARED_SCANNET / "scene0000_00").is_dir():
-        pytest.skip(f"ScanNet sample not found at {SHARED_SCANNET} (it is never part of the repo; "
-                    "set FMFUSION_SCANNET_DIR to a folder holding scene0000_00)")
+        pytest.skip(
+            f"ScanNet sample not found at {SHARED_SCANNET} (it is never part of the repo; "
+            "set FMFUSION_SCANNET_DIR to a folder holding scene0000_00)"
+        )
     return SHARED_SCANNET
 
 

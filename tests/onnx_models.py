@@ -27,11 +27,61 @@ FLOAT, INT64, BOOL = TensorProto.FLOAT, TensorProto.INT64, TensorProto.BOOL
 #: A small BERT-like vocabulary: special tokens, punctuation, and the words of the open-set labels with a
 #: few split into WordPieces (``armchair`` -> ``arm ##chair``, ``bookshelf`` -> ``book ##shelf``).
 VOCAB = [
-    "[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", ".", ",", "!", "?", "-",
-    "wall", "tile", "floor", "carpet", "cabinet", "closet", "file", "bed", "dresser", "chair", "arm", "##chair",
-    "swivel", "couch", "table", "side", "round", "kitchen", "door", "glass", "window", "book", "##shelf", "shelf",
-    "picture", "frame", "poster", "counter", "top", "computer", "desk", "office", "curtain", "fridge", "shower",
-    "toilet", "bowl", "sink", "bathroom", "bath", "tub", "bin", "naive", "room", "##s",
+    "[PAD]",
+    "[UNK]",
+    "[CLS]",
+    "[SEP]",
+    "[MASK]",
+    ".",
+    ",",
+    "!",
+    "?",
+    "-",
+    "wall",
+    "tile",
+    "floor",
+    "carpet",
+    "cabinet",
+    "closet",
+    "file",
+    "bed",
+    "dresser",
+    "chair",
+    "arm",
+    "##chair",
+    "swivel",
+    "couch",
+    "table",
+    "side",
+    "round",
+    "kitchen",
+    "door",
+    "glass",
+    "window",
+    "book",
+    "##shelf",
+    "shelf",
+    "picture",
+    "frame",
+    "poster",
+    "counter",
+    "top",
+    "computer",
+    "desk",
+    "office",
+    "curtain",
+    "fridge",
+    "shower",
+    "toilet",
+    "bowl",
+    "sink",
+    "bathroom",
+    "bath",
+    "tub",
+    "bin",
+    "naive",
+    "room",
+    "##s",
 ]
 
 
@@ -63,8 +113,15 @@ def write_lines(path: Path, lines: Sequence[str]) -> Path:
 
 # --- RAM ----------------------------------------------------------------------------------------------
 
-def tagger_model(bias: Sequence[float], weight: Sequence[float] | None = None, output: str = "logits",
-                 input_name: str = "image", size: int = 384, input_type=FLOAT) -> onnx.ModelProto:
+
+def tagger_model(
+    bias: Sequence[float],
+    weight: Sequence[float] | None = None,
+    output: str = "logits",
+    input_name: str = "image",
+    size: int = 384,
+    input_type=FLOAT,
+) -> onnx.ModelProto:
     """``output[0, k] = bias[k] + weight[k] * mean(image)``."""
     bias = np.asarray(bias, np.float32).reshape(1, -1)
     weight = np.zeros_like(bias) if weight is None else np.asarray(weight, np.float32).reshape(1, -1)
@@ -74,17 +131,28 @@ def tagger_model(bias: Sequence[float], weight: Sequence[float] | None = None, o
         helper.make_node("Mul", ["weight", "mean"], ["scaled"]),
         helper.make_node("Add", ["bias", "scaled"], [output]),
     ]
-    return _model(nodes, [helper.make_tensor_value_info(input_name, input_type, [1, 3, size, size])],
-                  [helper.make_tensor_value_info(output, FLOAT, [1, bias.shape[1]])],
-                  [_const("bias", bias), _const("weight", weight)])
+    return _model(
+        nodes,
+        [helper.make_tensor_value_info(input_name, input_type, [1, 3, size, size])],
+        [helper.make_tensor_value_info(output, FLOAT, [1, bias.shape[1]])],
+        [_const("bias", bias), _const("weight", weight)],
+    )
 
 
 # --- GroundingDINO ------------------------------------------------------------------------------------
 
-def grounding_model(token_logits: np.ndarray, boxes: np.ndarray, num_tokens: int | str = "num_tokens",
-                    image_size: tuple[int, int] | None = None, image_name: str = "img",
-                    logits_name: str = "logits", attention_type=BOOL, drop_inputs: Sequence[str] = (),
-                    extra_inputs: Sequence[str] = ()) -> onnx.ModelProto:
+
+def grounding_model(
+    token_logits: np.ndarray,
+    boxes: np.ndarray,
+    num_tokens: int | str = "num_tokens",
+    image_size: tuple[int, int] | None = None,
+    image_name: str = "img",
+    logits_name: str = "logits",
+    attention_type=BOOL,
+    drop_inputs: Sequence[str] = (),
+    extra_inputs: Sequence[str] = (),
+) -> onnx.ModelProto:
     """Detector whose logits are ``token_logits[q, input_ids[t]]`` and whose boxes are `boxes` `(Q, 4)`.
 
     Extra outputs echo what it was fed (``echo_img_shape``, ``echo_input_ids``, ``echo_position_ids``,
@@ -103,8 +171,9 @@ def grounding_model(token_logits: np.ndarray, boxes: np.ndarray, num_tokens: int
         "token_type_ids": (INT64, tokens),
         "text_token_mask": (BOOL, [1, num_tokens, num_tokens]),
     }
-    inputs = [helper.make_tensor_value_info(name, kind, shape) for name, (kind, shape) in specs.items()
-              if name not in drop_inputs]
+    inputs = [
+        helper.make_tensor_value_info(name, kind, shape) for name, (kind, shape) in specs.items() if name not in drop_inputs
+    ]
     inputs += [helper.make_tensor_value_info(name, FLOAT, [1]) for name in extra_inputs]
     nodes = [
         helper.make_node("Squeeze", ["input_ids", "axis0"], ["ids"]),
@@ -124,12 +193,17 @@ def grounding_model(token_logits: np.ndarray, boxes: np.ndarray, num_tokens: int
         if name not in drop_inputs:
             nodes.append(helper.make_node("Identity", [name], [f"echo_{name}"]))
             outputs.append(helper.make_tensor_value_info(f"echo_{name}", specs[name][0], specs[name][1]))
-    return _model(nodes, inputs, outputs, [_const("token_logits", token_logits), _const("boxes_value", boxes),
-                                           _const("axis0", np.array([0], np.int64))])
+    return _model(
+        nodes,
+        inputs,
+        outputs,
+        [_const("token_logits", token_logits), _const("boxes_value", boxes), _const("axis0", np.array([0], np.int64))],
+    )
 
 
-def token_logit_table(likes: dict[int, dict[str, float]], queries: int, vocab: Sequence[str] = VOCAB,
-                      default: float = -6.0) -> np.ndarray:
+def token_logit_table(
+    likes: dict[int, dict[str, float]], queries: int, vocab: Sequence[str] = VOCAB, default: float = -6.0
+) -> np.ndarray:
     """`(queries, len(vocab))` logits: `default` everywhere, ``likes[q][token]`` where given."""
     table = np.full((queries, len(vocab)), default, np.float32)
     for query, tokens in likes.items():
@@ -144,6 +218,7 @@ def logit(p: float) -> float:
 
 # --- SAM ------------------------------------------------------------------------------------------------
 
+
 def sam_encoder_model(input_name: str = "image", size: int = 1024, channels: int = 256) -> onnx.ModelProto:
     """``[1, 3, size, size]`` -> 16x16 average pooling -> mean over colour, copied to `channels` channels."""
     weight = np.full((channels, 3, 1, 1), 1.0 / 3.0, np.float32)
@@ -151,15 +226,25 @@ def sam_encoder_model(input_name: str = "image", size: int = 1024, channels: int
         helper.make_node("AveragePool", [input_name], ["pooled"], kernel_shape=[16, 16], strides=[16, 16]),
         helper.make_node("Conv", ["pooled", "weight"], ["image_embeddings"]),
     ]
-    return _model(nodes, [helper.make_tensor_value_info(input_name, FLOAT, [1, 3, size, size])],
-                  [helper.make_tensor_value_info("image_embeddings", FLOAT, [1, channels, size // 16, size // 16])],
-                  [_const("weight", weight)])
+    return _model(
+        nodes,
+        [helper.make_tensor_value_info(input_name, FLOAT, [1, 3, size, size])],
+        [helper.make_tensor_value_info("image_embeddings", FLOAT, [1, channels, size // 16, size // 16])],
+        [_const("weight", weight)],
+    )
 
 
-def sam_decoder_model(batched: bool = False, num_masks: int = 1, orig_size: bool = True,
-                      full_masks: bool = True, size: int = 1024, low_res: int = 256,
-                      masks_at_low_res: bool = False, fixed_prompts: int | None = None,
-                      fixed_points: int | None = None) -> onnx.ModelProto:
+def sam_decoder_model(
+    batched: bool = False,
+    num_masks: int = 1,
+    orig_size: bool = True,
+    full_masks: bool = True,
+    size: int = 1024,
+    low_res: int = 256,
+    masks_at_low_res: bool = False,
+    fixed_prompts: int | None = None,
+    fixed_points: int | None = None,
+) -> onnx.ModelProto:
     """Box-mask decoder with the signature of segment-anything's `export_onnx_model.py`.
 
     Args:
@@ -187,24 +272,29 @@ def sam_decoder_model(batched: bool = False, num_masks: int = 1, orig_size: bool
     nodes = []
     corners = {"x0": (0, 0), "y0": (0, 1), "x1": (1, 0), "y1": (1, 1)}
     for name, (point, axis) in corners.items():
-        inits += [_const(f"{name}_starts", np.array([point, axis], np.int64)),
-                  _const(f"{name}_ends", np.array([point + 1, axis + 1], np.int64))]
-        nodes += [helper.make_node("Slice", ["point_coords", f"{name}_starts", f"{name}_ends", "axes12"],
-                                   [f"{name}_3"]),
-                  helper.make_node("Unsqueeze", [f"{name}_3", "axis3"], [name])]  # [B, 1, 1, 1]
+        inits += [
+            _const(f"{name}_starts", np.array([point, axis], np.int64)),
+            _const(f"{name}_ends", np.array([point + 1, axis + 1], np.int64)),
+        ]
+        nodes += [
+            helper.make_node("Slice", ["point_coords", f"{name}_starts", f"{name}_ends", "axes12"], [f"{name}_3"]),
+            helper.make_node("Unsqueeze", [f"{name}_3", "axis3"], [name]),
+        ]  # [B, 1, 1, 1]
     inits.append(_const("axes12", np.array([1, 2], np.int64)))
 
     def box_mask(u: str, v: str, out: str) -> None:
-        nodes.extend([
-            helper.make_node("GreaterOrEqual", [u, "x0"], [f"{out}_a"]),
-            helper.make_node("LessOrEqual", [u, "x1"], [f"{out}_b"]),
-            helper.make_node("GreaterOrEqual", [v, "y0"], [f"{out}_c"]),
-            helper.make_node("LessOrEqual", [v, "y1"], [f"{out}_d"]),
-            helper.make_node("And", [f"{out}_a", f"{out}_b"], [f"{out}_ab"]),
-            helper.make_node("And", [f"{out}_c", f"{out}_d"], [f"{out}_cd"]),
-            helper.make_node("And", [f"{out}_ab", f"{out}_cd"], [f"{out}_in"]),
-            helper.make_node("Where", [f"{out}_in", "inside_value", "outside_value"], [f"{out}_one"]),
-        ])
+        nodes.extend(
+            [
+                helper.make_node("GreaterOrEqual", [u, "x0"], [f"{out}_a"]),
+                helper.make_node("LessOrEqual", [u, "x1"], [f"{out}_b"]),
+                helper.make_node("GreaterOrEqual", [v, "y0"], [f"{out}_c"]),
+                helper.make_node("LessOrEqual", [v, "y1"], [f"{out}_d"]),
+                helper.make_node("And", [f"{out}_a", f"{out}_b"], [f"{out}_ab"]),
+                helper.make_node("And", [f"{out}_c", f"{out}_d"], [f"{out}_cd"]),
+                helper.make_node("And", [f"{out}_ab", f"{out}_cd"], [f"{out}_in"]),
+                helper.make_node("Where", [f"{out}_in", "inside_value", "outside_value"], [f"{out}_one"]),
+            ]
+        )
         if num_masks == 1:
             nodes.append(helper.make_node("Identity", [f"{out}_one"], [out]))
         else:
@@ -221,9 +311,11 @@ def sam_decoder_model(batched: bool = False, num_masks: int = 1, orig_size: bool
     if num_masks == 1:
         nodes.append(helper.make_node("Identity", ["iou_first"], ["iou_predictions"]))
     else:
-        nodes += [helper.make_node("Mul", ["iou_first", "zero"], ["iou_zero"]),
-                  helper.make_node("Add", ["iou_zero", "other_ious"], ["iou_others"]),
-                  helper.make_node("Concat", ["iou_first", "iou_others"], ["iou_predictions"], axis=1)]
+        nodes += [
+            helper.make_node("Mul", ["iou_first", "zero"], ["iou_zero"]),
+            helper.make_node("Add", ["iou_zero", "other_ious"], ["iou_others"]),
+            helper.make_node("Concat", ["iou_first", "iou_others"], ["iou_predictions"], axis=1),
+        ]
 
     box_mask("low_u", "low_v", "low_res_masks")
     outputs = [
@@ -239,11 +331,15 @@ def sam_decoder_model(batched: bool = False, num_masks: int = 1, orig_size: bool
     ]
     if orig_size:
         inputs.append(helper.make_tensor_value_info("orig_im_size", FLOAT, [2]))
-        inits += [_const("index0", np.array(0, np.int64)), _const("index1", np.array(1, np.int64)),
-                  _const("one", np.array(1.0, np.float32)), _const("half", np.array(0.5, np.float32)),
-                  _const("side", np.array(float(size), np.float32)),
-                  _const("u_shape", np.array([1, 1, 1, -1], np.int64)),
-                  _const("v_shape", np.array([1, 1, -1, 1], np.int64))]
+        inits += [
+            _const("index0", np.array(0, np.int64)),
+            _const("index1", np.array(1, np.int64)),
+            _const("one", np.array(1.0, np.float32)),
+            _const("half", np.array(0.5, np.float32)),
+            _const("side", np.array(float(size), np.float32)),
+            _const("u_shape", np.array([1, 1, 1, -1], np.int64)),
+            _const("v_shape", np.array([1, 1, -1, 1], np.int64)),
+        ]
         nodes += [
             helper.make_node("Gather", ["orig_im_size", "index0"], ["height"]),
             helper.make_node("Gather", ["orig_im_size", "index1"], ["width"]),
@@ -282,9 +378,17 @@ def box_mask(box: Sequence[float], height: int, width: int) -> np.ndarray:
 
 # --- a whole models folder ------------------------------------------------------------------------------
 
-def write_models_folder(folder: Path, tags: Sequence[str], tag_bias: Sequence[float],
-                        tag_weight: Sequence[float] | None, token_logits: np.ndarray, boxes: np.ndarray,
-                        batched_decoder: bool = False, vocab: Sequence[str] = VOCAB) -> Path:
+
+def write_models_folder(
+    folder: Path,
+    tags: Sequence[str],
+    tag_bias: Sequence[float],
+    tag_weight: Sequence[float] | None,
+    token_logits: np.ndarray,
+    boxes: np.ndarray,
+    batched_decoder: bool = False,
+    vocab: Sequence[str] = VOCAB,
+) -> Path:
     """The six files of a models folder (`--models DIR`), with the tiny models above."""
     folder = Path(folder)
     save(tagger_model(tag_bias, tag_weight), folder / "ram.onnx")

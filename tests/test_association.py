@@ -30,10 +30,10 @@ def random_masks(rng, n=N, h=H, w=W):
             v, u = np.nonzero(masks[rng.integers(0, i)])
             if v.size:
                 v0, u0 = v.min() + rng.integers(0, 3), u.min() + rng.integers(0, 3)
-                masks[i, v0:v0 + rng.integers(1, 6), u0:u0 + rng.integers(1, 8)] = True
+                masks[i, v0 : v0 + rng.integers(1, 6), u0 : u0 + rng.integers(1, 8)] = True
                 continue
         v0, u0 = rng.integers(0, h - 2), rng.integers(0, w - 2)
-        masks[i, v0:v0 + rng.integers(2, h), u0:u0 + rng.integers(2, w)] = True
+        masks[i, v0 : v0 + rng.integers(2, h), u0 : u0 + rng.integers(2, w)] = True
     return masks
 
 
@@ -62,8 +62,7 @@ def test_pack_detections_drops_pads_and_keeps_order():
     masks[2, :20, :20] = True  # 400 px, label outside the open labels: no measurement
     masks[3, 10:40, 10:40] = True
     labels = [{"chair": 0.5, "armchair": 0.3}, {"chair": 0.9}, {"banana": 0.8}, {"table": 0.4}]
-    batch = D.pack_detections(_frame(masks, labels), ["chair", "armchair", "table"], max_detections=5,
-                              min_mask_pixels=100)
+    batch = D.pack_detections(_frame(masks, labels), ["chair", "armchair", "table"], max_detections=5, min_mask_pixels=100)
     assert batch.masks.shape == (5, 40, 50) and batch.label_scores.shape == (5, 3)
     np.testing.assert_array_equal(batch.valid, [True, True, False, False, False])
     np.testing.assert_array_equal(batch.masks[0], masks[0])
@@ -239,8 +238,7 @@ def test_assign_detections_combines_matches_and_new_slots():
     np.testing.assert_array_equal(np.flatnonzero(np.asarray(out.created)), [1, 3])
     assert int(out.overflow) == 0
     det = np.array([[0, 1, -1], [2, 4, 5]], np.int32)
-    np.testing.assert_array_equal(np.asarray(A.instance_pixel_image(det, out.instance_for_detection)),
-                                  [[2, 1, -1], [-1, 3, -1]])
+    np.testing.assert_array_equal(np.asarray(A.instance_pixel_image(det, out.instance_for_detection)), [[2, 1, -1], [-1, 3, -1]])
 
 
 # ----------------------------------------------------------------------------- no recompilation

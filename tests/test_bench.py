@@ -45,17 +45,25 @@ def box_room_frames(n: int):
         frame = RGBDFrame(i, f"frame-{i:06d}", color, depth.astype(np.float32), pose, intrinsics)
         masks = [labels == s for s in SURFACE_LABELS if (labels == s).sum() >= 40]
         names = [{SURFACE_LABELS[s]: 0.6} for s in SURFACE_LABELS if (labels == s).sum() >= 40]
-        detections = FrameDetections(frame.name, np.array(masks, bool).reshape(-1, H, W), names,
-                                     np.zeros((len(masks), 4), np.float32))
+        detections = FrameDetections(
+            frame.name, np.array(masks, bool).reshape(-1, H, W), names, np.zeros((len(masks), 4), np.float32)
+        )
         frames.append((frame, detections))
     return room, frames
 
 
 def test_stages_composed_make_the_fused_steps_map_bit_for_bit():
     room, frames = box_room_frames(3)
-    config = load_config("scannet", ["tsdf.block_capacity=3000", "tsdf.max_touched_blocks=1024",
-                                     "instances.capacity=16", "detections.max_detections=6",
-                                     "association.min_projected_pixels=50"])
+    config = load_config(
+        "scannet",
+        [
+            "tsdf.block_capacity=3000",
+            "tsdf.max_touched_blocks=1024",
+            "instances.capacity=16",
+            "detections.max_detections=6",
+            "association.min_projected_pixels=50",
+        ],
+    )
     map_config = build_map_config(config, room.lo, room.hi, H, W)
     fusion = build_fusion_config(config)
     likelihood = jax.numpy.asarray(load_likelihood("statistical"), jax.numpy.float32)
@@ -95,8 +103,14 @@ def test_cap_keeps_the_k_highest_scoring_usable_detections_in_order():
     masks = np.zeros((6, 40, 50), bool)
     for i, rows in enumerate((30, 30, 30, 1, 30, 30)):  # detection 3: too small a mask (50 < 100 pixels)
         masks[i, :rows] = True
-    labels = [{"chair": 0.5}, {"bed": 0.9}, {"tag not in the label set": 0.99}, {"wall": 0.95}, {"floor": 0.7},
-              {"sofa": 0.3, "table": 0.7}]  # usable: 0, 1, 4, 5; best scores 0.5, 0.9, 0.7, 0.7
+    labels = [
+        {"chair": 0.5},
+        {"bed": 0.9},
+        {"tag not in the label set": 0.99},
+        {"wall": 0.95},
+        {"floor": 0.7},
+        {"sofa": 0.3, "table": 0.7},
+    ]  # usable: 0, 1, 4, 5; best scores 0.5, 0.9, 0.7, 0.7
     detections = FrameDetections("frame-000000", masks, labels, np.zeros((6, 4), np.float32))
     open_labels, min_pixels = LABELS.open_labels, 100
 
@@ -127,13 +141,21 @@ def test_sweep_holds_as_many_maps_as_fit_in_half_the_free_memory():
 
 def test_sweep_fit_over_the_caps():
     def run(k: int, detections: float, ms: float) -> dict:
-        return {"k": k, "frames": [{"fusion": 1e3, "refine": 1.0}] + [{"fusion": ms, "refine": 1.0}] * 3,
-                "compiled": [{}] * 4, "detections_in": [9] * 4, "detections_fused": [detections] * 4,
-                "live_instances": [5] * 4}
+        return {
+            "k": k,
+            "frames": [{"fusion": 1e3, "refine": 1.0}] + [{"fusion": ms, "refine": 1.0}] * 3,
+            "compiled": [{}] * 4,
+            "detections_in": [9] * 4,
+            "detections_fused": [detections] * 4,
+            "live_instances": [5] * 4,
+        }
 
-    sweep = {"scene": {"name": "room", "kind": "generated"}, "sweep": [1, 2, 4],
-             "ours": {"runs": [run(1, 1, 10.5), run(2, 2, 11.0), run(4, 3.5, 11.75)], "groups": [[1, 2, 4]]},
-             "peer": {"unavailable": "--no-peer"}}
+    sweep = {
+        "scene": {"name": "room", "kind": "generated"},
+        "sweep": [1, 2, 4],
+        "ours": {"runs": [run(1, 1, 10.5), run(2, 2, 11.0), run(4, 3.5, 11.75)], "groups": [[1, 2, 4]]},
+        "peer": {"unavailable": "--no-peer"},
+    }
     costs = report.sweep_costs(sweep)
     assert costs["fits"]["ours_fusion"]["per_object_ms"] == pytest.approx(0.5)
     assert costs["fits"]["ours_whole"]["base_ms"] == pytest.approx(11.0)
@@ -157,8 +179,25 @@ def run_quick_bench(bench_dirs, monkeypatch, name: str, *extra: str) -> dict:
     # (its timings are not what this test checks)
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     out = bench_dirs["root"] / name
-    code = main(["bench", "--quick", "--no-scene", "--objects", "3", "--generated-frames", "4", "--peer-frames", "2",
-                 "--cache", str(bench_dirs["cache"]), "--out", str(out), "--no-progress", *extra])
+    code = main(
+        [
+            "bench",
+            "--quick",
+            "--no-scene",
+            "--objects",
+            "3",
+            "--generated-frames",
+            "4",
+            "--peer-frames",
+            "2",
+            "--cache",
+            str(bench_dirs["cache"]),
+            "--out",
+            str(out),
+            "--no-progress",
+            *extra,
+        ]
+    )
     assert code == 0
     markdown = (out / "bench.md").read_text()
     for label, *_ in report.STAGE_ROWS:
@@ -213,11 +252,13 @@ def test_sweep_options(monkeypatch, tmp_path):
     import fmfusion_jax.bench.run as bench_run
 
     given = []
-    monkeypatch.setattr(bench_run, "run_bench", lambda options, command: given.append((options, command)) or
-                        {"markdown": ""})
-    for argv, sweep, frames in ((["--quick"], (1, 4), 4), ([], (1, 2, 4, 8, 16), 30),
-                                (["--sweep", "2", "1", "2", "--sweep-frames", "0"], (2, 1), None),
-                                (["--quick", "--sweep"], (), 4)):
+    monkeypatch.setattr(bench_run, "run_bench", lambda options, command: given.append((options, command)) or {"markdown": ""})
+    for argv, sweep, frames in (
+        (["--quick"], (1, 4), 4),
+        ([], (1, 2, 4, 8, 16), 30),
+        (["--sweep", "2", "1", "2", "--sweep-frames", "0"], (2, 1), None),
+        (["--quick", "--sweep"], (), 4),
+    ):
         assert main(["bench", "--no-scene", "--out", str(tmp_path / "out"), *argv]) == 0
         options, command = given.pop()
         assert (options.sweep, options.sweep_frames) == (sweep, frames), argv
@@ -228,11 +269,14 @@ def test_sweep_options(monkeypatch, tmp_path):
 def test_bad_arguments_fail_in_one_line_before_any_work(tmp_path, capsys):
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
-    for argv, fragment in ((["--frames", "-1"], "--frames must be >= 0"), (["--objects", "0"], "--objects must be"),
-                           (["--sweep", "2", "0"], "--sweep caps must be >= 1"),
-                           (["--sweep-frames", "1"], "--sweep-frames must be >= 2"),
-                           (["--scene", str(tmp_path / "missing")], "does not exist"),
-                           (["--no-scene", "--out", str(a_file)], "is a file")):
+    for argv, fragment in (
+        (["--frames", "-1"], "--frames must be >= 0"),
+        (["--objects", "0"], "--objects must be"),
+        (["--sweep", "2", "0"], "--sweep caps must be >= 1"),
+        (["--sweep-frames", "1"], "--sweep-frames must be >= 2"),
+        (["--scene", str(tmp_path / "missing")], "does not exist"),
+        (["--no-scene", "--out", str(a_file)], "is a file"),
+    ):
         assert main(["bench", *argv]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("fmfusion bench: error: ") and fragment in err[0], err

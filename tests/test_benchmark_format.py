@@ -17,8 +17,9 @@ from fmfusion_jax.io.benchmark_format import (
 
 def sample(num_vertices: int = 150) -> InstancePredictions:
     rng = np.random.default_rng(1)
-    return InstancePredictions(rng.random((3, num_vertices)) < 0.3, np.array([3, 39, 5]),
-                               np.array([0.123456789012345, 1.0, 1e-7]))
+    return InstancePredictions(
+        rng.random((3, num_vertices)) < 0.3, np.array([3, 39, 5]), np.array([0.123456789012345, 1.0, 1e-7])
+    )
 
 
 def test_round_trip(tmp_path):
@@ -56,15 +57,17 @@ def test_mask_with_crlf_and_a_path_inside_the_folder_but_not_an_absolute_one(tmp
         read_benchmark_predictions(txt, 3)
 
 
-@pytest.mark.parametrize("line, message", [
-    ("pred_mask/s_0.txt 3", r"s\.txt:1: expected 'MASK_PATH NYU40_ID CONFIDENCE'"),
-    ("pred_mask/s_0.txt 3.5 0.9", r"s\.txt:1: nyu40 id '3\.5' is not an integer"),
-    ("pred_mask/s_0.txt 3 high", r"s\.txt:1: confidence 'high' is not a number"),
-    ("pred_mask/s_0.txt 3 nan", r"s\.txt:1: confidence 'nan' is not finite"),
-    ("pred_mask/missing.txt 3 0.9", r"missing\.txt \(listed at .*s\.txt:1\): mask file not found"),
-    ("pred_mask/s_0.txt 3 0.9\npred_mask/s_0.txt 4 0.8",
-     r"s\.txt:2: mask pred_mask/s_0\.txt is already listed on line 1"),
-])
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ("pred_mask/s_0.txt 3", r"s\.txt:1: expected 'MASK_PATH NYU40_ID CONFIDENCE'"),
+        ("pred_mask/s_0.txt 3.5 0.9", r"s\.txt:1: nyu40 id '3\.5' is not an integer"),
+        ("pred_mask/s_0.txt 3 high", r"s\.txt:1: confidence 'high' is not a number"),
+        ("pred_mask/s_0.txt 3 nan", r"s\.txt:1: confidence 'nan' is not finite"),
+        ("pred_mask/missing.txt 3 0.9", r"missing\.txt \(listed at .*s\.txt:1\): mask file not found"),
+        ("pred_mask/s_0.txt 3 0.9\npred_mask/s_0.txt 4 0.8", r"s\.txt:2: mask pred_mask/s_0\.txt is already listed on line 1"),
+    ],
+)
 def test_malformed_lines_name_file_and_line(tmp_path, line, message):
     write_benchmark_predictions(tmp_path, "s", sample(10))
     (tmp_path / "s.txt").write_text(line + "\n")

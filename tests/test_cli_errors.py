@@ -57,34 +57,65 @@ def test_run_errors(capsys, tmp_path, tiny_scene):
     dets = tmp_path / "dets"
     dets.mkdir()
     out = str(tmp_path / "out")
-    _fails_in_one_line(capsys, ["run", str(tmp_path / "missing"), "--detections", str(dets), "--out", out],
-                       "does not exist")
+    _fails_in_one_line(capsys, ["run", str(tmp_path / "missing"), "--detections", str(dets), "--out", out], "does not exist")
     wrong = tmp_path / "wrong"
     (wrong / "color").mkdir(parents=True)
     _fails_in_one_line(capsys, ["run", str(wrong), "--detections", str(dets), "--out", out], "folder missing")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(tmp_path / "nodets"), "--out", out],
-                       "detections folder")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out,
-                                "--set", "unknown.key=1"], "unknown config section 'unknown'")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out,
-                                "--set", "detections.evry=1"], "did you mean 'detections.every'")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out,
-                                "--set", "detections.every=ten"], "detections.every")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out,
-                                "--set", "novalue"], "expected section.key=value")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out,
-                                "--config", "no-such-config"], "not found")
+    _fails_in_one_line(
+        capsys, ["run", str(tiny_scene), "--detections", str(tmp_path / "nodets"), "--out", out], "detections folder"
+    )
+    _fails_in_one_line(
+        capsys,
+        ["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--set", "unknown.key=1"],
+        "unknown config section 'unknown'",
+    )
+    _fails_in_one_line(
+        capsys,
+        ["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--set", "detections.evry=1"],
+        "did you mean 'detections.every'",
+    )
+    _fails_in_one_line(
+        capsys,
+        ["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--set", "detections.every=ten"],
+        "detections.every",
+    )
+    _fails_in_one_line(
+        capsys,
+        ["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--set", "novalue"],
+        "expected section.key=value",
+    )
+    _fails_in_one_line(
+        capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--config", "no-such-config"], "not found"
+    )
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", str(a_file)],
-                       "is a file")
+    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", str(a_file)], "is a file")
     (dets / "frame-000000_label.json").write_text("{broken")
-    _fails_in_one_line(capsys, ["run", str(tiny_scene), "--detections", str(dets), "--out", out,
-                                "--set", "detections.every=1", "--no-progress", "--on-error", "stop"],
-                       "frame-000000_label.json: malformed JSON", "--on-error skip")
+    _fails_in_one_line(
+        capsys,
+        [
+            "run",
+            str(tiny_scene),
+            "--detections",
+            str(dets),
+            "--out",
+            out,
+            "--set",
+            "detections.every=1",
+            "--no-progress",
+            "--on-error",
+            "stop",
+        ],
+        "frame-000000_label.json: malformed JSON",
+        "--on-error skip",
+    )
     # By default the frame's detections are skipped, named in a warning, in the summary and in run.json.
-    assert cli.main(["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--set",
-                     "detections.every=1", "--no-progress"]) == 0
+    assert (
+        cli.main(
+            ["run", str(tiny_scene), "--detections", str(dets), "--out", out, "--set", "detections.every=1", "--no-progress"]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "1 frames skipped or partly skipped" in printed and "frame-000000: detections skipped" in printed
     skipped = json.loads((Path(out) / "run.json").read_text())["skipped_frames"]
@@ -116,8 +147,7 @@ def test_demo_errors(capsys, tmp_path, all_subcommands):
     (busy / "keep.txt").write_text("a user's file")
     _fails_in_one_line(capsys, ["demo", "--out", str(busy), "--no-progress"], "not empty")
     assert (busy / "keep.txt").read_text() == "a user's file"
-    _fails_in_one_line(capsys, ["demo", "--out", str(tmp_path / "d"), "--set", "unknown.key=1"],
-                       "unknown config section")
+    _fails_in_one_line(capsys, ["demo", "--out", str(tmp_path / "d"), "--set", "unknown.key=1"], "unknown config section")
     _fails_in_one_line(capsys, ["demo", "--out", str(tmp_path / "d"), "--frames", "1"], "--frames")
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
@@ -139,8 +169,9 @@ def test_run_refuses_a_detection_folder_that_matches_no_frame(tmp_path, capsys):
     from fmfusion_jax.simulation.procedural import generate_scene
     from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
 
-    scene = write_scannet_scene(generate_scene(1, num_objects=2), tmp_path / "synth0001_00", num_frames=2,
-                                width=80, height=60, progress=False)
+    scene = write_scannet_scene(
+        generate_scene(1, num_objects=2), tmp_path / "synth0001_00", num_frames=2, width=80, height=60, progress=False
+    )
     empty = tmp_path / "detections"
     empty.mkdir()
     code = cli.main(["run", str(scene), "--detections", str(empty), "--out", str(tmp_path / "out")])

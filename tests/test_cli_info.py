@@ -79,8 +79,10 @@ def test_info_does_not_import_jax(tmp_path):
     import sys
 
     scene = make_scene(tmp_path / "tiny")
-    program = ("import sys; import fmfusion_jax.cli as cli; cli.SUBCOMMANDS = ('info',); "
-               f"code = cli.main(['info', {str(scene)!r}]); assert 'jax' not in sys.modules; sys.exit(code)")
+    program = (
+        "import sys; import fmfusion_jax.cli as cli; cli.SUBCOMMANDS = ('info',); "
+        f"code = cli.main(['info', {str(scene)!r}]); assert 'jax' not in sys.modules; sys.exit(code)"
+    )
     result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
 

@@ -27,14 +27,17 @@ def test_overrides_are_typed_and_applied():
     assert config.tsdf.voxel_size == 0.02
 
 
-@pytest.mark.parametrize("override, fragment", [
-    ("detection.every=1", "did you mean 'detections'"),
-    ("detections.evry=1", "did you mean 'detections.every'"),
-    ("detections.every=ten", "'detections.every' must be a valid integer \\(default 10\\), got 'ten'"),
-    ("label_fusion.mode=magic", "'additive' or 'bayes'"),
-    ("tsdf=3", "expected section.key=value"),
-    ("noequals", "expected section.key=value"),
-])
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("detection.every=1", "did you mean 'detections'"),
+        ("detections.evry=1", "did you mean 'detections.every'"),
+        ("detections.every=ten", "'detections.every' must be a valid integer \\(default 10\\), got 'ten'"),
+        ("label_fusion.mode=magic", "'additive' or 'bayes'"),
+        ("tsdf=3", "expected section.key=value"),
+        ("noequals", "expected section.key=value"),
+    ],
+)
 def test_bad_overrides_are_one_line_errors(override, fragment):
     with pytest.raises(UserError, match=fragment):
         load_config("scannet", [override])
@@ -57,18 +60,21 @@ def test_config_round_trips_through_yaml(tmp_path):
     assert PipelineConfig() == load_config(None)
 
 
-@pytest.mark.parametrize("override, fragment", [
-    ("refinement.merge_every=0", "merge_every"),
-    ("refinement.geometry_fusion_every=0", "geometry_fusion_every"),
-    ("detections.max_detections=0", "max_detections"),
-    ("association.pixel_stride=0", "pixel_stride"),
-    ("tsdf.block_size=0", "block_size"),
-    ("tsdf.block_size=7", "block_size"),
-    ("tsdf.bounds_margin=-10", "bounds_margin"),
-    ("detections.depth_percentiles=[0.9,0.1]", "depth_percentiles"),
-    ("export.transfer_radius=-1", "transfer_radius"),
-    ("tsdf.voxel_size=[1", "not valid YAML"),
-])
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("refinement.merge_every=0", "merge_every"),
+        ("refinement.geometry_fusion_every=0", "geometry_fusion_every"),
+        ("detections.max_detections=0", "max_detections"),
+        ("association.pixel_stride=0", "pixel_stride"),
+        ("tsdf.block_size=0", "block_size"),
+        ("tsdf.block_size=7", "block_size"),
+        ("tsdf.bounds_margin=-10", "bounds_margin"),
+        ("detections.depth_percentiles=[0.9,0.1]", "depth_percentiles"),
+        ("export.transfer_radius=-1", "transfer_radius"),
+        ("tsdf.voxel_size=[1", "not valid YAML"),
+    ],
+)
 def test_out_of_range_values_are_one_line_errors_naming_the_knob(override, fragment):
     """Values that used to fail deep inside the run (ZeroDivisionError, JAX shape errors) or give a wrong map
     silently are refused when the config is read."""
@@ -99,8 +105,9 @@ def test_the_schema_is_the_one_definition_of_every_knob():
     defaults, scannet = PipelineConfig().to_dict(), load_config("scannet").to_dict()
     scannet["dataset"]["layout"] = defaults["dataset"]["layout"]
     assert scannet == defaults
-    assert all(info["doc"] and info["kind"] in ("shape", "engine", "host")
-               for knobs in schema.values() for info in knobs.values())
+    assert all(
+        info["doc"] and info["kind"] in ("shape", "engine", "host") for knobs in schema.values() for info in knobs.values()
+    )
 
 
 def test_values_set_from_python_are_checked_too():

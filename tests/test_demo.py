@@ -30,8 +30,18 @@ def demo(tmp_path_factory):
 
 def test_demo_writes_every_output(demo):
     out = demo.out_dir
-    for name in ("overview.png", "instances.json", "semantic.ply", "instances.ply", "mesh.ply", MAP_STATE_FILE,
-                 "run.json", "report.json", "config.yaml", MARKER):
+    for name in (
+        "overview.png",
+        "instances.json",
+        "semantic.ply",
+        "instances.ply",
+        "mesh.ply",
+        MAP_STATE_FILE,
+        "run.json",
+        "report.json",
+        "config.yaml",
+        MARKER,
+    ):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     scene = demo.scene_dir
     assert scene.parent == out and (scene / f"{scene.name}_vh_clean_2.ply").is_file()

@@ -292,14 +292,19 @@ def test_random_frames_round_trip_exactly(tmp_path):
     scores = st.floats(0.0, 1.0, allow_nan=False)
 
     @settings(max_examples=30, deadline=None)
-    @given(count=st.integers(0, 5), seed=st.integers(0, 2**31), mask_format=st.sampled_from(["png", "npy"]),
-           labels=st.lists(st.dictionaries(label_names, scores, min_size=1, max_size=3), min_size=5, max_size=5))
+    @given(
+        count=st.integers(0, 5),
+        seed=st.integers(0, 2**31),
+        mask_format=st.sampled_from(["png", "npy"]),
+        labels=st.lists(st.dictionaries(label_names, scores, min_size=1, max_size=3), min_size=5, max_size=5),
+    )
     def round_trip(count, seed, mask_format, labels):
         rng = np.random.default_rng(seed)
         corners = rng.uniform(0, [W, H], (count, 2, 2)).astype(np.float32)
         boxes = np.concatenate([corners.min(1), corners.max(1)], axis=1)
-        detections = FrameDetections(FRAME, rng.random((count, H, W)) < 0.3, labels[:count], boxes,
-                                     raw_tags=["a b", "c"], tags=["c"], prompt=["c", "d"])
+        detections = FrameDetections(
+            FRAME, rng.random((count, H, W)) < 0.3, labels[:count], boxes, raw_tags=["a b", "c"], tags=["c"], prompt=["c", "d"]
+        )
         folder = tmp_path / f"{seed}-{mask_format}"
         write_frame_detections(folder, detections, mask_format=mask_format)
         assert_same(detections, read_frame_detections(folder, FRAME))

@@ -238,10 +238,16 @@ def test_table_and_json():
     assert len({len(line) for line in lines}) == 1  # aligned
     summary = result.to_json_dict()
     assert summary["mAP"] == 1.0 and summary["classes"]["cabinet"] == {
-        "AP": 1.0, "AP50": 1.0, "AP25": 1.0, "num_gt": 1, "num_pred": 1}
+        "AP": 1.0,
+        "AP50": 1.0,
+        "AP25": 1.0,
+        "num_gt": 1,
+        "num_pred": 1,
+    }
 
 
 # ---- properties on random scenes -------------------------------------------------------------------------
+
 
 @st.composite
 def random_scene(draw):
@@ -280,8 +286,9 @@ def test_random_scenes_properties(scene):
     if len(void) >= 100:
         extra = np.zeros((1, V), bool)
         extra[0, void] = True
-        more = InstancePredictions(np.concatenate([preds.masks, extra]), np.append(preds.nyu40_ids, CABINET),
-                                   np.append(preds.confidences, 2.0))
+        more = InstancePredictions(
+            np.concatenate([preds.masks, extra]), np.append(preds.nyu40_ids, CABINET), np.append(preds.confidences, 2.0)
+        )
         assert_same(result, evaluate_scenes([(gt, more)]))
     # Ground truth scores 1 wherever there is ground truth.
     perfect = evaluate_scenes([(gt, export_ground_truth_as_predictions(gt))])
@@ -290,6 +297,7 @@ def test_random_scenes_properties(scene):
 
 
 # ---- vertex transfer -------------------------------------------------------------------------------------
+
 
 def test_points_to_vertex_masks_nearest_instance_wins():
     vertices = np.array([[0.0, 0, 0], [0.05, 0, 0], [0.10, 0, 0], [1.0, 0, 0]])
@@ -310,6 +318,7 @@ def test_points_to_vertex_masks_shared_point_goes_to_first_instance():
 
 
 # ---- the real scene ---------------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def real_gt_ids(scannet_scene):
@@ -333,33 +342,32 @@ def test_real_scene_known_errors(real_gt_ids):
     gt = export_ground_truth_as_predictions(real_gt_ids)
     masks, ids, conf = list(gt.masks), list(gt.nyu40_ids), list(gt.confidences)
     first = {c: ids.index(c) for c in (3, 4, 6, 9)}
-    ids[first[9]] = 8                     # window -> door: window 1 TP + 1 miss: AP 1/2; door gets an FP of
+    ids[first[9]] = 8  # window -> door: window 1 TP + 1 miss: AP 1/2; door gets an FP of
     #                                       confidence 1 tied with its TP: (1/2, 1) + (1, 0): 1/4 + 1/2 = 3/4
-    conf[first[6]] = 0.5                  # sofa TP at 0.5 and the bed's mask called a sofa at 0.9:
-    masks.append(gt.masks[first[4]])      # (1/2, 1), (0, 0) + (1, 0): AP 1/4
+    conf[first[6]] = 0.5  # sofa TP at 0.5 and the bed's mask called a sofa at 0.9:
+    masks.append(gt.masks[first[4]])  # (1/2, 1), (0, 0) + (1, 0): AP 1/4
     ids.append(6)
     conf.append(0.9)
     wall = real_gt_ids == real_gt_ids[np.flatnonzero(real_gt_ids // 1000 == 1)[0]]
-    masks.append(wall)                    # a table on a wall: void, ignored (table stays 1)
+    masks.append(wall)  # a table on a wall: void, ignored (table stays 1)
     ids.append(7)
     conf.append(0.99)
     tiny = np.zeros_like(wall)
     tiny[np.flatnonzero(gt.masks[first[4]])[:50]] = True
-    masks.append(tiny)                    # 50 vertices: dropped (the toilet stays 1)
+    masks.append(tiny)  # 50 vertices: dropped (the toilet stays 1)
     ids.append(33)
     conf.append(0.99)
     floor = real_gt_ids // 1000 == 2
-    masks.append(floor)                   # a chair on the floor: chair has no ground truth, stays nan
+    masks.append(floor)  # a chair on the floor: chair has no ground truth, stays nan
     ids.append(5)
     conf.append(0.9)
-    drop = first[3]                       # cabinet: 5 TP + 1 miss: (1, 5/6) + (1, 0): 5/12 + 5/12 = 5/6
+    drop = first[3]  # cabinet: 5 TP + 1 miss: (1, 5/6) + (1, 0): 5/12 + 5/12 = 5/6
     keep = [k for k in range(len(ids)) if k != drop]
     preds = InstancePredictions(np.stack(masks)[keep], np.array(ids)[keep], np.array(conf)[keep])
 
     result = evaluate_scenes([(real_gt_ids, preds)])
     expected = {"cabinet": 5 / 6, "window": 1 / 2, "door": 3 / 4, "sofa": 1 / 4}
-    for name in ("bed", "table", "bookshelf", "counter", "desk", "curtain", "refrigerator", "toilet", "sink",
-                 "otherfurniture"):
+    for name in ("bed", "table", "bookshelf", "counter", "desk", "curtain", "refrigerator", "toilet", "sink", "otherfurniture"):
         expected[name] = 1.0
     for table in (result.ap, result.ap50, result.ap25):
         assert {n: v for n, v in table.items() if not math.isnan(v)} == pytest.approx(expected, abs=1e-12)
@@ -369,6 +377,7 @@ def test_real_scene_known_errors(real_gt_ids):
 
 
 # ---- the command line --------------------------------------------------------------------------------------
+
 
 @pytest.fixture
 def cli_main(monkeypatch):
@@ -386,8 +395,10 @@ def test_cli_export_ground_truth_then_evaluate(cli_main, scannet_scene, tmp_path
     out = tmp_path / "gt_as_pred"
     assert cli_main(["eval", "--gt", str(scannet_scene), "--export-gt", str(out)]) == 0
     assert (out / "scene0000_00.txt").is_file()
-    assert cli_main(["eval", str(out / "scene0000_00.txt"), "--gt", str(scannet_scene),
-                     "--json", str(tmp_path / "scores.json")]) == 0
+    assert (
+        cli_main(["eval", str(out / "scene0000_00.txt"), "--gt", str(scannet_scene), "--json", str(tmp_path / "scores.json")])
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "average        :          1.000          1.000          1.000" in printed
     summary = json.loads((tmp_path / "scores.json").read_text())
@@ -408,7 +419,8 @@ def test_cli_folders_of_predictions_and_gt_txt(cli_main, tmp_path, capsys):
     # Pooled: 1/8 (see test_scenes_are_pooled_per_class); the bed of b has no prediction: 0.
     (scene_a, preds_a), (scene_b, preds_b) = (
         (ground_truth((0, 200, CABINET, 1)), predictions(([(0, 200)], CABINET, 0.9))),
-        (ground_truth((0, 200, CABINET, 1), (300, 500, BED, 2)), predictions(([(300, 500)], CABINET, 0.95))))
+        (ground_truth((0, 200, CABINET, 1), (300, 500, BED, 2)), predictions(([(300, 500)], CABINET, 0.95))),
+    )
     for name, gt, preds in (("a", scene_a, preds_a), ("b", scene_b, preds_b)):
         (gt_dir / f"{name}.txt").write_text("".join(f"{i}\n" for i in gt))
         write_benchmark_predictions(pred_dir, name, preds)
@@ -420,14 +432,17 @@ def test_cli_folders_of_predictions_and_gt_txt(cli_main, tmp_path, capsys):
     assert "ScanNet instance benchmark, 2 scene(s): a, b" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["eval", "x.txt"], "no ground truth: pass --gt"),
-    (["eval", "--gt", "{gt}"], "nothing to evaluate"),
-    (["eval", "{pred}", "--gt", "{gt}", "--export-gt", "{tmp}/o"], "do not pass predictions with it"),
-    (["eval", "{pred}", "--gt", "{tmp}/missing"], "--gt {tmp}/missing: no such file or folder"),
-    (["eval", "{tmp}/missing.txt", "--gt", "{gt}"], "{tmp}/missing.txt: no such prediction file or folder"),
-    (["eval", "{pred}", "{tmp}/other/q.txt", "--gt", "{gt}"], "no ground truth for scene(s) q"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["eval", "x.txt"], "no ground truth: pass --gt"),
+        (["eval", "--gt", "{gt}"], "nothing to evaluate"),
+        (["eval", "{pred}", "--gt", "{gt}", "--export-gt", "{tmp}/o"], "do not pass predictions with it"),
+        (["eval", "{pred}", "--gt", "{tmp}/missing"], "--gt {tmp}/missing: no such file or folder"),
+        (["eval", "{tmp}/missing.txt", "--gt", "{gt}"], "{tmp}/missing.txt: no such prediction file or folder"),
+        (["eval", "{pred}", "{tmp}/other/q.txt", "--gt", "{gt}"], "no ground truth for scene(s) q"),
+    ],
+)
 def test_cli_errors_are_one_line(cli_main, tmp_path, capsys, argv, message):
     from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
 

@@ -68,8 +68,7 @@ def test_every_method_runs_and_both_tables_are_written(experiment):
     assert set(record["scenes"][0]["detections"]) == {"default", "noaug"}  # ablation B's own detections
     # the table cell of a class without ground truth is "-"; the mean column is the pooled mAP50
     full = experiment.pooled["full"]
-    row = next(line for line in table_one(experiment.methods, experiment.pooled).splitlines()
-               if line.startswith("| FM-Fusion |"))
+    row = next(line for line in table_one(experiment.methods, experiment.pooled).splitlines() if line.startswith("| FM-Fusion |"))
     cells = [c.strip() for c in row.strip("|").split("|")][1:]
     for value, cell in zip([*full.ap50.values(), full.mAP50], cells):
         assert cell == ("-" if math.isnan(value) else f"{100 * value:.1f}")
@@ -87,8 +86,7 @@ def test_cli_errors_name_the_problem(tmp_path, capsys):
 
     assert main(["experiment", "--methods", "nope", "--out", str(tmp_path / "a")]) == 2
     assert "unknown method 'nope'" in capsys.readouterr().err
-    assert main(["experiment", "--scenes", str(tmp_path / "missing"), "--generated", "0",
-                 "--out", str(tmp_path / "b")]) == 2
+    assert main(["experiment", "--scenes", str(tmp_path / "missing"), "--generated", "0", "--out", str(tmp_path / "b")]) == 2
     assert "not found" in capsys.readouterr().err
     assert main(["experiment", "--scenes", "--generated", "0", "--out", str(tmp_path / "c")]) == 2
     assert "no scenes" in capsys.readouterr().err

@@ -21,19 +21,27 @@ from fmfusion_jax.labels import BENCHMARK_NYU40_IDS
 WALL, FLOOR, CABINET, BED, CHAIR, SOFA, TABLE, DOOR, WINDOW, SINK = 1, 2, 3, 4, 5, 6, 7, 8, 9, 34
 
 # One scene that has every status and every kind. Vertex ranges -> (nyu40, object id); 0 elsewhere.
-SCENE = [((0, 200), CABINET, 1), ((200, 400), BED, 2), ((400, 600), TABLE, 3), ((600, 800), DOOR, 4),
-         ((800, 1000), WINDOW, 5), ((1000, 1050), SINK, 6), ((1050, 1250), WALL, 7), ((1250, 1400), FLOOR, 8)]
+SCENE = [
+    ((0, 200), CABINET, 1),
+    ((200, 400), BED, 2),
+    ((400, 600), TABLE, 3),
+    ((600, 800), DOOR, 4),
+    ((800, 1000), WINDOW, 5),
+    ((1000, 1050), SINK, 6),
+    ((1050, 1250), WALL, 7),
+    ((1250, 1400), FLOOR, 8),
+]
 V = 1450  # 1400..1450: void (unlabelled)
 PREDICTIONS = [  # (vertex ranges, nyu40, confidence); the comment is the expected kind
-    ([(0, 200)], CABINET, 0.9),                 # 0 true_positive of the cabinet
-    ([(0, 160)], CABINET, 0.5),                 # 1 duplicate (IoU 0.8, lower confidence)
-    ([(200, 400)], SOFA, 0.8),                  # 2 wrong_class: the bed as a sofa
-    ([(400, 500)], TABLE, 0.6),                 # 3 fragment: half of the table (IoU exactly 0.5: no pass)
-    ([(500, 600)], TABLE, 0.55),                # 4 fragment: the other half
-    ([(600, 700), (1250, 1350)], DOOR, 0.7),    # 5 smear: half the door and as much floor (IoU 1/3)
-    ([(1050, 1170)], CHAIR, 0.4),               # 6 no_object: on the wall only
-    ([(1000, 1050)], SINK, 0.9),                # 7 not evaluated: 50 vertices
-    ([(1050, 1250)], WALL, 0.9),                # 8 not evaluated: wall is not a benchmark class
+    ([(0, 200)], CABINET, 0.9),  # 0 true_positive of the cabinet
+    ([(0, 160)], CABINET, 0.5),  # 1 duplicate (IoU 0.8, lower confidence)
+    ([(200, 400)], SOFA, 0.8),  # 2 wrong_class: the bed as a sofa
+    ([(400, 500)], TABLE, 0.6),  # 3 fragment: half of the table (IoU exactly 0.5: no pass)
+    ([(500, 600)], TABLE, 0.55),  # 4 fragment: the other half
+    ([(600, 700), (1250, 1350)], DOOR, 0.7),  # 5 smear: half the door and as much floor (IoU 1/3)
+    ([(1050, 1170)], CHAIR, 0.4),  # 6 no_object: on the wall only
+    ([(1000, 1050)], SINK, 0.9),  # 7 not evaluated: 50 vertices
+    ([(1050, 1250)], WALL, 0.9),  # 8 not evaluated: wall is not a benchmark class
 ]
 
 
@@ -79,7 +87,12 @@ def test_every_status_as_documented(scene):
     by_id = {g.gt_id: g for g in e.ground_truth}
     assert [g.gt_id for g in e.ground_truth] == [3001, 4002, 7003, 8004, 9005]  # the sink is under 100 vertices
     assert {g.gt_id: g.status for g in e.ground_truth} == {
-        3001: "found", 4002: "wrong_class", 7003: "fragmented", 8004: "low_iou", 9005: "missed"}
+        3001: "found",
+        4002: "wrong_class",
+        7003: "fragmented",
+        8004: "low_iou",
+        9005: "missed",
+    }
     assert set(e.status_counts()) == set(GT_STATUSES) and all(v == 1 for v in e.status_counts().values())
     cabinet, bed, table, door, window = (by_id[i] for i in (3001, 4002, 7003, 8004, 9005))
     assert (cabinet.match, cabinet.best_prediction, cabinet.best_iou, cabinet.passes_50) == (0, 0, 1.0, True)
@@ -94,17 +107,28 @@ def test_every_status_as_documented(scene):
 def test_every_kind_as_documented(scene):
     _, _, e = scene
     assert [(p.index, p.kind) for p in e.predictions] == [
-        (0, "true_positive"), (1, "duplicate"), (2, "wrong_class"), (3, "fragment"), (4, "fragment"),
-        (5, "smear"), (6, "no_object")]
+        (0, "true_positive"),
+        (1, "duplicate"),
+        (2, "wrong_class"),
+        (3, "fragment"),
+        (4, "fragment"),
+        (5, "smear"),
+        (6, "no_object"),
+    ]
     assert e.num_input_predictions == 9 and e.num_skipped_predictions == 2
-    assert e.kind_counts() == {"true_positive": 1, "duplicate": 1, "wrong_class": 1, "smear": 1, "fragment": 2,
-                               "no_object": 1}
+    assert e.kind_counts() == {"true_positive": 1, "duplicate": 1, "wrong_class": 1, "smear": 1, "fragment": 2, "no_object": 1}
     # The benchmark's view: the duplicate, the wrong class, the fragments and the smear (floor is void to the
     # benchmark, but only half of it) are false positives; the prediction on the wall is ignored.
     assert [p.ap50 for p in e.predictions] == ["true_positive"] + ["false_positive"] * 5 + ["ignored"]
     smear, no_object = e.predictions[5], e.predictions[6]
-    assert dict(zip(SHARE_NAMES, smear.shares)) == {"object": 0.5, "other_objects": 0.0, "small_objects": 0.0,
-                                                    "wall": 0.0, "floor": 0.5, "void": 0.0}
+    assert dict(zip(SHARE_NAMES, smear.shares)) == {
+        "object": 0.5,
+        "other_objects": 0.0,
+        "small_objects": 0.0,
+        "wall": 0.0,
+        "floor": 0.5,
+        "void": 0.0,
+    }
     assert (smear.reference_gt, smear.best_gt, smear.best_iou) == (8004, 8004, pytest.approx(1 / 3))
     assert (no_object.reference_gt, no_object.best_gt, no_object.shares[SHARE_NAMES.index("wall")]) == (None, None, 1.0)
     for p in e.predictions:
@@ -140,26 +164,35 @@ def test_small_piece_of_a_big_object(inside, kind):
 
 def test_precedence_of_the_statuses():
     gt_ids = ground_truth([((0, 300), CABINET, 1), ((300, 600), BED, 2), ((600, 900), TABLE, 3)], 900)
-    preds = predictions([
-        ([(0, 120)], CABINET, 0.9), ([(0, 270)], BED, 0.8),     # cabinet: low IoU of its class, 0.9 as a bed
-        ([(300, 400)], BED, 0.7), ([(400, 500)], BED, 0.7), ([(500, 600)], BED, 0.7),  # bed cut in three
-        ([(600, 700)], TABLE, 0.6),                             # table: one piece only (IoU 1/3)
-    ], 900)
+    preds = predictions(
+        [
+            ([(0, 120)], CABINET, 0.9),
+            ([(0, 270)], BED, 0.8),  # cabinet: low IoU of its class, 0.9 as a bed
+            ([(300, 400)], BED, 0.7),
+            ([(400, 500)], BED, 0.7),
+            ([(500, 600)], BED, 0.7),  # bed cut in three
+            ([(600, 700)], TABLE, 0.6),  # table: one piece only (IoU 1/3)
+        ],
+        900,
+    )
     e = explain_scene(gt_ids, preds)
     assert [g.status for g in e.ground_truth] == ["wrong_class", "fragmented", "low_iou"]
     bed = e.ground_truth[1]
     assert bed.passes_25 and bed.num_fragments == 3  # found at AP25, but the cut is what is reported
-    assert [p.kind for p in e.predictions] == ["fragment", "wrong_class", "fragment", "fragment", "fragment",
-                                               "fragment"]
+    assert [p.kind for p in e.predictions] == ["fragment", "wrong_class", "fragment", "fragment", "fragment", "fragment"]
 
 
 def test_equal_confidences_match_the_first_and_ignored_predictions():
     gt_ids = ground_truth([((0, 200), CABINET, 1), ((200, 260), CABINET, 2), ((300, 500), WALL, 3)], 500)
-    preds = predictions([
-        ([(0, 200)], CABINET, 0.7), ([(0, 190)], CABINET, 0.7),  # the same confidence: the first one matches
-        ([(200, 260), (300, 345)], CABINET, 0.6),                # on the small cabinet (IoU 0.57): ignored
-        ([(200, 250), (300, 360)], CABINET, 0.5),                # only small cabinet and wall: ignored
-    ], 500)
+    preds = predictions(
+        [
+            ([(0, 200)], CABINET, 0.7),
+            ([(0, 190)], CABINET, 0.7),  # the same confidence: the first one matches
+            ([(200, 260), (300, 345)], CABINET, 0.6),  # on the small cabinet (IoU 0.57): ignored
+            ([(200, 250), (300, 360)], CABINET, 0.5),  # only small cabinet and wall: ignored
+        ],
+        500,
+    )
     e = explain_scene(gt_ids, preds)
     assert [p.kind for p in e.predictions] == ["true_positive", "duplicate", "no_object", "no_object"]
     assert [p.ap50 for p in e.predictions] == ["true_positive", "false_positive", "ignored", "ignored"]
@@ -193,8 +226,7 @@ def test_random_scenes_agree_with_the_evaluator(scene):
     counts = e.ap50_counts()
     assert (counts["true_positive"], counts["false_positive"]) == evaluator_counts(gt_ids, preds)
     assert e.kind_counts()["true_positive"] == counts["true_positive"] == e.status_counts()["found"]
-    assert all(p.kind in PREDICTION_KINDS for p in e.predictions) and all(g.status in GT_STATUSES
-                                                                          for g in e.ground_truth)
+    assert all(p.kind in PREDICTION_KINDS for p in e.predictions) and all(g.status in GT_STATUSES for g in e.ground_truth)
     for p in e.predictions:
         assert sum(p.shares) == pytest.approx(1.0, abs=1e-3)
     assert explain_scene(gt_ids, preds) == e  # deterministic
@@ -225,6 +257,7 @@ def test_files_and_picture(scene, tmp_path):
 
 # ---- fmfusion eval --explain and fmfusion run -------------------------------------------------------------
 
+
 @pytest.fixture
 def cli_main(monkeypatch):
     import fmfusion_jax.cli as cli
@@ -239,8 +272,14 @@ def generated_scene(tmp_path_factory):
     from fmfusion_jax.simulation.procedural import generate_scene
     from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
 
-    return write_scannet_scene(generate_scene(5, num_objects=4), tmp_path_factory.mktemp("gen") / "synth0005_00",
-                               num_frames=2, width=64, height=48, progress=False)
+    return write_scannet_scene(
+        generate_scene(5, num_objects=4),
+        tmp_path_factory.mktemp("gen") / "synth0005_00",
+        num_frames=2,
+        width=64,
+        height=48,
+        progress=False,
+    )
 
 
 def test_cli_explain_beside_the_json(cli_main, scene, tmp_path, capsys):
@@ -249,8 +288,10 @@ def test_cli_explain_beside_the_json(cli_main, scene, tmp_path, capsys):
     pred = write_benchmark_predictions(tmp_path / "pred", "hand", preds)
     assert cli_main(["eval", str(pred), "--gt", str(tmp_path / "hand.txt")]) == 0
     plain = capsys.readouterr().out
-    assert cli_main(["eval", str(pred), "--gt", str(tmp_path / "hand.txt"), "--json", str(tmp_path / "s" / "s.json"),
-                     "--explain"]) == 0
+    assert (
+        cli_main(["eval", str(pred), "--gt", str(tmp_path / "hand.txt"), "--json", str(tmp_path / "s" / "s.json"), "--explain"])
+        == 0
+    )
     printed = capsys.readouterr().out
     assert printed.startswith(plain)  # the benchmark's output unchanged, the analysis after it
     assert e.summary_line() in printed and "no explain.png" in printed
@@ -266,8 +307,7 @@ def test_cli_explain_writes_the_three_files(cli_main, generated_scene, tmp_path,
     pred = write_benchmark_predictions(tmp_path / "pred", generated_scene.name, preds)
     assert cli_main(["eval", str(pred), "--gt", str(generated_scene), "--explain", str(tmp_path / "why")]) == 0
     printed = capsys.readouterr().out
-    counted = int(np.sum([np.sum(gt_ids == i) >= 100 for i in np.unique(gt_ids)
-                          if i // 1000 in BENCHMARK_NYU40_IDS]))
+    counted = int(np.sum([np.sum(gt_ids == i) >= 100 for i in np.unique(gt_ids) if i // 1000 in BENCHMARK_NYU40_IDS]))
     assert f"{counted} objects: found {counted}," in printed
     for name in ("explain.md", "explain.json", "explain.png"):
         assert (tmp_path / "why" / name).stat().st_size > 0, name
@@ -277,8 +317,21 @@ def test_cli_explain_writes_the_three_files(cli_main, generated_scene, tmp_path,
     copy = tmp_path / "gt"
     copy.mkdir()
     (copy / "copy.txt").write_text("".join(f"{i}\n" for i in gt_ids))
-    assert cli_main(["eval", str(pred), str(other), "--gt", str(generated_scene), str(copy / "copy.txt"),
-                     "--explain", str(tmp_path / "many")]) == 0
+    assert (
+        cli_main(
+            [
+                "eval",
+                str(pred),
+                str(other),
+                "--gt",
+                str(generated_scene),
+                str(copy / "copy.txt"),
+                "--explain",
+                str(tmp_path / "many"),
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "many" / generated_scene.name / "explain.png").is_file()
     assert (tmp_path / "many" / "copy" / "explain.md").is_file()
 
@@ -307,8 +360,9 @@ def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
     def instance(k: int, points: np.ndarray, nyu40: int) -> MapInstance:
         distribution = np.full(len(label_sets.class_names), 0.01)
         distribution[list(label_sets.nyu40_ids).index(nyu40)] = 1.0
-        return MapInstance(k, distribution / distribution.sum(), points.astype(np.float32), 3,
-                           np.zeros(len(label_sets.open_labels)))
+        return MapInstance(
+            k, distribution / distribution.sum(), points.astype(np.float32), 3, np.zeros(len(label_sets.open_labels))
+        )
 
     instances = []
     for k, object_id in enumerate(objects):
@@ -360,7 +414,9 @@ def test_no_predictions_and_no_objects(tmp_path):
     walls = np.where(gt_ids // 1000 == WALL, gt_ids, 0)  # no object at all
     nothing = explain_scene(walls, predictions(PREDICTIONS))
     assert nothing.ground_truth == () and {p.kind for p in nothing.predictions} == {"no_object"}
-    for name, explanation, ids, preds in (("a", e, gt_ids, InstancePredictions.empty(V)),
-                                          ("b", nothing, walls, predictions(PREDICTIONS))):
+    for name, explanation, ids, preds in (
+        ("a", e, gt_ids, InstancePredictions.empty(V)),
+        ("b", nothing, walls, predictions(PREDICTIONS)),
+    ):
         written = write_explanation(tmp_path / name, explanation, ids, preds, grid_vertices(gt_ids))
         assert cv2.imread(str(written[-1])) is not None

@@ -13,8 +13,15 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.extraction import extract_instance_points, extract_mesh, extract_surface_points
 from fmfusion_jax.engine.state import MapState, init_map_state, init_voxel_blocks
 
-SPHERE_CONFIG = MapConfig(voxel_size=0.02, block_size=4, sdf_trunc=0.06, grid_origin=(-0.5, -0.5, -0.5),
-                          grid_shape=(13, 13, 13), block_capacity=4096, instance_capacity=4)
+SPHERE_CONFIG = MapConfig(
+    voxel_size=0.02,
+    block_size=4,
+    sdf_trunc=0.06,
+    grid_origin=(-0.5, -0.5, -0.5),
+    grid_shape=(13, 13, 13),
+    block_capacity=4096,
+    instance_capacity=4,
+)
 CENTRE = np.array([0.013, 0.021, 0.007])
 RADIUS = 0.3
 
@@ -101,13 +108,27 @@ def test_empty_map_extracts_nothing():
 
 
 def test_integrated_room_mesh_lies_on_the_room():
-    room = ref.BoxRoom(lo=(0.013, 0.021, 0.007), hi=(3.011, 2.517, 2.209),
-                       boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),), spheres=(((1.9, 1.3, 0.8), 0.3),))
+    room = ref.BoxRoom(
+        lo=(0.013, 0.021, 0.007),
+        hi=(3.011, 2.517, 2.209),
+        boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),),
+        spheres=(((1.9, 1.3, 0.8), 0.3),),
+    )
     h, w = 60, 80
     k = ref.scannet_like_intrinsics(w, h)
-    config = MapConfig.for_bounds(room.lo, room.hi, voxel_size=0.04, block_size=4, sdf_trunc=0.1,
-                                  image_height=h, image_width=w, block_capacity=4096, max_touched_blocks=2048,
-                                  alloc_pixel_stride=1, instance_capacity=12)
+    config = MapConfig.for_bounds(
+        room.lo,
+        room.hi,
+        voxel_size=0.04,
+        block_size=4,
+        sdf_trunc=0.1,
+        image_height=h,
+        image_width=w,
+        block_capacity=4096,
+        max_touched_blocks=2048,
+        alloc_pixel_stride=1,
+        instance_capacity=12,
+    )
     blocks = init_voxel_blocks(config)
     for T in ref.orbit_poses(room, 5, radius=0.8, height=1.3):
         depth, color, labels = room.render(T, k, h, w)
@@ -143,7 +164,7 @@ def test_instance_points_with_a_slot_share_drop_weak_second_slots():
     ids = np.full(np.asarray(blocks.instance_id).shape, -1, np.int32)
     weights = np.zeros(ids.shape, np.float32)
     ids[:n, :, 0], weights[:n, :, 0] = 0, 10.0
-    ids[:n, :8, 1], weights[:n, :8, 1] = 1, 2.0   # weak beside 10
+    ids[:n, :8, 1], weights[:n, :8, 1] = 1, 2.0  # weak beside 10
     ids[:n, 8:12, 1], weights[:n, 8:12, 1] = 1, 6.0  # comparable
     state = blocks._replace(instance_id=jnp.asarray(ids), instance_weight=jnp.asarray(weights))
     every = extract_instance_points(state, SPHERE_CONFIG)

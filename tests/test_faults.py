@@ -81,11 +81,14 @@ def _sample(valid_share: float, percentiles) -> DepthSample:
     return DepthSample(("f0",), valid_share, np.asarray(percentiles, float), np.zeros(3), np.ones(3))
 
 
-@pytest.mark.parametrize("valid_share, percentiles, message", [
-    (0.9, [0.001, 0.002, 0.002, 0.003, 0.004], "99% of the depth is closer than 0.004 m"),  # metres as integers
-    (0.9, [0.05, 0.1, 0.2, 0.3, 0.4], "closer than 0.4 m"),                                # centimetres
-    (0.004, [3.9, 3.95, 3.97, 3.99, 4.0], r"only 0\.40% of the pixels"),                   # 0.1 mm units
-])
+@pytest.mark.parametrize(
+    "valid_share, percentiles, message",
+    [
+        (0.9, [0.001, 0.002, 0.002, 0.003, 0.004], "99% of the depth is closer than 0.004 m"),  # metres as integers
+        (0.9, [0.05, 0.1, 0.2, 0.3, 0.4], "closer than 0.4 m"),  # centimetres
+        (0.004, [3.9, 3.95, 3.97, 3.99, 4.0], r"only 0\.40% of the pixels"),  # 0.1 mm units
+    ],
+)
 def test_depth_in_the_wrong_units_is_an_error_suggesting_the_scale(tmp_path, valid_share, percentiles, message):
     scene = open_scene(make_scene(tmp_path / "s", num_frames=2))
     with pytest.raises(UserError, match=message) as error:
@@ -125,7 +128,8 @@ def test_deeply_nested_detection_json_is_a_data_error(tmp_path):
 
 def test_a_detection_file_with_too_many_entries_is_refused_before_its_masks(tmp_path):
     entries = [{"value": 0, "label": "background"}] + [
-        {"value": v, "labels": {"chair": 0.5}, "box": [0, 0, 1, 1]} for v in range(1, 20_001)]
+        {"value": v, "labels": {"chair": 0.5}, "box": [0, 0, 1, 1]} for v in range(1, 20_001)
+    ]
     _label_file(tmp_path, "f", json.dumps({"tags": "chair", "mask": entries}))
     with pytest.raises(DataError, match=r"f_label\.json: 20001 entries, more than the 1024 detections"):
         detection_io.read_frame_detections(tmp_path, "f")
@@ -148,11 +152,14 @@ def _predictions(folder: Path, line: str) -> Path:
     return txt
 
 
-@pytest.mark.parametrize("path, message", [
-    ("/etc/passwd", "is absolute"),
-    ("../outside.txt", "leads out of"),
-    ("pred_mask/../../outside.txt", "leads out of"),
-])
+@pytest.mark.parametrize(
+    "path, message",
+    [
+        ("/etc/passwd", "is absolute"),
+        ("../outside.txt", "leads out of"),
+        ("pred_mask/../../outside.txt", "leads out of"),
+    ],
+)
 def test_eval_reads_masks_only_inside_the_prediction_folder(tmp_path, path, message):
     (tmp_path / "outside.txt").write_text("secret-first-line\n")
     txt = _predictions(tmp_path / "preds", f"{path} 3 0.9")

@@ -17,28 +17,37 @@ from fmfusion_jax.io.scene import read_intrinsics_matrix, read_pose
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
-numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**6, 10**6))
+numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-(10**6), 10**6))
 number_text = st.lists(numbers, max_size=20).map(lambda xs: " ".join(map(str, xs)))
-noise_text = st.one_of(number_text, st.text(max_size=200),
-                       st.lists(st.sampled_from(["1", "0", "nan", "-inf", "1e400", "x", "\n", " ", "\t", ","]),
-                                max_size=40).map("".join))
+noise_text = st.one_of(
+    number_text,
+    st.text(max_size=200),
+    st.lists(st.sampled_from(["1", "0", "nan", "-inf", "1e400", "x", "\n", " ", "\t", ","]), max_size=40).map("".join),
+)
 
 json_values = st.recursive(
     st.one_of(st.none(), st.booleans(), st.integers(-5, 300), st.floats(allow_nan=False), st.text(max_size=12)),
-    lambda children: st.one_of(st.lists(children, max_size=5), st.dictionaries(st.text(max_size=8), children,
-                                                                                  max_size=5)),
-    max_leaves=30)
-entry = st.fixed_dictionaries({"value": st.one_of(st.integers(-1, 5), st.text(max_size=3))},
-                              optional={"labels": st.one_of(json_values, st.dictionaries(
-                                            st.text(max_size=6), st.floats(-1, 2), max_size=3)),
-                                        "box": st.one_of(json_values, st.lists(st.floats(-10, 700), min_size=4,
-                                                                               max_size=4))})
+    lambda children: st.one_of(st.lists(children, max_size=5), st.dictionaries(st.text(max_size=8), children, max_size=5)),
+    max_leaves=30,
+)
+entry = st.fixed_dictionaries(
+    {"value": st.one_of(st.integers(-1, 5), st.text(max_size=3))},
+    optional={
+        "labels": st.one_of(json_values, st.dictionaries(st.text(max_size=6), st.floats(-1, 2), max_size=3)),
+        "box": st.one_of(json_values, st.lists(st.floats(-10, 700), min_size=4, max_size=4)),
+    },
+)
 label_documents = st.one_of(
     json_values,
-    st.fixed_dictionaries({"mask": st.lists(entry, max_size=5)},
-                          optional={"tags": st.one_of(st.text(max_size=20), json_values),
-                                    "raw_tags": st.one_of(st.text(max_size=20), json_values),
-                                    "tagger_tags": json_values}))
+    st.fixed_dictionaries(
+        {"mask": st.lists(entry, max_size=5)},
+        optional={
+            "tags": st.one_of(st.text(max_size=20), json_values),
+            "raw_tags": st.one_of(st.text(max_size=20), json_values),
+            "tagger_tags": json_values,
+        },
+    ),
+)
 
 
 def _reads_or_names_the_file(read, path: Path):
@@ -74,8 +83,7 @@ def test_intrinsics_reader(text):
 
 
 @FUZZ
-@given(document=label_documents, mask=st.sampled_from(["none", "png", "npy", "garbage"]),
-       count=st.integers(0, 4))
+@given(document=label_documents, mask=st.sampled_from(["none", "png", "npy", "garbage"]), count=st.integers(0, 4))
 def test_detection_reader(document, mask, count):
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder)

@@ -16,20 +16,33 @@ TSV = "id\tcategory\tcount\tnyu40id\n1\tchair\t10\t5\n2\tcabinet\t10\t3\n3\tstor
 SEGMENTS = [0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4]
 GROUPS = [  # (objectId, raw label, segments)
     (0, "chair", [0]),
-    (1, "storage", [1]),   # empty nyu40id in the tsv -> unlabelled
+    (1, "storage", [1]),  # empty nyu40id in the tsv -> unlabelled
     (2, "dishrack", [2]),  # not in the tsv -> unlabelled
-    (7, "cabinet", [3]),   # object ids need not be contiguous; segment 4 belongs to no group
+    (7, "cabinet", [3]),  # object ids need not be contiguous; segment 4 belongs to no group
 ]
 
 
 def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, ascii: bool = False) -> None:
-    header = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0", "comment synthetic",
-              f"element vertex {len(vertices)}", "property float x", "property float y", "property float z",
-              "property uchar red", "property uchar green", "property uchar blue", "property uchar alpha",
-              f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    header = [
+        "ply",
+        f"format {'ascii' if ascii else 'binary_little_endian'} 1.0",
+        "comment synthetic",
+        f"element vertex {len(vertices)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        "property uchar red",
+        "property uchar green",
+        "property uchar blue",
+        "property uchar alpha",
+        f"element face {len(faces)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     if ascii:
-        rows = [" ".join(f"{v:.6f}" for v in p) + " " + " ".join(str(c) for c in rgb) + " 255"
-                for p, rgb in zip(vertices, colors)]
+        rows = [
+            " ".join(f"{v:.6f}" for v in p) + " " + " ".join(str(c) for c in rgb) + " 255" for p, rgb in zip(vertices, colors)
+        ]
         rows += ["3 " + " ".join(str(i) for i in f) for f in faces]
         path.write_text("\n".join(header + rows) + "\n")
         return
@@ -91,7 +104,8 @@ def test_v2_tsv_maps_the_raw_category_column(tmp_path):
     scene = write_scene(tmp_path)
     (tmp_path / "scannet-labels.combined.tsv").unlink()
     (tmp_path / "scannetv2-labels.combined.tsv").write_text(
-        "id\traw_category\tcategory\tcount\tnyu40id\n1\tchair\toffice chair\t5\t5\n2\tcabinet\tcabinet\t3\t3\n")
+        "id\traw_category\tcategory\tcount\tnyu40id\n1\tchair\toffice chair\t5\t5\n2\tcabinet\tcabinet\t3\t3\n"
+    )
     np.testing.assert_array_equal(load_scannet_ground_truth(scene).benchmark_ids()[::3], [5001, 0, 0, 3008, 0])
 
 

@@ -20,14 +20,29 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import init_voxel_blocks, local_voxel_index
 
 H, W = 60, 80
-ROOM = ref.BoxRoom(lo=(0.013, 0.021, 0.007), hi=(3.011, 2.517, 2.209),
-                   boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),), spheres=(((1.9, 1.3, 0.8), 0.3),))
+ROOM = ref.BoxRoom(
+    lo=(0.013, 0.021, 0.007),
+    hi=(3.011, 2.517, 2.209),
+    boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),),
+    spheres=(((1.9, 1.3, 0.8), 0.3),),
+)
 K = ref.scannet_like_intrinsics(W, H)
 NUM_INSTANCES = 12
 CONFIG = MapConfig.for_bounds(
-    ROOM.lo, ROOM.hi, voxel_size=0.04, block_size=4, sdf_trunc=0.1, image_height=H, image_width=W,
-    block_capacity=4096, max_touched_blocks=2048, alloc_pixel_stride=1, pixel_stride=2,
-    instance_capacity=NUM_INSTANCES, pool_chunk_blocks=300, cell_chunk=1000,
+    ROOM.lo,
+    ROOM.hi,
+    voxel_size=0.04,
+    block_size=4,
+    sdf_trunc=0.1,
+    image_height=H,
+    image_width=W,
+    block_capacity=4096,
+    max_touched_blocks=2048,
+    alloc_pixel_stride=1,
+    pixel_stride=2,
+    instance_capacity=NUM_INSTANCES,
+    pool_chunk_blocks=300,
+    cell_chunk=1000,
 )
 POSES = ref.orbit_poses(ROOM, 5, radius=0.8, height=1.3)
 
@@ -65,7 +80,7 @@ def check_slot_invariants(blocks) -> None:
     for s in range(ids.shape[-1]):
         for t in range(s):
             assert not np.any((ids[..., s] >= 0) & (ids[..., s] == ids[..., t])), "an id twice in a voxel"
-    assert np.all(ids[int(blocks.num_blocks):] == -1), "ids outside the allocated blocks"
+    assert np.all(ids[int(blocks.num_blocks) :] == -1), "ids outside the allocated blocks"
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -123,8 +138,12 @@ def test_slot_rule_matches_reference_exactly(seed, rounds, n_votes):
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**31 - 1), rounds=st.integers(1, 4), n_votes=st.integers(1, 300),
-       weight=st.sampled_from([0.25, 0.5, 1.0, 2.0]))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    rounds=st.integers(1, 4),
+    n_votes=st.integers(1, 300),
+    weight=st.sampled_from([0.25, 0.5, 1.0, 2.0]),
+)
 def test_slot_rule_with_contrary_votes_matches_reference_exactly(seed, rounds, n_votes, weight):
     """Contrary votes (pixels outside a detected instance's mask) on crowded voxels, neutral pixels too."""
     rng = np.random.default_rng(seed)
@@ -140,8 +159,16 @@ def test_slot_rule_with_contrary_votes_matches_reference_exactly(seed, rounds, n
         neutral = rng.random(512)[:n_votes] < 0.2
         detected = rng.random(NUM_INSTANCES) < 0.5
         voxel = local_voxel_index(local[:, 0], local[:, 1], local[:, 2], CONFIG.block_size)
-        blocks = iv.apply_instance_hits(blocks, _pad(slot), _pad(voxel), _pad(inst), CONFIG, detected,
-                                        _pad(neutral.astype(np.int32)).astype(bool), contrary_weight=weight)
+        blocks = iv.apply_instance_hits(
+            blocks,
+            _pad(slot),
+            _pad(voxel),
+            _pad(inst),
+            CONFIG,
+            detected,
+            _pad(neutral.astype(np.int32)).astype(bool),
+            contrary_weight=weight,
+        )
         g = coords[slot] * CONFIG.block_size + local
         grid = ref.reference_apply_hits(grid, g, inst, np.flatnonzero(detected), neutral, weight)
         got = ref.blocks_to_dense(blocks, CONFIG)
@@ -155,20 +182,31 @@ def _vote_one_voxel(blocks, config, instances, detected, weight):
     n = len(instances)
     mask = np.zeros(config.instance_capacity, bool)
     mask[list(detected)] = True
-    return iv.apply_instance_hits(blocks, jnp.zeros(n, jnp.int32), jnp.zeros(n, jnp.int32),
-                                  jnp.asarray(instances, jnp.int32), config, mask, None, contrary_weight=weight)
+    return iv.apply_instance_hits(
+        blocks,
+        jnp.zeros(n, jnp.int32),
+        jnp.zeros(n, jnp.int32),
+        jnp.asarray(instances, jnp.int32),
+        config,
+        mask,
+        None,
+        contrary_weight=weight,
+    )
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(frames=st.lists(st.tuples(st.integers(0, 3), st.integers(0, 3), st.booleans()), min_size=1, max_size=8),
-       weight=st.sampled_from([0.5, 1.0]))
+@given(
+    frames=st.lists(st.tuples(st.integers(0, 3), st.integers(0, 3), st.booleans()), min_size=1, max_size=8),
+    weight=st.sampled_from([0.5, 1.0]),
+)
 def test_membership_needs_consistent_evidence(frames, weight):
     """One instance on one voxel: after any sequence of frames (hits, pixels outside its mask, detected or
     not), the voxel holds the instance exactly when its hits since it last took the slot outweigh the
     contrary votes (`weight` each), counted only in frames where it was detected."""
     blocks = integrated_map(1)
-    blocks = blocks._replace(instance_id=jnp.full_like(blocks.instance_id, -1),
-                             instance_weight=jnp.zeros_like(blocks.instance_weight))
+    blocks = blocks._replace(
+        instance_id=jnp.full_like(blocks.instance_id, -1), instance_weight=jnp.zeros_like(blocks.instance_weight)
+    )
     net = 0.0
     for hits, others, detected in frames:
         pixels = [3] * hits + [-1] * others
@@ -189,10 +227,11 @@ def test_a_border_hit_seen_once_never_joins():
     """A voxel hit once by an instance's mask border, then seen outside that instance's mask in a frame where
     it is detected, is not the instance's; one that the instance's masks keep covering stays."""
     blocks = integrated_map(1)
-    blocks = blocks._replace(instance_id=jnp.full_like(blocks.instance_id, -1),
-                             instance_weight=jnp.zeros_like(blocks.instance_weight))
-    border = _vote_one_voxel(blocks, CONFIG, [5, 5], {5}, 0.5)            # two border pixels
-    border = _vote_one_voxel(border, CONFIG, [-1] * 4, {5}, 0.5)          # next view: outside the mask
+    blocks = blocks._replace(
+        instance_id=jnp.full_like(blocks.instance_id, -1), instance_weight=jnp.zeros_like(blocks.instance_weight)
+    )
+    border = _vote_one_voxel(blocks, CONFIG, [5, 5], {5}, 0.5)  # two border pixels
+    border = _vote_one_voxel(border, CONFIG, [-1] * 4, {5}, 0.5)  # next view: outside the mask
     assert int(border.instance_id[0, 0, 0]) == -1
     object_voxel = _vote_one_voxel(blocks, CONFIG, [5, 5], {5}, 0.5)
     object_voxel = _vote_one_voxel(object_voxel, CONFIG, [5, 5, -1], {5}, 0.5)  # a partial miss
@@ -212,12 +251,15 @@ def test_misra_gries_eviction():
     """A strong slot survives a few contradicting votes; a weak one is evicted, then replaced."""
     one = dataclasses.replace(CONFIG, instance_slots=1)
     blocks = integrated_map(1)
-    blocks = blocks._replace(instance_id=jnp.full_like(blocks.instance_id[..., :1], -1),
-                             instance_weight=jnp.zeros_like(blocks.instance_weight[..., :1]))
+    blocks = blocks._replace(
+        instance_id=jnp.full_like(blocks.instance_id[..., :1], -1),
+        instance_weight=jnp.zeros_like(blocks.instance_weight[..., :1]),
+    )
 
     def vote(b, inst, times):
-        return iv.apply_instance_hits(b, jnp.zeros(times, jnp.int32), jnp.zeros(times, jnp.int32),
-                                      jnp.full(times, inst, jnp.int32), one)
+        return iv.apply_instance_hits(
+            b, jnp.zeros(times, jnp.int32), jnp.zeros(times, jnp.int32), jnp.full(times, inst, jnp.int32), one
+        )
 
     blocks = vote(blocks, 3, 5)  # 3 holds the voxel with weight 5
     blocks = vote(blocks, 7, 2)  # 7 contradicts twice: 3 keeps it with weight 3
@@ -376,11 +418,15 @@ def test_no_recompilation_and_vmap():
     depth0, _, T0, labels0 = frame(0)
     depth1, _, T1, labels1 = frame(1)
     start = integrated_map(2)
-    singles = [iv.integrate_instances(start, d, T, K, noisy_labels(l, i), CONFIG)
-               for i, (d, T, l) in enumerate(((depth0, T0, labels0), (depth1, T1, labels1)))]
+    singles = [
+        iv.integrate_instances(start, d, T, K, noisy_labels(l, i), CONFIG)
+        for i, (d, T, l) in enumerate(((depth0, T0, labels0), (depth1, T1, labels1)))
+    ]
     batch = jax.tree.map(lambda x: jnp.stack([x, x]), start)
     batched = jax.vmap(lambda b, d, T, l: iv.integrate_instances(b, d, T, K, l, CONFIG))(
-        batch, jnp.stack([depth0, depth1]), jnp.stack([T0, T1]),
+        batch,
+        jnp.stack([depth0, depth1]),
+        jnp.stack([T0, T1]),
         jnp.stack([noisy_labels(labels0, 0), noisy_labels(labels1, 1)]),
     )
     for i, single in enumerate(singles):
@@ -430,10 +476,9 @@ def test_prefix_sum_and_compaction():
         flags = rng.random(n) < 0.4
         values = (np.arange(n) * 7).astype(np.int32)
         for start, size in ((0, n), (3, n + 5), (2, max(1, n // 3))):
-            out, found = oc._compact(jnp.full((size,), -1, jnp.int32), jnp.int32(start), jnp.asarray(flags),
-                                     jnp.asarray(values))
+            out, found = oc._compact(jnp.full((size,), -1, jnp.int32), jnp.int32(start), jnp.asarray(flags), jnp.asarray(values))
             expected = np.full(size + n + start, -1)
-            expected[start:start + flags.sum()] = values[flags]
+            expected[start : start + flags.sum()] = values[flags]
             np.testing.assert_array_equal(np.asarray(out), expected[:size])
             assert int(found) == start + flags.sum()
 
@@ -449,10 +494,10 @@ def test_census_without_removed_ids_matches_the_reference_after_removal(seed):
     exact = dataclasses.replace(CONFIG, overlap_ids_per_cell=16)
     for overlap, inflate in (("inflated", True), ("plain", False), (jnp.bool_(False), True), (jnp.bool_(True), False)):
         census = run_census(blocks, exact, overlap, jnp.asarray(keep))
-        np.testing.assert_array_equal(np.asarray(census.overlap),
-                                      ref.reference_overlap_counts(removed, NUM_INSTANCES, inflate))
-        np.testing.assert_array_equal(np.asarray(census.counts),
-                                      np.diag(ref.reference_overlap_counts(removed, NUM_INSTANCES, False)))
+        np.testing.assert_array_equal(np.asarray(census.overlap), ref.reference_overlap_counts(removed, NUM_INSTANCES, inflate))
+        np.testing.assert_array_equal(
+            np.asarray(census.counts), np.diag(ref.reference_overlap_counts(removed, NUM_INSTANCES, False))
+        )
         assert int(census.overfull) == 0 and int(census.dropped_cells) == 0
     # with 4 ids per cell the crowded cells keep their 4 largest ids among the kept ones, as a count of
     # the pool after the removal does
@@ -488,8 +533,7 @@ def test_renaming_derives_the_new_counts_from_the_census(seed):
         census = run_census(blocks, config, "inflated", list_cells=True)
         listed = (census.cells, census.tags, census.occupied, census.occupied <= config.cell_list_capacity)
         assert bool(listed[-1]) == (capacity > 10)
-        out, gained = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), config, active=jnp.bool_(True),
-                                   listed=listed)
+        out, gained = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), config, active=jnp.bool_(True), listed=listed)
         check_slot_invariants(out)
         got = ref.blocks_to_dense(out, CONFIG)
         np.testing.assert_array_equal(got.instance_id, expected.instance_id)

@@ -1,4 +1,3 @@
-
 import numpy as np
 
 from fmfusion_jax.config import ExportConfig
@@ -12,15 +11,14 @@ def make_instance(instance_id, class_name, centre, n_points=300):
     distribution = np.full(LABELS.num_classes, 0.01)
     distribution[LABELS.class_index(class_name)] = 1.0
     points = np.asarray(centre, np.float32) + np.random.default_rng(instance_id).normal(0, 0.05, (n_points, 3))
-    return MapInstance(instance_id, distribution / distribution.sum(), points.astype(np.float32), 3,
-                       np.zeros(LABELS.num_open))
+    return MapInstance(instance_id, distribution / distribution.sum(), points.astype(np.float32), 3, np.zeros(LABELS.num_open))
 
 
 def test_postprocessing_rules():
     instances = [
         make_instance(0, "toilet", [0, 0, 0]),
-        make_instance(1, "curtain", [1, 0, 0]),      # near the toilet: becomes a shower curtain
-        make_instance(2, "curtain", [5, 0, 0]),      # far: stays a curtain
+        make_instance(1, "curtain", [1, 0, 0]),  # near the toilet: becomes a shower curtain
+        make_instance(2, "curtain", [5, 0, 0]),  # far: stays a curtain
         make_instance(3, "floor", [0, 0, -1]),
         make_instance(4, "floor", [3, 0, -1], n_points=500),
         make_instance(5, "chair", [2, 2, 0], n_points=50),  # too small
@@ -30,8 +28,7 @@ def test_postprocessing_rules():
     export = ExportConfig(min_points=200, shower_curtain_radius=2.0)
     out = postprocess_instances(instances, LABELS, export)
     classes = {inst.instance_id: LABELS.class_names[inst.class_index] for inst in out}
-    assert classes == {0: "toilet", 1: "shower curtain", 2: "curtain", 4: "floor", 6: "shower curtain",
-                       7: "curtain"}
+    assert classes == {0: "toilet", 1: "shower curtain", 2: "curtain", 4: "floor", 6: "shower curtain", 7: "curtain"}
     reference = postprocess_instances(instances, LABELS, export.model_copy(update={"curtain_by_context": False}))
     assert {inst.instance_id: LABELS.class_names[inst.class_index] for inst in reference}[7] == "shower curtain"
     floor = next(inst for inst in out if inst.instance_id == 4)

@@ -75,8 +75,15 @@ def test_detection_class_is_the_hard_association_of_the_best_label():
 
 
 def test_frame_measurements_hit_the_voxels_around_each_depth_point():
-    config = MapConfig(voxel_size=0.1, block_size=2, grid_origin=(-1.05, -1.05, 0.0), grid_shape=(10, 10, 10),
-                       image_height=4, image_width=4, pixel_stride=2)
+    config = MapConfig(
+        voxel_size=0.1,
+        block_size=2,
+        grid_origin=(-1.05, -1.05, 0.0),
+        grid_shape=(10, 10, 10),
+        image_height=4,
+        image_width=4,
+        pixel_stride=2,
+    )
     depth = np.full((2, 2), 1.05)  # subsampled pixels (0, 0), (0, 2), (2, 0), (2, 2) of a 4x4 image
     pixel_class = np.array([[3, 3], [-1, 5]])
     intrinsics = (10.0, 10.0, 2.0, 2.0)  # pixel (2, 2) looks straight down the optical axis
@@ -89,8 +96,9 @@ def test_frame_measurements_hit_the_voxels_around_each_depth_point():
     # pixels (0, 0) and (0, 2) are two measurements of class 3 from different rays
     assert (classes == 3).sum() == 6
     # the same (voxel, class) seen by many pixels of a frame is one measurement
-    many = kimera.frame_measurements(np.full((2, 2), 5), np.full((2, 2), 1.05), np.eye(4), (1e6, 1e6, 2.0, 2.0),
-                                     config, num_classes=C)
+    many = kimera.frame_measurements(
+        np.full((2, 2), 5), np.full((2, 2), 1.05), np.eye(4), (1e6, 1e6, 2.0, 2.0), config, num_classes=C
+    )
     assert len(many) == 3
 
 
@@ -107,8 +115,8 @@ def test_cluster_all_splits_separate_blobs_and_joins_connected_ones():
     component, count = kimera.cluster_all(keys[order], labels[order], dims)
     component = component[np.argsort(order)]  # back to the input order
     assert count == 4
-    a, b = component[: len(blob_a)], component[len(blob_a): len(blob_a) + len(blob_b)]
-    d = component[len(blob_a) + len(blob_b): -1]
+    a, b = component[: len(blob_a)], component[len(blob_a) : len(blob_a) + len(blob_b)]
+    d = component[len(blob_a) + len(blob_b) : -1]
     assert len(set(a)) == 1 and len(set(b)) == 1 and len(set(d)) == 1
     assert len({a[0], b[0], d[0], component[-1]}) == 4
     assert kimera.cluster_all(np.zeros(0, np.int64), np.zeros(0, int), dims)[1] == 0
@@ -116,6 +124,7 @@ def test_cluster_all_splits_separate_blobs_and_joins_connected_ones():
 
 # --------------------------------------------------------------------------------------------------
 # The whole baseline on a small room: a bed, a table and a cabinet, with clean simulated detections.
+
 
 @pytest.fixture(scope="module")
 def small_room(tmp_path_factory):
@@ -165,12 +174,10 @@ def test_kimera_finds_the_objects_of_a_small_room(small_room):
     for name in ("bed", "table", "cabinet"):
         nyu40 = int(label_sets.nyu40_ids[label_sets.class_index(name)])
         truth = ids // 1000 == nyu40
-        ious = [(m & truth).sum() / (m | truth).sum() for m, c in zip(predictions.masks, predictions.nyu40_ids)
-                if c == nyu40]
+        ious = [(m & truth).sum() / (m | truth).sum() for m, c in zip(predictions.masks, predictions.nyu40_ids) if c == nyu40]
         # found, as one main instance on the object (the closed boxes' hidden faces keep IoU below 1)
         assert ious and max(ious) > 0.25, (name, ious)
-        on_object = [(m & truth).sum() / m.sum() for m, c in zip(predictions.masks, predictions.nyu40_ids)
-                     if c == nyu40]
+        on_object = [(m & truth).sum() / m.sum() for m, c in zip(predictions.masks, predictions.nyu40_ids) if c == nyu40]
         assert max(on_object) > 0.9, (name, on_object)
 
     again = _run(small_room)  # deterministic

@@ -34,7 +34,7 @@ def random_detections(rng, n=N, k=K):
 
 
 def random_likelihood(rng):
-    return (LIKELIHOOD if rng.random() < 0.5 else rng.random((O, C)).astype(np.float32) * (rng.random((O, C)) < 0.3))
+    return LIKELIHOOD if rng.random() < 0.5 else rng.random((O, C)).astype(np.float32) * (rng.random((O, C)) < 0.3)
 
 
 # ----------------------------------------------------------------------------- against references
@@ -46,11 +46,16 @@ def test_measurements_match_reference(seed):
     rng = np.random.default_rng(seed)
     scores, _, _ = random_detections(rng)
     lik = random_likelihood(rng)
-    np.testing.assert_allclose(np.asarray(LF.measurement_likelihood(scores, lik)),
-                               R.measurement_likelihood(scores, lik), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(LF.measurement_likelihood(scores, lik)), R.measurement_likelihood(scores, lik), rtol=1e-5, atol=1e-6
+    )
     for weighted in (False, True):
-        np.testing.assert_allclose(np.asarray(LF.measurement_log_likelihood(scores, lik, 1e-3, weighted)),
-                                   R.measurement_log_likelihood(scores, lik, 1e-3, weighted), rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(
+            np.asarray(LF.measurement_log_likelihood(scores, lik, 1e-3, weighted)),
+            R.measurement_log_likelihood(scores, lik, 1e-3, weighted),
+            rtol=1e-5,
+            atol=1e-4,
+        )
 
 
 @CHECK
@@ -64,12 +69,12 @@ def test_fusion_matches_reference(seed, mode, with_reset):
     evidence = np.asarray(LF.fuse_labels(np.zeros((K, C), np.float32), i0, s0, lik, v0, mode))
     reset = (rng.random(K) < 0.3) if with_reset else None
     got = np.asarray(LF.fuse_labels(evidence, inst, scores, lik, valid, mode, reset))
-    values = (R.measurement_likelihood(scores, lik) if mode == "additive"
-              else R.measurement_log_likelihood(scores, lik))
+    values = R.measurement_likelihood(scores, lik) if mode == "additive" else R.measurement_log_likelihood(scores, lik)
     want = R.fuse(evidence, inst, values, valid, mode, reset)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=2e-4)
-    np.testing.assert_allclose(np.asarray(LF.class_distribution(got, mode)), R.class_distribution(want, mode),
-                               rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(LF.class_distribution(got, mode)), R.class_distribution(want, mode), rtol=1e-4, atol=1e-5
+    )
 
 
 @CHECK
@@ -122,12 +127,11 @@ def test_additive_fusion_does_not_depend_on_order(seed):
     reference = fuse_frames(frames, lik, "additive")
     # Frames in another order.
     order = rng.permutation(len(frames))
-    np.testing.assert_allclose(fuse_frames([frames[i] for i in order], lik, "additive"), reference,
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(fuse_frames([frames[i] for i in order], lik, "additive"), reference, rtol=1e-5, atol=1e-6)
     # Detections shuffled across frames (same multiset of measurements).
     pooled = [np.concatenate(x) for x in zip(*frames)]
     perm = rng.permutation(len(pooled[0]))
-    shuffled = [tuple(x[perm][j:j + N] for x in pooled) for j in range(0, len(perm), N)]
+    shuffled = [tuple(x[perm][j : j + N] for x in pooled) for j in range(0, len(perm), N)]
     np.testing.assert_allclose(fuse_frames(shuffled, lik, "additive"), reference, rtol=1e-5, atol=1e-6)
 
 
@@ -157,8 +161,9 @@ def test_additive_evidence_is_the_paper_recursion(seed):
     scores = random_detections(rng)[0][:t]
     inst = np.zeros(t, np.int32)
     pad = N - t
-    evidence = fuse_frames([(np.pad(scores, ((0, pad), (0, 0))), np.pad(inst, (0, pad), constant_values=-1),
-                             np.arange(N) < t)], lik, "additive")
+    evidence = fuse_frames(
+        [(np.pad(scores, ((0, pad), (0, 0))), np.pad(inst, (0, pad), constant_values=-1), np.arange(N) < t)], lik, "additive"
+    )
     p_t = R.paper_additive_recursion(list(R.measurement_likelihood(scores, lik)))
     np.testing.assert_allclose(evidence[0] / t, p_t, rtol=1e-5, atol=1e-7)
     if p_t.sum() > 0:
@@ -248,8 +253,16 @@ def test_label_fusion_compiles_once(mode):
         rng = np.random.default_rng(seed)
         scores, inst, valid = random_detections(rng)
         reset = rng.random(K) < 0.2
-        step(rng.random((K, C)).astype(np.float32), np.zeros((K, O), np.float32), np.zeros(K, np.int32),
-             inst, scores, LIKELIHOOD, valid, reset)
+        step(
+            rng.random((K, C)).astype(np.float32),
+            np.zeros((K, O), np.float32),
+            np.zeros(K, np.int32),
+            inst,
+            scores,
+            LIKELIHOOD,
+            valid,
+            reset,
+        )
         LF.fuse_labels(rng.random((K, C)).astype(np.float32), inst, scores, LIKELIHOOD, valid, mode, reset)
         LF.class_distribution(rng.random((K, C)).astype(np.float32), mode)
 

@@ -37,8 +37,7 @@ def synthetic_instances(true: np.ndarray, n: int, rng: np.random.Generator) -> t
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.sampled_from(cal.PARAMETRIZATIONS),
-       hnp.arrays(np.float32, (O + 1, C), elements=st.floats(-40, 40, width=32)))
+@given(st.sampled_from(cal.PARAMETRIZATIONS), hnp.arrays(np.float32, (O + 1, C), elements=st.floats(-40, 40, width=32)))
 def test_parametrization_always_gives_a_valid_likelihood(parametrization, logits):
     logits = logits if parametrization == "column" else logits[:O]
     matrix = np.asarray(cal.likelihood_from_logits(jnp.asarray(logits), parametrization), np.float64)
@@ -66,9 +65,12 @@ def test_column_parametrization_scales_columns_summing_over_one():
     assert over.any()
     np.testing.assert_allclose(back[:, over].sum(axis=0), 1.0, atol=O * cal.LOGIT_FLOOR)
     # scaled, not reshaped (up to the floor given to zeros)
-    np.testing.assert_allclose(back[:, over] / back[:, over].sum(axis=0),
-                               STATISTICAL[:, over] / STATISTICAL[:, over].sum(axis=0),
-                               atol=2 * cal.LOGIT_FLOOR, rtol=O * cal.LOGIT_FLOOR)
+    np.testing.assert_allclose(
+        back[:, over] / back[:, over].sum(axis=0),
+        STATISTICAL[:, over] / STATISTICAL[:, over].sum(axis=0),
+        atol=2 * cal.LOGIT_FLOOR,
+        rtol=O * cal.LOGIT_FLOOR,
+    )
 
 
 # ----------------------------------------------------------------------------- loss and gradient
@@ -117,8 +119,7 @@ def test_calibration_lowers_the_loss_on_synthetic_instances():
     assert fit.losses[-1] <= fit.losses[len(fit.losses) // 2] <= fit.losses[0]
 
     def nll(matrix):
-        return float(cal.negative_log_likelihood(jnp.asarray(matrix, jnp.float32), jnp.asarray(test[0]),
-                                                 jnp.asarray(test[1])))
+        return float(cal.negative_log_likelihood(jnp.asarray(matrix, jnp.float32), jnp.asarray(test[0]), jnp.asarray(test[1])))
 
     assert nll(fit.likelihood) < nll(start) - 0.5
     assert cal.label_accuracy(fit.likelihood, *test) >= cal.label_accuracy(true, *test) - 0.03
@@ -142,7 +143,7 @@ def test_scene_folds_keep_each_scene_on_one_side():
     scenes = [f"s{i % 7}" for i in range(40)]
     folds = cal.scene_folds(scenes, 4)
     assert len(folds) == 4 and sorted(sum(folds, [])) == sorted(set(scenes))
-    assert all(not set(a) & set(b) for i, a in enumerate(folds) for b in folds[i + 1:])
+    assert all(not set(a) & set(b) for i, a in enumerate(folds) for b in folds[i + 1 :])
     assert cal.scene_folds(["a", "b", "a"], 4) == [["a"], ["b"]]  # no more folds than scenes
     with pytest.raises(ValueError):
         cal.scene_folds(["a", "a"], 4)
@@ -160,8 +161,9 @@ def test_cross_validation_fits_on_the_other_scenes_only():
     # fold 0's fit uses only the instances of the other folds: fitting them directly gives its path
     held = np.isin(scenes, cv.folds[0])
     fit = cal.fit_likelihood(init, hist[~held], classes[~held], steps=15, l2=1.0)
-    val = float(cal.negative_log_likelihood(jnp.asarray(fit.likelihood, jnp.float32), jnp.asarray(hist[held]),
-                                            jnp.asarray(classes[held])))
+    val = float(
+        cal.negative_log_likelihood(jnp.asarray(fit.likelihood, jnp.float32), jnp.asarray(hist[held]), jnp.asarray(classes[held]))
+    )
     assert cv.fold_losses[0, 1, -1] == pytest.approx(val, rel=1e-4)
     # the pooled loss weighs each instance once
     np.testing.assert_allclose(cv.losses, np.einsum("k,kgt->gt", cv.fold_sizes / 60, cv.fold_losses))
@@ -196,6 +198,7 @@ def test_cross_validation_regularizes_more_with_few_noisy_instances():
     hist, classes = synthetic_instances(true, 800, np.random.default_rng(0))
     fit = cal.fit_likelihood(init, hist, classes, steps=many.steps, l2=many.l2)
     start = cal.likelihood_from_logits(jnp.asarray(init))
+
     def nll(matrix):
         return float(cal.negative_log_likelihood(jnp.asarray(matrix, jnp.float32), *map(jnp.asarray, fresh)))
 
@@ -257,8 +260,10 @@ def test_histogram_identity_on_a_fused_map_and_matching(tmp_path):
     gt = load_scannet_ground_truth(prepared.scene_dir)
     classes = instance_classes(gt, LABELS)
     ids = sorted(classes, key=lambda i: -np.count_nonzero(gt.instance_ids == i))[:3]
-    fake = [MapInstance(k, np.eye(C)[k], gt.vertices[gt.instance_ids == i].astype(np.float32), 1, hist[0])
-            for k, i in enumerate(ids[:2])]
+    fake = [
+        MapInstance(k, np.eye(C)[k], gt.vertices[gt.instance_ids == i].astype(np.float32), 1, hist[0])
+        for k, i in enumerate(ids[:2])
+    ]
     half = gt.vertices[gt.instance_ids == ids[2]]
     fake.append(MapInstance(2, np.eye(C)[0], half[: len(half) // 3].astype(np.float32), 1, hist[0]))
     matched = match_instances(fake, gt, scene.name, LABELS, config.export.transfer_radius)

@@ -66,8 +66,8 @@ def test_frame_counts_counts_undetected_instances_and_ignores_labels_outside_the
     prompt = np.zeros(O, bool)
     prompt[[0, 4]] = True
     weights = np.zeros((3, O))
-    weights[0, 4] = 1.0     # class 2 detected as label 4 (in the prompt)
-    weights[1, 7] = 1.0     # class 2 "detected" as label 7, not in the prompt: not a detection of it
+    weights[0, 4] = 1.0  # class 2 detected as label 4 (in the prompt)
+    weights[1, 7] = 1.0  # class 2 "detected" as label 7, not in the prompt: not a detection of it
     # instance 2 (class 5) not detected
     counts = S.frame_counts(np.array([2, 2, 5]), weights, prompt, C)
     assert counts.frames == 1 and counts.instances == 3 and counts.matched == 2
@@ -95,9 +95,9 @@ def test_mask_iou_and_one_to_one_matching():
     gt[:, :5] = 7
     gt[:, 5:] = 3
     masks = np.zeros((3, 10, 10), bool)
-    masks[0, :, :5] = True            # exactly instance 7
-    masks[1, :, 4:] = True            # instance 3 plus a column of 7: IoU 50/60
-    masks[2, :5, :5] = True           # half of instance 7: IoU 0.5, but 7 is taken by the better mask 0
+    masks[0, :, :5] = True  # exactly instance 7
+    masks[1, :, 4:] = True  # instance 3 plus a column of 7: IoU 50/60
+    masks[2, :5, :5] = True  # half of instance 7: IoU 0.5, but 7 is taken by the better mask 0
     iou = S.mask_iou(gt, np.array([7, 3]), masks)
     np.testing.assert_allclose(iou, [[1.0, 10 / 100, 0.5], [0.0, 50 / 60, 0.0]])
     assert S.match_one_to_one(iou).tolist() == [0, 1]
@@ -119,13 +119,12 @@ def test_detection_label_weights_main_and_weighted():
 
 def test_frame_record_matches_detections_to_ground_truth():
     gt = np.zeros((20, 20), np.int32)
-    gt[:10] = 1            # wall-class instance
-    gt[10:, :10] = 2       # a chair, detected
-    gt[10:, 10:] = 5       # a chair, missed
+    gt[:10] = 1  # wall-class instance
+    gt[10:, :10] = 2  # a chair, detected
+    gt[10:, 10:] = 5  # a chair, missed
     masks = np.zeros((1, 20, 20), bool)
     masks[0, 10:, :10] = True
-    dets = FrameDetections("frame-000000", masks, [{"armchair": 0.6}], np.zeros((1, 4), np.float32),
-                           prompt=["armchair", "wall"])
+    dets = FrameDetections("frame-000000", masks, [{"armchair": 0.6}], np.zeros((1, 4), np.float32), prompt=["armchair", "wall"])
     wall, chair = LABELS.class_index("wall"), LABELS.class_index("chair")
     counts = S.frame_record(gt, {1: wall, 2: chair, 5: chair}, dets, LABELS, min_pixels=50)
     armchair = LABELS.open_labels.index("armchair")
@@ -149,8 +148,7 @@ def test_summarize_scene_recovers_the_likelihood_the_simulator_used(tmp_path):
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
     known = sparse_known_likelihood()
-    scene_dir = generated_scene(GeneratedSceneSpec(seed=3, num_objects=8, num_frames=40, width=160, height=120),
-                                tmp_path)
+    scene_dir = generated_scene(GeneratedSceneSpec(seed=3, num_objects=8, num_frames=40, width=160, height=120), tmp_path)
     noise = NoiseModel.preset("clean", label_confusion=1.0, seed=1, min_mask_pixels=30)
     detections = simulated_detections(scene_dir, tmp_path / "detections", noise, likelihood=known)
     counts = S.summarize_scene(scene_dir, detections, LABELS, min_pixels=30)
@@ -216,8 +214,12 @@ def test_cli_seeds_and_errors(tmp_path, capsys):
     assert parse_seeds("1-3,7") == [1, 2, 3, 7] and parse_seeds("none") == []
     assert main(["likelihood", "summarize", "--out", str(tmp_path / "o")]) == 2
     assert "give SCENE folders" in capsys.readouterr().err
-    assert main(["likelihood", "summarize", str(tmp_path), "--detections", str(tmp_path), str(tmp_path),
-                 "--out", str(tmp_path / "o")]) == 2
+    assert (
+        main(
+            ["likelihood", "summarize", str(tmp_path), "--detections", str(tmp_path), str(tmp_path), "--out", str(tmp_path / "o")]
+        )
+        == 2
+    )
     assert "one folder per SCENE" in capsys.readouterr().err
     assert main(["likelihood", "calibrate", "--train", "1-3", "--test", "3", "--out", str(tmp_path / "o")]) == 2
     assert "both training and held-out" in capsys.readouterr().err

@@ -45,8 +45,16 @@ def _fuse(builder, frames):
 
 
 def _result(builder) -> FusionResult:
-    return FusionResult(builder.state, builder.map_config, builder.fusion_config, builder.config, builder.timer,
-                        builder.frames_integrated, builder.detection_frames, dict(builder.counters))
+    return FusionResult(
+        builder.state,
+        builder.map_config,
+        builder.fusion_config,
+        builder.config,
+        builder.timer,
+        builder.frames_integrated,
+        builder.detection_frames,
+        dict(builder.counters),
+    )
 
 
 def test_unallocated_pool_slots_stay_at_their_initial_values(room_frames):
@@ -59,8 +67,9 @@ def test_unallocated_pool_slots_stay_at_their_initial_values(room_frames):
     n, capacity = int(state.blocks.num_blocks), result.map_config.block_capacity
     assert 0 < n < capacity - 1
     for name in ("block_coords", "tsdf", "weight", "color", "instance_id", "instance_weight"):
-        np.testing.assert_array_equal(getattr(state.blocks, name)[n:capacity - 1],
-                                      getattr(initial.blocks, name)[n:capacity - 1], err_msg=name)
+        np.testing.assert_array_equal(
+            getattr(state.blocks, name)[n : capacity - 1], getattr(initial.blocks, name)[n : capacity - 1], err_msg=name
+        )
     # so only the allocated rows and the scratch row are kept
     arrays = state_to_arrays(result.state, result.map_config)
     assert arrays["blocks.tsdf"].shape[0] == n and arrays["blocks.tsdf" + SCRATCH_SUFFIX].shape[0] == 1

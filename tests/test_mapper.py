@@ -42,8 +42,9 @@ def _frames(scene_dir, config):
 
 
 def _key(instances):
-    return [(i.instance_id, i.class_index, i.observations, i.points.tobytes()) for i in
-            sorted(instances, key=lambda i: i.instance_id)]
+    return [
+        (i.instance_id, i.class_index, i.observations, i.points.tobytes()) for i in sorted(instances, key=lambda i: i.instance_id)
+    ]
 
 
 def _load_example():
@@ -122,8 +123,13 @@ def test_arrays_are_a_frame(room):
     by_frame, by_arrays = Mapper(config), Mapper(config, intrinsics=frames[0].intrinsics.matrix)
     for frame in frames:
         by_frame.integrate(frame, folder.get(frame.name))
-        fused = by_arrays.integrate(detections=folder.get(frame.name), depth=frame.depth, color=frame.color,
-                                    T_world_camera=frame.T_world_camera, name=frame.name)
+        fused = by_arrays.integrate(
+            detections=folder.get(frame.name),
+            depth=frame.depth,
+            color=frame.color,
+            T_world_camera=frame.T_world_camera,
+            name=frame.name,
+        )
         assert fused
     assert _key(by_frame.instances()) == _key(by_arrays.instances())
 
@@ -182,8 +188,9 @@ def test_grow_state_keeps_every_voxel_and_row(room):
     grown = growth.grow_state(mapper.state, old, new)
     state, n = mapper.state, int(mapper.state.blocks.num_blocks)
     np.testing.assert_array_equal(np.asarray(grown.blocks.tsdf)[:n], np.asarray(state.blocks.tsdf)[:n])
-    np.testing.assert_array_equal(np.asarray(grown.blocks.block_coords)[:n],
-                                  np.asarray(state.blocks.block_coords)[:n] + np.array([3, 0, 1]))
+    np.testing.assert_array_equal(
+        np.asarray(grown.blocks.block_coords)[:n], np.asarray(state.blocks.block_coords)[:n] + np.array([3, 0, 1])
+    )
     index = np.asarray(grown.blocks.block_index)
     assert sorted(index[index >= 0].tolist()) == list(range(n))
     assert np.all(np.asarray(grown.blocks.weight)[n:] == 0) and np.all(np.asarray(grown.blocks.instance_id)[n:] == -1)
@@ -206,18 +213,18 @@ def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
     scene_dir, detections, config = room
     other_spec = dataclasses.replace(SPEC, seed=6, num_frames=10)
     other_dir = generated_scene(other_spec, tmp_path)
-    other_detections = simulated_detections(other_dir, tmp_path / "detections",
-                                            demo_noise(1, SPEC.width, SPEC.height))
-    rooms = [(_frames(scene_dir, config), DetectionFolder(detections)),
-             (_frames(other_dir, config), DetectionFolder(other_detections))]
+    other_detections = simulated_detections(other_dir, tmp_path / "detections", demo_noise(1, SPEC.width, SPEC.height))
+    rooms = [
+        (_frames(scene_dir, config), DetectionFolder(detections)),
+        (_frames(other_dir, config), DetectionFolder(other_detections)),
+    ]
     scenes = [open_scene(d, depth_max=config.dataset.depth_max).bounds() for d in (scene_dir, other_dir)]
     bounds = (np.minimum(scenes[0][0], scenes[1][0]), np.maximum(scenes[0][1], scenes[1][1]))
 
     batch = MapperBatch(config, 2, bounds=bounds, image_shape=(SPEC.height, SPEC.width))
     for t in range(SPEC.num_frames):
         frames = [seq[t] if t < len(seq) else None for seq, _ in rooms]
-        batch.integrate(frames, [folder.get(f.name) if f is not None else None
-                                 for f, (_, folder) in zip(frames, rooms)])
+        batch.integrate(frames, [folder.get(f.name) if f is not None else None for f, (_, folder) in zip(frames, rooms)])
     results = batch.finalize()
     for i, (frames, folder) in enumerate(rooms):
         single = Mapper(config, bounds=bounds)
@@ -226,8 +233,9 @@ def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
         expected = single.instances()
         assert len(expected) >= 2
         got = extract_map_instances(results[i])
-        assert [(m.instance_id, m.class_index, m.observations) for m in got] == \
-            [(m.instance_id, m.class_index, m.observations) for m in expected]
+        assert [(m.instance_id, m.class_index, m.observations) for m in got] == [
+            (m.instance_id, m.class_index, m.observations) for m in expected
+        ]
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a.points, b.points)
         assert results[i].detection_frames == single.detection_frames

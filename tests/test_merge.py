@@ -22,7 +22,7 @@ seeds = st.integers(0, 2**32 - 1)
 def random_instances(rng, k=K):
     """Peaked class distributions over a few classes, voxel counts with ties, overlaps <= counts."""
     dist = rng.dirichlet(np.full(C, 0.3), size=k)
-    dist[: k // 3] = dist[k // 3: 2 * (k // 3)]  # some pairs with the same semantics
+    dist[: k // 3] = dist[k // 3 : 2 * (k // 3)]  # some pairs with the same semantics
     dist = dist.astype(np.float32)
     voxel_count = rng.integers(0, 6, k).astype(np.int32) * 100
     overlap = np.minimum(rng.integers(0, 600, (k, k)), voxel_count[None, :]).astype(np.int32)
@@ -38,10 +38,15 @@ def random_rows(rng, k=K, mode="additive"):
         evidence = -rng.exponential(3.0, (k, C)).astype(np.float32)
         evidence -= evidence.max(1, keepdims=True)
     return MT.TableRows(
-        valid=valid, label_evidence=evidence, open_label_histogram=rng.random((k, O)).astype(np.float32),
-        observations=rng.integers(0, 20, k).astype(np.int32), missed=rng.integers(0, 6, k).astype(np.int32),
-        voxel_count=rng.integers(0, 2000, k).astype(np.int32), created_frame=rng.integers(0, 50, k).astype(np.int32),
-        last_seen_frame=rng.integers(50, 100, k).astype(np.int32))
+        valid=valid,
+        label_evidence=evidence,
+        open_label_histogram=rng.random((k, O)).astype(np.float32),
+        observations=rng.integers(0, 20, k).astype(np.int32),
+        missed=rng.integers(0, 6, k).astype(np.int32),
+        voxel_count=rng.integers(0, 2000, k).astype(np.int32),
+        created_frame=rng.integers(0, 50, k).astype(np.int32),
+        last_seen_frame=rng.integers(50, 100, k).astype(np.int32),
+    )
 
 
 def random_pairs(rng, k=K, density=0.12):
@@ -148,8 +153,7 @@ def test_merge_instance_table_matches_reference(seed, mode):
     got = M.merge_instance_table(rows, rep, mode)
     want, want_id = R.merge_instance_table(rows._asdict(), rep, mode)
     for name in MT.TableRows._fields:
-        np.testing.assert_allclose(np.asarray(getattr(got.rows, name)), want[name], rtol=1e-5, atol=1e-5,
-                                   err_msg=name)
+        np.testing.assert_allclose(np.asarray(getattr(got.rows, name)), want[name], rtol=1e-5, atol=1e-5, err_msg=name)
     np.testing.assert_array_equal(np.asarray(got.new_id), want_id)
     new_valid = np.asarray(got.rows.valid)
     assert (new_valid == (rows.valid & (rep == np.arange(K)))).all()
@@ -169,16 +173,25 @@ def test_merged_evidence_equals_pooled_measurements(mode):
     zero = np.zeros((K, C), np.float32)
     evidence = LF.fuse_labels(zero, split, scores, lik, valid_det, mode)
     pooled = np.asarray(LF.fuse_labels(zero, np.zeros(8, np.int32), scores, lik, valid_det, mode))
-    rows = MT.TableRows(valid=np.arange(K) < 2, label_evidence=evidence,
-                        open_label_histogram=np.zeros((K, O), np.float32),
-                        observations=np.array([4, 4] + [0] * (K - 2), np.int32), missed=np.zeros(K, np.int32),
-                        voxel_count=np.array([900, 300] + [0] * (K - 2), np.int32),
-                        created_frame=np.zeros(K, np.int32), last_seen_frame=np.zeros(K, np.int32))
+    rows = MT.TableRows(
+        valid=np.arange(K) < 2,
+        label_evidence=evidence,
+        open_label_histogram=np.zeros((K, O), np.float32),
+        observations=np.array([4, 4] + [0] * (K - 2), np.int32),
+        missed=np.zeros(K, np.int32),
+        voxel_count=np.array([900, 300] + [0] * (K - 2), np.int32),
+        created_frame=np.zeros(K, np.int32),
+        last_seen_frame=np.zeros(K, np.int32),
+    )
     rep = np.asarray(M.merge_groups(np.ones((K, K), bool), rows.valid, rows.voxel_count))
     merged = M.merge_instance_table(rows, rep, mode)
     np.testing.assert_allclose(np.asarray(merged.rows.label_evidence)[0], pooled[0], rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(LF.class_distribution(merged.rows.label_evidence, mode))[0],
-                               np.asarray(LF.class_distribution(pooled, mode))[0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(LF.class_distribution(merged.rows.label_evidence, mode))[0],
+        np.asarray(LF.class_distribution(pooled, mode))[0],
+        rtol=1e-5,
+        atol=1e-6,
+    )
     assert np.asarray(merged.rows.valid).tolist()[:2] == [True, False]
     assert np.asarray(merged.new_id).tolist()[:3] == [0, 0, -1]
 
@@ -192,7 +205,7 @@ def test_missed_and_removal_match_reference(seed):
     rng = np.random.default_rng(seed)
     missed = rng.integers(0, 8, K).astype(np.int32)
     voxel_count = rng.integers(0, 1000, K).astype(np.int32)
-    valid, in_view, matched = (rng.random((3, K)) < 0.6)
+    valid, in_view, matched = rng.random((3, K)) < 0.6
     got = np.asarray(MT.update_missed(missed, valid, in_view, matched))
     np.testing.assert_array_equal(got, R.update_missed(missed, valid, in_view, matched))
     remove = np.asarray(MT.instances_to_remove(got, voxel_count, valid))
@@ -253,6 +266,7 @@ def test_merge_step_compiles_once():
 
 # --------------------------------------------------------------------------------------------------
 # Reuniting fragments: pair counts of covered instances.
+
 
 def reference_reunion_pairs(covered, observations, valid, min_frames):
     """Plain loops: a and b reunite when either covered the other often enough."""

@@ -30,12 +30,25 @@ LABELS = load_label_sets()
 LIKELIHOOD = load_likelihood("statistical")
 COLUMNS = LIKELIHOOD / LIKELIHOOD.sum(axis=0, keepdims=True)
 C = LABELS.class_index
-ROW_CLASS = COLUMNS.argmax(axis=1)      # the class the published matrix ascribes each open label to
+ROW_CLASS = COLUMNS.argmax(axis=1)  # the class the published matrix ascribes each open label to
 
 #: The parameters this module is about: zero (off) in `clean` and `default`.
-NEW_PARAMS = ("likelihood_perturbation", "extra_confusion_prob", "consistent_mislabel_prob", "score_miscalibration",
-              "partial_large_prob", "partial_straight_share", "partial_occluder_share", "merge_neighbor_prob",
-              "bleed_prob", "bleed_px", "erode_prob", "erode_px", "confuser_prob", "blob_rate")
+NEW_PARAMS = (
+    "likelihood_perturbation",
+    "extra_confusion_prob",
+    "consistent_mislabel_prob",
+    "score_miscalibration",
+    "partial_large_prob",
+    "partial_straight_share",
+    "partial_occluder_share",
+    "merge_neighbor_prob",
+    "bleed_prob",
+    "bleed_px",
+    "erode_prob",
+    "erode_px",
+    "confuser_prob",
+    "blob_rate",
+)
 
 WALL, FLOOR, TABLE, CHAIR, PICTURE, BOX, LAMP = 1, 2, 3, 4, 5, 8, 9
 
@@ -46,11 +59,11 @@ def room() -> tuple[np.ndarray, dict[int, int]]:
     image = np.zeros((120, 160), np.int32)
     image[:60, :] = WALL
     image[60:, :] = FLOOR
-    image[45:95, 20:90] = TABLE           # 3500 px
-    image[55:100, 90:115] = CHAIR         # 1125 px, touching the table
-    image[10:30, 30:60] = PICTURE         # 600 px
-    image[95:110, 30:70] = BOX            # 600 px, touching the table from below
-    image[15:55, 120:140] = LAMP          # 800 px
+    image[45:95, 20:90] = TABLE  # 3500 px
+    image[55:100, 90:115] = CHAIR  # 1125 px, touching the table
+    image[10:30, 30:60] = PICTURE  # 600 px
+    image[95:110, 30:70] = BOX  # 600 px, touching the table from below
+    image[15:55, 120:140] = LAMP  # 800 px
     classes = {WALL: C("wall"), FLOOR: C("floor"), TABLE: C("table"), CHAIR: C("chair"), PICTURE: C("picture")}
     return image, classes
 
@@ -100,8 +113,10 @@ def test_new_parameters_are_off_in_clean_and_default():
 def test_clean_and_default_frames_are_the_original_simulators():
     # sha256 of these frames made by the simulator before the new failure modes (commit acf7b8e), with
     # this numpy and OpenCV; explicit zeros for every new parameter give the same frames.
-    pinned = {"clean": "3db9cd08c57c226c6c4d1230e986e693805e4f7038991acfe142775f219d0627",
-              "default": "56862b53d4caef55c0d306b4175c385fac091388e6f38dfae4742a4fd80a521d"}
+    pinned = {
+        "clean": "3db9cd08c57c226c6c4d1230e986e693805e4f7038991acfe142775f219d0627",
+        "default": "56862b53d4caef55c0d306b4175c385fac091388e6f38dfae4742a4fd80a521d",
+    }
     image, classes = room()
     for preset, expected in pinned.items():
         for noise in (NoiseModel.preset(preset), NoiseModel.preset(preset, **{name: 0.0 for name in NEW_PARAMS})):
@@ -144,8 +159,9 @@ def test_family_presets_and_cli_choices():
 def test_cli_accepts_family_presets_and_their_parameters():
     from fmfusion_jax.cli import build_parser
 
-    args = build_parser().parse_args(["simulate", "scene", "--out", "sim", "--noise-preset", "border",
-                                      "--set", "bleed_px=8", "--set", "erode_prob=0.1"])
+    args = build_parser().parse_args(
+        ["simulate", "scene", "--out", "sim", "--noise-preset", "border", "--set", "bleed_px=8", "--set", "erode_prob=0.1"]
+    )
     noise = NoiseModel.preset(args.noise_preset, **cli_simulate.parse_overrides(args.set))
     assert (noise.bleed_px, noise.erode_prob, noise.bleed_prob) == (8, 0.1, FAMILY_DOSES["border"]["bleed_prob"])
 
@@ -156,13 +172,13 @@ def test_zoo_is_deterministic_and_each_family_changes_its_parameters():
     assert zoo != noise_zoo(mixed=3, seed=6)
     assert [e.name for e in zoo] == [*FAMILIES, f"{MIXED}-1", f"{MIXED}-2", f"{MIXED}-3"]
     default = NoiseModel(seed=5).to_dict()
-    for entry in zoo[:len(FAMILIES)]:
+    for entry in zoo[: len(FAMILIES)]:
         changed = {k for k, v in entry.noise.to_dict().items() if v != default[k]}
         assert changed == set(FAMILY_DOSES[entry.family]), entry.family
         assert all(entry.noise.to_dict()[k] == pytest.approx(v) for k, v in FAMILY_DOSES[entry.family].items())
     covered = {name for dose in FAMILY_DOSES.values() for name in dose}
     assert set(NEW_PARAMS) - {"large_object_pixels"} <= covered
-    for entry in zoo[len(FAMILIES):]:
+    for entry in zoo[len(FAMILIES) :]:
         assert entry.family == MIXED and entry.noise.to_dict() != default
     # Severity scales the dose from default (0) through the dose (1); probabilities stay valid beyond.
     assert family_noise("border", 0.0) == NoiseModel()
@@ -204,7 +220,7 @@ def test_likelihood_perturbation_makes_one_detector_per_seed():
         counts = np.zeros(len(LABELS.open_labels))
         for _ in range(n):
             counts[LABELS.open_labels.index(next(iter(model.draw(rng, chair, 1))))] += 1
-        assert chi2(counts, model.columns[:, chair]) < 60                     # 37 degrees of freedom at most
+        assert chi2(counts, model.columns[:, chair]) < 60  # 37 degrees of freedom at most
         assert (chi2(counts, COLUMNS[:, chair]) > 200) == (sigma > 0)
 
 
@@ -212,7 +228,7 @@ def test_extra_confusion_gives_the_partner_label_at_its_rate():
     index = {name: i for i, name in enumerate(LABELS.open_labels)}
     for class_name, partners in EXTRA_CONFUSIONS.items():
         for name in partners:
-            assert COLUMNS[index[name], C(class_name)] < 0.03, (class_name, name)   # the matrix lacks them
+            assert COLUMNS[index[name], C(class_name)] < 0.03, (class_name, name)  # the matrix lacks them
     image = np.zeros((40, 60), np.int32)
     image[5:35, 5:55] = 7
     noise = quiet(extra_confusion_prob=0.25)
@@ -225,12 +241,20 @@ def test_extra_confusion_gives_the_partner_label_at_its_rate():
 def test_consistent_mislabel_is_one_wrong_label_in_every_view_and_instance():
     image = np.zeros((60, 120), np.int32)
     image[10:50, 5:50] = 4
-    image[10:50, 60:110] = 6              # a second chair
+    image[10:50, 60:110] = 6  # a second chair
     classes = {4: C("chair"), 6: C("chair")}
     # Tag misses off: a missed tag makes the detector relabel (another failure mode).
-    noise = NoiseModel(consistent_mislabel_prob=1.0, seed=2, missed_tag_prob=0.0, miss_prob=0.0,
-                       small_object_miss_prob=0.0, partial_prob=0.0, split_prob=0.0, merge_prob=0.0,
-                       false_positive_rate=0.0)
+    noise = NoiseModel(
+        consistent_mislabel_prob=1.0,
+        seed=2,
+        missed_tag_prob=0.0,
+        miss_prob=0.0,
+        small_object_miss_prob=0.0,
+        partial_prob=0.0,
+        split_prob=0.0,
+        merge_prob=0.0,
+        false_positive_rate=0.0,
+    )
     mains = {main_label(labels) for f in range(10) for labels in simulate(image, classes, noise, f).labels}
     assert len(mains) == 1
     assert ROW_CLASS[LABELS.open_labels.index(mains.pop())] != C("chair")
@@ -249,8 +273,14 @@ def test_score_miscalibration_decorrelates_scores_from_correctness():
 
     def score_gap(miscalibration: float) -> float:
         # Wrong labels here come from relabels and false detections only, which score low when calibrated.
-        noise = NoiseModel(score_miscalibration=miscalibration, label_confusion=0.0, missed_tag_prob=0.5,
-                           relabel_prob=1.0, false_positive_rate=2.0, seed=1)
+        noise = NoiseModel(
+            score_miscalibration=miscalibration,
+            label_confusion=0.0,
+            missed_tag_prob=0.5,
+            relabel_prob=1.0,
+            false_positive_rate=2.0,
+            seed=1,
+        )
         right, wrong = [], []
         for f in range(150):
             d = simulate(image, classes, noise, f)
@@ -273,7 +303,7 @@ def test_score_miscalibration_decorrelates_scores_from_correctness():
 def test_bleed_kernel_spreads_mostly_downwards():
     kernel, (ax, ay) = bleed_kernel(4.0)
     rows = np.flatnonzero(kernel.any(axis=1))
-    below, above = ay - rows.min(), rows.max() - ay      # kernel rows above the anchor spread downwards
+    below, above = ay - rows.min(), rows.max() - ay  # kernel rows above the anchor spread downwards
     assert below == 8 and above == 2 and kernel.shape[1] == 2 * 4 + 1
 
 
@@ -289,8 +319,8 @@ def test_bleed_adds_only_background_pixels_mostly_below():
             added = mask & (image != instance)
             assert added.any() and background[added].all(), "bleeds onto wall, floor and clutter only"
             rows = np.flatnonzero((image == instance).any(axis=1))
-            below += added[rows.max() + 1:].sum()
-            above += added[:rows.min()].sum()
+            below += added[rows.max() + 1 :].sum()
+            above += added[: rows.min()].sum()
         for surface in (WALL, FLOOR):
             assert not (d.masks[covering(d, image, surface)] & (image != surface)).any(), "walls do not bleed"
     assert below > 2 * above
@@ -319,8 +349,7 @@ def assert_straight_axis_aligned_cut(kept: np.ndarray, whole: np.ndarray) -> Non
 @pytest.mark.parametrize("style", ["wavy", "straight", "occluder"])
 def test_partial_large_cuts_only_large_objects(style):
     image, classes = room()
-    shares = {"wavy": {}, "straight": {"partial_straight_share": 1.0},
-              "occluder": {"partial_occluder_share": 1.0}}[style]
+    shares = {"wavy": {}, "straight": {"partial_straight_share": 1.0}, "occluder": {"partial_occluder_share": 1.0}}[style]
     noise = quiet(partial_large_prob=1.0, large_object_pixels=3000, **shares)
     for f in range(8):
         d = simulate(image, classes, noise, f)
@@ -371,7 +400,7 @@ def test_confusers_are_detected_with_a_fixed_label_and_a_normal_score():
             scores.append(max(d.labels[k].values()))
     assert all(len(labels) == 1 and labels <= allowed for labels in seen.values())
     assert np.mean(scores) > 0.44 and min(scores) >= noise.box_threshold
-    assert simulate(image, classes, quiet(), 0).num_detections == 5      # off: targets only
+    assert simulate(image, classes, quiet(), 0).num_detections == 5  # off: targets only
 
 
 def test_blobs_lie_on_walls_and_floors_with_surface_labels():

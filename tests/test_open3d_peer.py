@@ -64,8 +64,9 @@ def make_sequence(n: int = 6) -> list[tuple[RGBDFrame, FrameDetections]]:
 
 
 def small_config(*overrides: str):
-    return load_config("scannet-subsampled", ["detections.min_mask_pixels=100", "association.min_projected_pixels=200",
-                                              *overrides])
+    return load_config(
+        "scannet-subsampled", ["detections.min_mask_pixels=100", "association.min_projected_pixels=200", *overrides]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -100,8 +101,7 @@ def assert_objects_found(pipeline, sequence, voxel_size):
         assert distribution.shape == (LABELS.num_classes,) and abs(float(distribution.sum()) - 1) < 1e-5
         assert surface not in found, f"two instances on surface {surface}"
         found[surface] = len(points)
-    seen = {next(s for s in OBJECTS if OBJECTS[s][0] in labels)
-            for _, detections in sequence for labels in detections.labels}
+    seen = {next(s for s in OBJECTS if OBJECTS[s][0] in labels) for _, detections in sequence for labels in detections.labels}
     assert set(found) == seen == set(OBJECTS)
 
 
@@ -132,8 +132,12 @@ def test_duplicate_detections_merge(sequence):
     frame, detections = sequence[0]
     # the bed reported twice: two new instances on one volume, which the online merge folds into one once
     # their class distributions are peaked enough to pass the similarity test (one or two frames)
-    doubled = FrameDetections(frame.name, np.concatenate([detections.masks, detections.masks[1:2]]),
-                              detections.labels + [{"bed": 0.5}], np.zeros((len(detections.labels) + 1, 4), np.float32))
+    doubled = FrameDetections(
+        frame.name,
+        np.concatenate([detections.masks, detections.masks[1:2]]),
+        detections.labels + [{"bed": 0.5}],
+        np.zeros((len(detections.labels) + 1, 4), np.float32),
+    )
     pipeline, counts, _ = run_pipeline(sequence, small_config(), first_detections=doubled)
     assert pipeline.counters["created"] == len(OBJECTS) + 1 and pipeline.counters["merged"] == 1
     assert counts[0] == len(OBJECTS) + 1 and counts[2:] == [len(OBJECTS)] * (len(sequence) - 2)
@@ -156,8 +160,9 @@ def test_add_frame_returns_stage_times(sequence, fused):
 @needs_open3d
 def test_voxel_block_grid_surface_on_the_room(sequence):
     config = small_config()
-    grid = VoxelBlockGridTSDF(config.tsdf.voxel_size, config.tsdf.sdf_trunc, config.dataset.depth_max,
-                              sequence[0][0].intrinsics, block_count=4000)
+    grid = VoxelBlockGridTSDF(
+        config.tsdf.voxel_size, config.tsdf.sdf_trunc, config.dataset.depth_max, sequence[0][0].intrinsics, block_count=4000
+    )
     for frame, _ in sequence[:3]:
         ms = grid.integrate(frame)
         assert isinstance(ms, float) and ms > 0

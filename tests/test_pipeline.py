@@ -22,8 +22,16 @@ from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 H, W = 120, 160
 LABELS = load_label_sets()
 # surface label -> (open-set label the "detector" reports, expected closed class)
-SURFACE_CLASSES = {0: ("floor", "floor"), 2: ("wall", "wall"), 3: ("wall", "wall"), 4: ("wall", "wall"),
-                   5: ("wall", "wall"), 6: ("bed", "bed"), 7: ("cabinet", "cabinet"), 8: ("bin", "otherfurniture")}
+SURFACE_CLASSES = {
+    0: ("floor", "floor"),
+    2: ("wall", "wall"),
+    3: ("wall", "wall"),
+    4: ("wall", "wall"),
+    5: ("wall", "wall"),
+    6: ("bed", "bed"),
+    7: ("cabinet", "cabinet"),
+    8: ("bin", "otherfurniture"),
+}
 
 
 SURFACE_LABELS: dict = {}  # (frame name, seed) -> per-pixel surface label (the ground truth)
@@ -48,17 +56,28 @@ def clean_detections(frame: RGBDFrame, seed: int = 0) -> FrameDetections:
         if mask.sum() >= 150:
             masks.append(mask)
             names.append({open_label: 0.6})
-    boxes = np.array([[m.nonzero()[1].min(), m.nonzero()[0].min(), m.nonzero()[1].max(), m.nonzero()[0].max()]
-                      for m in masks], np.float32).reshape(-1, 4)
+    boxes = np.array(
+        [[m.nonzero()[1].min(), m.nonzero()[0].min(), m.nonzero()[1].max(), m.nonzero()[0].max()] for m in masks], np.float32
+    ).reshape(-1, 4)
     return FrameDetections(frame.name, np.array(masks, bool).reshape(-1, H, W), names, boxes)
 
 
 def small_config(**overrides):
-    items = [f"{k}={v}" for k, v in {
-        "detections.every": 1, "detections.min_mask_pixels": 100, "detections.max_detections": 12,
-        "tsdf.block_capacity": 6000, "tsdf.max_touched_blocks": 2048, "instances.capacity": 64,
-        "association.min_projected_pixels": 200, "refinement.geometry_fusion_every": 4,
-        "export.min_points": 20, **overrides}.items()]
+    items = [
+        f"{k}={v}"
+        for k, v in {
+            "detections.every": 1,
+            "detections.min_mask_pixels": 100,
+            "detections.max_detections": 12,
+            "tsdf.block_capacity": 6000,
+            "tsdf.max_touched_blocks": 2048,
+            "instances.capacity": 64,
+            "association.min_projected_pixels": 200,
+            "refinement.geometry_fusion_every": 4,
+            "export.min_points": 20,
+            **overrides,
+        }.items()
+    ]
     return load_config("scannet", items)
 
 
@@ -96,15 +115,16 @@ def test_no_recompilation_after_the_first_frames(room_frames):
     config = small_config()
     builder = build(config, room)
     # the same step, traced through chex's counter: every frame's inputs must hit the first trace
-    counted = jax.jit(chex.assert_max_traces(step.fuse_detections.__wrapped__, n=1),
-                      static_argnames=("config", "fusion"))
+    counted = jax.jit(chex.assert_max_traces(step.fuse_detections.__wrapped__, n=1), static_argnames=("config", "fusion"))
     from fmfusion_jax.engine.detections import pack_detections
     from fmfusion_jax.pipeline import frame_inputs
+
     state = builder.state
     for frame in frames[:4]:
         batch = pack_detections(clean_detections(frame), LABELS.open_labels, 12, 100)
-        state, _ = counted(state, frame_inputs(frame, builder.map_config), batch, builder.likelihood,
-                           builder.map_config, builder.fusion_config)
+        state, _ = counted(
+            state, frame_inputs(frame, builder.map_config), batch, builder.likelihood, builder.map_config, builder.fusion_config
+        )
     # and the loop's own jitted steps keep one compiled version each
     builder.add_frame(frames[0], clean_detections(frames[0]))
     builder.add_frame(frames[1], None)
@@ -113,8 +133,7 @@ def test_no_recompilation_after_the_first_frames(room_frames):
     for frame in frames[2:]:
         builder.add_frame(frame, clean_detections(frame))
         builder.add_frame(frame, None)
-    assert (step.fuse_detections._cache_size(), step.integrate_frame._cache_size(),
-            step._merge_step._cache_size()) == sizes
+    assert (step.fuse_detections._cache_size(), step.integrate_frame._cache_size(), step._merge_step._cache_size()) == sizes
 
 
 def test_batch_of_two_maps_equals_two_runs(room_frames):
@@ -180,36 +199,37 @@ def sequential_merge(state, map_config, fusion, final: bool):
 
     def apply(s, rows, new_id):
         table = s.instances
-        folded = {name: merge.fold_pair_counts(getattr(table, name), new_id, table.valid)
-                  for name in ("covered", "separated")}
-        s = s._replace(blocks=oc.remap_instances(s.blocks, new_id, map_config),
-                       instances=table._replace(**rows._asdict(), **folded))
+        folded = {name: merge.fold_pair_counts(getattr(table, name), new_id, table.valid) for name in ("covered", "separated")}
+        s = s._replace(
+            blocks=oc.remap_instances(s.blocks, new_id, map_config), instances=table._replace(**rows._asdict(), **folded)
+        )
         return recount(s)
 
     if final:
-        state = recount(state._replace(blocks=oc.fuse_instance_geometry(state.blocks, map_config,
-                                                                        fusion.geometry_min_weight)))
+        state = recount(state._replace(blocks=oc.fuse_instance_geometry(state.blocks, map_config, fusion.geometry_min_weight)))
     else:
         state = recount(state)
         rows = maintenance.TableRows.of(state.instances)
-        remove = maintenance.instances_to_remove(rows.missed, rows.voxel_count, rows.valid, fusion.remove_missed,
-                                                 fusion.remove_min_voxels)
+        remove = maintenance.instances_to_remove(
+            rows.missed, rows.voxel_count, rows.valid, fusion.remove_missed, fusion.remove_min_voxels
+        )
         removal = maintenance.remove_instances(rows, remove)
         state = apply(state, removal.rows, removal.new_id)
     rows = maintenance.TableRows.of(state.instances)
     overlap = oc.instance_overlap_counts(state.blocks, map_config, inflate=not final).counts
     similarity = merge.semantic_similarity(label_fusion.class_distribution(rows.label_evidence, fusion.label_mode))
     if final:
-        pairs = merge.post_merge_pairs(similarity, overlap, rows.voxel_count, rows.valid,
-                                       fusion.post_merge_similarity, fusion.post_merge_iou)
+        pairs = merge.post_merge_pairs(
+            similarity, overlap, rows.voxel_count, rows.valid, fusion.post_merge_similarity, fusion.post_merge_iou
+        )
     else:
-        pairs = merge.merge_pairs(similarity, overlap, rows.voxel_count, rows.valid, fusion.merge_similarity,
-                                  fusion.merge_overlap)
+        pairs = merge.merge_pairs(
+            similarity, overlap, rows.voxel_count, rows.valid, fusion.merge_similarity, fusion.merge_overlap
+        )
     table = state.instances
     pairs = pairs | merge.reunion_pairs(table.covered, rows.observations, rows.valid, fusion.reunite_min_frames)
     pairs = pairs & ~merge.separated_pairs(table.separated, table.covered, fusion.separate_min_frames)
-    merged = merge.merge_instance_table(rows, merge.merge_groups(pairs, rows.valid, rows.voxel_count),
-                                        fusion.label_mode)
+    merged = merge.merge_instance_table(rows, merge.merge_groups(pairs, rows.valid, rows.voxel_count), fusion.label_mode)
     return apply(state, merged.rows, merged.new_id)
 
 
@@ -218,18 +238,22 @@ def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, id
     import dataclasses
 
     from fmfusion_jax.engine.occupied_cells import instance_voxel_counts
+
     room, frames = room_frames
     config = small_config(**{"refinement.enabled": False})
     builder = build(config, room)
     builder.map_config = dataclasses.replace(builder.map_config, overlap_ids_per_cell=ids_per_cell)
+
     # re-segment every other frame (split the floor and the walls differently): overlapping instances
     def detections(frame):
         det = clean_detections(frame)
         if frame.index % 2:
             masks = [m for m in det.masks] + [m & (np.arange(W) < W // 2) for m in det.masks[:2]]
-            det = FrameDetections(det.frame_name, np.array(masks), det.labels + det.labels[:2],
-                                  np.concatenate([det.boxes, det.boxes[:2]]))
+            det = FrameDetections(
+                det.frame_name, np.array(masks), det.labels + det.labels[:2], np.concatenate([det.boxes, det.boxes[:2]])
+            )
         return det
+
     result = fuse_sequence(frames, detections, builder)
     state = jax.device_get(result.state)
     table = state.instances
@@ -239,9 +263,15 @@ def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, id
     missed = np.where(np.isin(np.arange(len(table.valid)), valid[::2]), 9, 0).astype(np.int32)
     state = state._replace(instances=table._replace(missed=missed))
     counts = np.asarray(instance_voxel_counts(result.state.blocks, builder.map_config).counts)
-    fusion = dataclasses.replace(builder.fusion_config, merge_similarity=0.02, merge_overlap=0.1,
-                                 remove_min_voxels=int(np.median(counts[valid])), post_merge_iou=0.0,
-                                 post_merge_similarity=0.0, separate_min_frames=separate)
+    fusion = dataclasses.replace(
+        builder.fusion_config,
+        merge_similarity=0.02,
+        merge_overlap=0.1,
+        remove_min_voxels=int(np.median(counts[valid])),
+        post_merge_iou=0.0,
+        post_merge_similarity=0.0,
+        separate_min_frames=separate,
+    )
     fresh = lambda: jax.tree.map(jax.numpy.asarray, state)  # noqa: E731  (steps donate their state)
     got, stats = step.refine(fresh(), builder.map_config, fusion)
     expected = sequential_merge(fresh(), builder.map_config, fusion, final=False)
@@ -333,18 +363,17 @@ def test_count_covered_counts_candidates_mostly_inside_another_instances_detecti
     intersection = np.array([[40, 30, 2, 0, 9], [0, 0, 0, 20, 0]], np.int32)  # detections x instances
     inst_area = np.array([50, 40, 10, 25, 10], np.int32)
     counts = association.AssociationCounts(intersection, np.array([80, 30], np.int32), inst_area)
-    assignment = association.Assignment(np.array([0, 3], np.int32), np.zeros(2, bool), np.zeros(k, bool),
-                                        np.ones(k, bool), np.int32(0))
+    assignment = association.Assignment(
+        np.array([0, 3], np.int32), np.zeros(2, bool), np.zeros(k, bool), np.ones(k, bool), np.int32(0)
+    )
     matches = step.Matches(counts, np.ones(2, bool), assignment)
     candidates = np.array([False, True, True, False, True])  # in view, not detected: 1, 2, 4
-    got = np.asarray(step.count_covered(np.zeros((k, k), np.int32), matches, np.array([True, True]),
-                                        candidates, 0.5))
+    got = np.asarray(step.count_covered(np.zeros((k, k), np.int32), matches, np.array([True, True]), candidates, 0.5))
     expected = np.zeros((k, k), np.int32)
     expected[0, 1] = 1  # 30 / 40 of instance 1 inside detection 0 (fused into 0); 2: 2/10; 4: 9/10 -> also
     expected[0, 4] = 1
     assert np.array_equal(got, expected)
-    not_fused = np.asarray(step.count_covered(np.zeros((k, k), np.int32), matches, np.array([False, True]),
-                                              candidates, 0.5))
+    not_fused = np.asarray(step.count_covered(np.zeros((k, k), np.int32), matches, np.array([False, True]), candidates, 0.5))
     assert not not_fused.any()
 
 

@@ -43,9 +43,11 @@ def box_overlap(a, b, tolerance: float = 1e-6) -> bool:
     axes += [(-s, c) for c, s in axes]
     for ax in axes:
         ax = np.array(ax)
+
         def radius(box):
             c, s = math.cos(box.yaw), math.sin(box.yaw)
             return abs(ax @ [c, s]) * box.half_extents[0] + abs(ax @ [-s, c]) * box.half_extents[1]
+
         if abs(ax @ (a.center[:2] - b.center[:2])) >= radius(a) + radius(b) - tolerance:
             return False
     return True
@@ -103,12 +105,13 @@ def test_objects_do_not_overlap_and_stay_in_the_room(seed, num_objects):
     structure = set(range(1, 7))
     objects = [b for b in scene.boxes if b.instance_id not in structure]
     for i, a in enumerate(objects):
-        for b in objects[i + 1:]:
+        for b in objects[i + 1 :]:
             if a.instance_id != b.instance_id:
                 assert not box_overlap(a, b), (scene.instances[a.instance_id], scene.instances[b.instance_id])
         mounted = scene.instances[a.instance_id].kind in ("door", "window")
-        corners = raycast.BoxArrays(a.center[None], a.half_extents[None], a.rotation[None], np.zeros((1, 3)),
-                                    np.zeros(1, np.int32), np.zeros(1, np.int32)).corners()[0]
+        corners = raycast.BoxArrays(
+            a.center[None], a.half_extents[None], a.rotation[None], np.zeros((1, 3)), np.zeros(1, np.int32), np.zeros(1, np.int32)
+        ).corners()[0]
         slack = 0.06 if mounted else 1e-6  # doors and windows are set into their wall
         assert corners.min(axis=0)[:2].min() >= -slack and corners[:, 0].max() <= w + slack
         assert corners[:, 1].max() <= d + slack and -1e-6 <= corners[:, 2].min() and corners[:, 2].max() <= h
@@ -215,8 +218,15 @@ def test_mesh_is_fine_bounded_and_labelled():
 @pytest.fixture(scope="module")
 def written(tmp_path_factory):
     scene = generate_scene(11, num_objects=8)
-    out = write_scannet_scene(scene, tmp_path_factory.mktemp("synth") / "synth0011_00", num_frames=6, width=160,
-                              height=120, depth_noise=False, progress=False)
+    out = write_scannet_scene(
+        scene,
+        tmp_path_factory.mktemp("synth") / "synth0011_00",
+        num_frames=6,
+        width=160,
+        height=120,
+        depth_noise=False,
+        progress=False,
+    )
     return scene, out
 
 
@@ -342,8 +352,24 @@ def only_synth(monkeypatch):
 
 def test_cli_synth(only_synth, tmp_path, capsys):
     out = tmp_path / "cli_00"
-    code = cli.main(["synth", str(out), "--seed", "3", "--objects", "5", "--frames", "4", "--size", "64x48",
-                     "--room", "4x4x2.5", "--no-noise", "--no-progress"])
+    code = cli.main(
+        [
+            "synth",
+            str(out),
+            "--seed",
+            "3",
+            "--objects",
+            "5",
+            "--frames",
+            "4",
+            "--size",
+            "64x48",
+            "--room",
+            "4x4x2.5",
+            "--no-noise",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     assert "5 objects" in capsys.readouterr().out
     params = json.loads((out / "synthesis.json").read_text())
@@ -352,13 +378,16 @@ def test_cli_synth(only_synth, tmp_path, capsys):
     assert cv2.imread(str(out / "color" / "frame-000000.jpg")).shape == (48, 64, 3)
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--room", "4x4"], "--room '4x4'"),
-    (["--size", "64"], "--size '64'"),
-    (["--objects", "0"], "--objects 0"),
-    (["--frames", "0"], "--frames 0"),
-    (["--room", "2x2x2.4", "--objects", "30"], "could place only"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--room", "4x4"], "--room '4x4'"),
+        (["--size", "64"], "--size '64'"),
+        (["--objects", "0"], "--objects 0"),
+        (["--frames", "0"], "--frames 0"),
+        (["--room", "2x2x2.4", "--objects", "30"], "could place only"),
+    ],
+)
 def test_cli_synth_bad_arguments_are_one_line_errors(only_synth, tmp_path, capsys, args, message):
     code = cli.main(["synth", str(tmp_path / "bad_00"), "--quiet", *args])
     err = capsys.readouterr().err

@@ -36,18 +36,25 @@ def _entry(name: str, family: str, **changes) -> ZooEntry:
     return ZooEntry(name, family, NoiseModel.preset("default", **changes))
 
 
-ENTRIES = [_entry("default", "default"), _entry("border", "border", border_offset_px=4.0),
-           _entry("mixed-1", "mixed", merge_prob=0.3), _entry("mixed-2", "mixed", partial_prob=0.4)]
+ENTRIES = [
+    _entry("default", "default"),
+    _entry("border", "border", border_offset_px=4.0),
+    _entry("mixed-1", "mixed", merge_prob=0.3),
+    _entry("mixed-2", "mixed", partial_prob=0.4),
+]
 
 
 def _scores(ap50: dict[str, tuple[float, float, float]]) -> dict:
     """entry -> method -> metrics, with AP = AP50 / 2 and AP25 = min(1, AP50 + 0.1)."""
-    return {entry: {m: {"AP": v / 2, "AP50": v, "AP25": min(1.0, v + 0.1)} for m, v in zip(METHOD_NAMES, values)}
-            for entry, values in ap50.items()}
+    return {
+        entry: {m: {"AP": v / 2, "AP50": v, "AP25": min(1.0, v + 0.1)} for m, v in zip(METHOD_NAMES, values)}
+        for entry, values in ap50.items()
+    }
 
 
-SCORES = _scores({"default": (0.40, 0.60, 0.70), "border": (0.30, 0.50, 0.40),
-                  "mixed-1": (0.20, 0.30, 0.35), "mixed-2": (0.10, 0.20, 0.25)})
+SCORES = _scores(
+    {"default": (0.40, 0.60, 0.70), "border": (0.30, 0.50, 0.40), "mixed-1": (0.20, 0.30, 0.35), "mixed-2": (0.10, 0.20, 0.25)}
+)
 
 
 def test_summaries_per_family_mean_and_worst():
@@ -56,7 +63,7 @@ def test_summaries_per_family_mean_and_worst():
     assert list(full["families"]) == ["default", "border", "mixed"]
     assert full["families"]["border"]["entries"] == ["border"]
     assert full["families"]["border"]["mean"]["AP50"] == pytest.approx(0.40)  # one entry: its score
-    assert full["families"]["mixed"]["mean"]["AP50"] == pytest.approx(0.30)   # mean of 0.35 and 0.25
+    assert full["families"]["mixed"]["mean"]["AP50"] == pytest.approx(0.30)  # mean of 0.35 and 0.25
     assert full["families"]["mixed"]["worst"]["AP50"] == {"value": pytest.approx(0.25), "entry": "mixed-2"}
     assert full["mean"]["AP50"] == pytest.approx((0.70 + 0.40 + 0.35 + 0.25) / 4)
     assert full["mean"]["AP"] == pytest.approx((0.70 + 0.40 + 0.35 + 0.25) / 8)
@@ -98,8 +105,15 @@ def test_markdown_and_json_reports(tmp_path):
     methods = [METHODS[n] for n in METHOD_NAMES]
     summary = summarize(ENTRIES, SCORES, METHOD_NAMES)
     record = verdict(summary, METHOD_NAMES)
-    scenes = [{"name": "synth0001_00", "kind": "generated", "frames": 20,
-               "spec": {"seed": 1, "num_objects": 5, "width": 320, "height": 240}, "config": "demo"}]
+    scenes = [
+        {
+            "name": "synth0001_00",
+            "kind": "generated",
+            "frames": 20,
+            "spec": {"seed": 1, "num_objects": 5, "width": 320, "height": 240},
+            "config": "demo",
+        }
+    ]
     markdown = robustness_markdown(ENTRIES, SCORES, summary, record, methods, scenes, 0, 12.0, 12)
     lines = markdown.splitlines()
     header = next(line for line in lines if line.startswith("| Family | Entry |"))
@@ -117,8 +131,9 @@ def test_markdown_and_json_reports(tmp_path):
     chart = robustness.robustness_chart(ENTRIES, SCORES, summary, METHOD_NAMES)
     write_reports(tmp_path, markdown, {"scores": SCORES, "summary": summary, "verdict": record}, chart)
     assert (tmp_path / "robustness.md").read_text() == markdown
-    assert json.loads((tmp_path / "robustness.json").read_text())["summary"]["full"]["mean"]["AP50"] == \
-        pytest.approx(summary["full"]["mean"]["AP50"])
+    assert json.loads((tmp_path / "robustness.json").read_text())["summary"]["full"]["mean"]["AP50"] == pytest.approx(
+        summary["full"]["mean"]["AP50"]
+    )
     image = cv2.imread(str(tmp_path / "robustness.png"))
     assert image is not None and image.shape == chart.shape and image.std() > 0
 
@@ -126,9 +141,16 @@ def test_markdown_and_json_reports(tmp_path):
 def test_cache_name_changes_with_any_noise_parameter():
     noise = NoiseModel.preset("default")
     assert detections_tag("border", noise) == detections_tag("border", NoiseModel.preset("default"))
-    changed = {detections_tag("border", noise.replace(**{key: value}))
-               for key, value in (("border_offset_px", 4.0), ("seed", 1), ("merge_prob", 0.3),
-                                  ("prompt_augmentation", False), ("min_mask_pixels", 100))}
+    changed = {
+        detections_tag("border", noise.replace(**{key: value}))
+        for key, value in (
+            ("border_offset_px", 4.0),
+            ("seed", 1),
+            ("merge_prob", 0.3),
+            ("prompt_augmentation", False),
+            ("min_mask_pixels", 100),
+        )
+    }
     assert len(changed) == 5 and detections_tag("border", noise) not in changed
     assert detections_tag("mixed-1", noise) != detections_tag("mixed-2", noise)
 
@@ -160,14 +182,17 @@ def test_cached_frames_are_the_frames_read_from_disk(tmp_path):
     assert not robustness.cache_frames(open_scene(scene_dir), max_bytes=1000)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--methods", "kimmera"], "unknown method 'kimmera'"),
-    (["--mixed", "-1"], "--mixed must be >= 0"),
-    (["--noise-seed", "-2"], "--noise-seed must be >= 0"),
-    (["--seed", "3"], "the zoo's seed is --noise-seed"),
-    (["--generated-frames", "1"], "--generated-frames must be >= 2"),
-    (["--scenes", "--generated", "0"], "no scenes"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--methods", "kimmera"], "unknown method 'kimmera'"),
+        (["--mixed", "-1"], "--mixed must be >= 0"),
+        (["--noise-seed", "-2"], "--noise-seed must be >= 0"),
+        (["--seed", "3"], "the zoo's seed is --noise-seed"),
+        (["--generated-frames", "1"], "--generated-frames must be >= 2"),
+        (["--scenes", "--generated", "0"], "no scenes"),
+    ],
+)
 def test_cli_errors_are_one_line(tmp_path, capsys, argv, message):
     from fmfusion_jax.cli import main
 
@@ -220,8 +245,7 @@ def test_tiny_evaluation_end_to_end(tmp_path):
     entries = [e for e in noise_zoo(mixed=1, seed=0) if e.name in ("default", "border", "mixed-1")]
     spec = GeneratedSceneSpec(seed=3, num_objects=4, num_frames=20, width=320, height=240)
     cache, lines = tmp_path / "cache", []
-    result = run_robustness(tmp_path / "out", generated=[spec], entries=entries, cache_dir=cache,
-                            report=lines.append)
+    result = run_robustness(tmp_path / "out", generated=[spec], entries=entries, cache_dir=cache, report=lines.append)
     out = result.out_dir
     assert [line.split("]")[0] for line in lines if line.startswith("[")] == [f"[{i}/9" for i in range(1, 10)]
     assert "ETA" in lines[-1]
@@ -232,8 +256,9 @@ def test_tiny_evaluation_end_to_end(tmp_path):
             for metric in ("AP", "AP50", "AP25"):
                 value = record["scores"][entry["name"]][method][metric]
                 assert value is not None and 0.0 <= value <= 1.0, (entry["name"], method, metric, value)
-            assert record["per_scene_ap50"][entry["name"]][spec.name][method] == \
-                record["scores"][entry["name"]][method]["AP50"]  # one scene: pooling is the scene's score
+            assert (
+                record["per_scene_ap50"][entry["name"]][spec.name][method] == record["scores"][entry["name"]][method]["AP50"]
+            )  # one scene: pooling is the scene's score
             run = json.loads((out / "runs" / spec.name / entry["name"] / method / "run.json").read_text())
             assert run["method"] == method and run["frames"] == spec.num_frames
         full = json.loads((out / "runs" / spec.name / entry["name"] / "full" / "run.json").read_text())
@@ -254,7 +279,8 @@ def test_tiny_evaluation_end_to_end(tmp_path):
     frames = json.loads((cache / "detections" / detections[0] / "simulation.json").read_text())["frames"]
     assert len(frames) == spec.num_frames
     stamps = {p: p.stat().st_mtime_ns for p in (cache / "detections").rglob("simulation.json")}
-    again = run_robustness(tmp_path / "out", generated=[spec], entries=entries[:1], methods=["kimera"],
-                           cache_dir=cache, progress=False)
+    again = run_robustness(
+        tmp_path / "out", generated=[spec], entries=entries[:1], methods=["kimera"], cache_dir=cache, progress=False
+    )
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # cached: nothing simulated again
     assert math.isclose(again.scores["default"]["kimera"]["AP50"], result.scores["default"]["kimera"]["AP50"])

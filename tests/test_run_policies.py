@@ -50,6 +50,7 @@ def _stop_after(frames: int):
     def should_stop() -> bool:
         calls.append(1)
         return len(calls) > frames
+
     return should_stop
 
 
@@ -94,7 +95,8 @@ def test_a_second_run_replaces_the_first_runs_outputs_as_a_whole(room, tmp_path)
     assert _run(room, out).complete
     assert not (out / "instances" / "9999_stale.ply").exists() and "mAP50" in (out / "report.json").read_text()
     assert sorted(p.name for p in (out / "instances").iterdir()) == sorted(
-        f"{i['id']:04d}_{i['class'].replace(' ', '_')}.ply" for i in _instances(out))
+        f"{i['id']:04d}_{i['class'].replace(' ', '_')}.ply" for i in _instances(out)
+    )
 
 
 def test_bad_frames_are_skipped_and_listed_or_stop_the_run(room, tmp_path):
@@ -107,8 +109,9 @@ def test_bad_frames_are_skipped_and_listed_or_stop_the_run(room, tmp_path):
     assert outcome.complete and "1 frames skipped" in outcome.summary
     run = json.loads((out / "run.json").read_text())
     assert run["frames"] == 13
-    assert run["skipped_frames"] == [{"frame": "frame-000004",
-                                      "reason": f"{broken / 'depth' / 'frame-000004.png'}: unreadable or corrupt image"}]
+    assert run["skipped_frames"] == [
+        {"frame": "frame-000004", "reason": f"{broken / 'depth' / 'frame-000004.png'}: unreadable or corrupt image"}
+    ]
     with pytest.raises(UserError, match=r"frame-000004\.png: unreadable or corrupt image"):
         _run((broken, detections, config), tmp_path / "stop", on_error="stop")
 
@@ -122,10 +125,24 @@ def test_ctrl_c_stops_between_frames_writes_a_checkpoint_and_exits_130(tmp_path)
     config_path = tmp_path / "config.yaml"
     config_path.write_text(config.to_yaml())
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "fmfusion_jax.cli", "run", str(scene_dir), "--detections", str(detections),
-               "--out", str(out), "--config", str(config_path), "--no-progress", "-v"]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    command = [
+        sys.executable,
+        "-m",
+        "fmfusion_jax.cli",
+        "run",
+        str(scene_dir),
+        "--detections",
+        str(detections),
+        "--out",
+        str(out),
+        "--config",
+        str(config_path),
+        "--no-progress",
+        "-v",
+    ]
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}
+    )
     started = time.monotonic()
     stderr_lines = []
     assert process.stderr is not None

@@ -39,8 +39,14 @@ def write_matrix(path: Path, matrix: np.ndarray) -> None:
     path.write_text("\n".join(" ".join(f"{x:f}" for x in row) for row in matrix) + "\n")
 
 
-def make_scene(root: Path, layout: str = "scannet", num_frames: int = 6, color_size=(WIDTH, HEIGHT),
-               poses: list[np.ndarray] | None = None, pose_files: bool = True) -> Path:
+def make_scene(
+    root: Path,
+    layout: str = "scannet",
+    num_frames: int = 6,
+    color_size=(WIDTH, HEIGHT),
+    poses: list[np.ndarray] | None = None,
+    pose_files: bool = True,
+) -> Path:
     """Writes a tiny scene of `num_frames` frames in `layout` under `root`; returns `root`."""
     color_dir, color_name, depth_name, pose_name = {
         "scannet": ("color", "frame-{:06d}.jpg", "frame-{:06d}.png", "frame-{:06d}.txt"),
@@ -131,8 +137,9 @@ def test_missing_pose_file_is_a_data_error_naming_it(tmp_path):
         open_scene(tmp_path / "s")
 
 
-@pytest.mark.parametrize("content, message", [("1 2 3", "4x4"), ("a b c", "numbers"),
-                                              ("2 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1", "rigid")])
+@pytest.mark.parametrize(
+    "content, message", [("1 2 3", "4x4"), ("a b c", "numbers"), ("2 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1", "rigid")]
+)
 def test_malformed_pose_is_a_data_error(tmp_path, content, message):
     make_scene(tmp_path / "s")
     (tmp_path / "s" / "pose" / "frame-000002.txt").write_text(content)
@@ -163,7 +170,8 @@ def test_colour_of_another_size_is_resized_with_one_note(tmp_path, caplog):
 def test_depth_of_another_size_than_the_intrinsics_is_a_data_error(tmp_path):
     make_scene(tmp_path / "s")
     (tmp_path / "s" / "intrinsic" / "sensor_shapes.txt").write_text(
-        "color_width:64\ncolor_height:48\ndepth_width:64\ndepth_height:48\n")
+        "color_width:64\ncolor_height:48\ndepth_width:64\ndepth_height:48\n"
+    )
     scene = open_scene(tmp_path / "s")
     assert (scene.intrinsics.width, scene.intrinsics.height) == (64, 48)
     with pytest.raises(DataError, match="frame-000000.png.*intrinsics"):
@@ -197,8 +205,7 @@ def test_missing_intrinsics_is_a_data_error(tmp_path):
 def test_scenenn_trajectory_log_replaces_pose_files(tmp_path):
     poses = [pose_at(0.2 * i) for i in range(3)]
     root = make_scene(tmp_path / "nn", "scenenn", num_frames=3, pose_files=False)
-    blocks = [f"{i} {i} {i + 1}\n" + "\n".join(" ".join(f"{x:f}" for x in row) for row in pose)
-              for i, pose in enumerate(poses)]
+    blocks = [f"{i} {i} {i + 1}\n" + "\n".join(" ".join(f"{x:f}" for x in row) for row in pose) for i, pose in enumerate(poses)]
     (root / "trajectory.log").write_text("\n".join(blocks) + "\n")
     scene = open_scene(root)
     assert scene.layout == "scenenn" and len(scene) == 3

@@ -35,7 +35,8 @@ def test_detections_of_part_of_the_scene_are_simulated_again(tmp_path):
     scene_dir = generated_scene(GeneratedSceneSpec(seed=2, num_objects=2, num_frames=4, width=96, height=72), tmp_path)
     noise = NoiseModel.preset("default", seed=0, min_mask_pixels=10)
     out = tmp_path / "detections"
-    simulate_scene(open_scene(scene_dir), load_scannet_ground_truth(scene_dir), out, noise, max_frames=2,
-                   progress=False)  # e.g. `fmfusion simulate --max-frames 2`
+    simulate_scene(
+        open_scene(scene_dir), load_scannet_ground_truth(scene_dir), out, noise, max_frames=2, progress=False
+    )  # e.g. `fmfusion simulate --max-frames 2`
     simulated_detections(scene_dir, out, noise)
     assert len(json.loads((out / "simulation.json").read_text())["frames"]) == 4

@@ -27,19 +27,19 @@ def best_label(class_name: str) -> str:
 def room() -> tuple[np.ndarray, dict[int, int]]:
     """120x160 instance image: wall, floor, a table with a chair touching it, a picture, a lamp (no class)."""
     image = np.zeros((120, 160), np.int32)
-    image[:70, :] = 1                # wall
-    image[70:, :] = 2                # floor
-    image[50:95, 20:80] = 3          # table
-    image[55:100, 80:110] = 4        # chair, touching the table
-    image[10:35, 30:70] = 5          # picture on the wall
-    image[20:60, 120:140] = 9        # lamp: not a target class
+    image[:70, :] = 1  # wall
+    image[70:, :] = 2  # floor
+    image[50:95, 20:80] = 3  # table
+    image[55:100, 80:110] = 4  # chair, touching the table
+    image[10:35, 30:70] = 5  # picture on the wall
+    image[20:60, 120:140] = 9  # lamp: not a target class
     classes = {1: C("wall"), 2: C("floor"), 3: C("table"), 4: C("chair"), 5: C("picture")}
     return image, classes
 
 
 def one_object(class_name: str = "chair", size: int = 40) -> tuple[np.ndarray, dict[int, int]]:
     image = np.zeros((64, 64), np.int32)
-    image[10:10 + size // 2, 5:5 + size] = 7
+    image[10 : 10 + size // 2, 5 : 5 + size] = 7
     return image, {7: C(class_name)}
 
 
@@ -152,8 +152,7 @@ def test_frames_are_reproducible_from_the_seed():
     b = simulate(image, classes, noise, frame_index=12)
     np.testing.assert_array_equal(a.masks, b.masks)
     assert a.labels == b.labels and a.prompt == b.prompt and a.raw_tags == b.raw_tags
-    others = [simulate(image, classes, noise.replace(seed=6), frame_index=12),
-              simulate(image, classes, noise, frame_index=13)]
+    others = [simulate(image, classes, noise.replace(seed=6), frame_index=12), simulate(image, classes, noise, frame_index=13)]
     for other in others:
         assert other.labels != a.labels or other.masks.shape != a.masks.shape or (other.masks != a.masks).any()
 
@@ -318,8 +317,7 @@ def test_false_detections():
         r = simulate(image, classes, noise, frame)
         check_invariants(r, noise)
         extra.append(r.num_detections - len(classes))
-        low = [k for k, labels in enumerate(r.labels) if max(labels.values()) < noise.box_threshold + 0.08
-               and len(labels) == 1]
+        low = [k for k, labels in enumerate(r.labels) if max(labels.values()) < noise.box_threshold + 0.08 and len(labels) == 1]
         on_lamp += any((r.masks[k] & (image == 9)).sum() > 0.5 * (image == 9).sum() for k in low)
     # Poisson(3) false detections, less those hidden below a smaller mask or too small.
     assert 1.5 < np.mean(extra) <= 3.2
@@ -368,8 +366,14 @@ class PlaneScene:
         from fmfusion_jax.types import RGBDFrame
 
         for i in range(self.count):
-            yield RGBDFrame(i, f"frame-{i:06d}", np.zeros((120, 160, 3), np.uint8), np.full((120, 160), 2.0, np.float32),
-                            np.eye(4), self.intrinsics)
+            yield RGBDFrame(
+                i,
+                f"frame-{i:06d}",
+                np.zeros((120, 160, 3), np.uint8),
+                np.full((120, 160), 2.0, np.float32),
+                np.eye(4),
+                self.intrinsics,
+            )
 
     @staticmethod
     def ground_truth():
@@ -377,8 +381,13 @@ class PlaneScene:
         vertices = np.stack([x.ravel(), y.ravel(), np.full(x.size, 2.0)], axis=1)
         instance_ids = np.where(vertices[:, 0] < 0, 1, 2).astype(np.int32)
         nyu40 = np.where(instance_ids == 1, 5, 7).astype(np.int32)
-        return argparse.Namespace(vertices=vertices, faces=np.zeros((0, 3), np.int64), instance_ids=instance_ids,
-                                  nyu40_ids=nyu40, instance_labels={1: "chair", 2: "table"})
+        return argparse.Namespace(
+            vertices=vertices,
+            faces=np.zeros((0, 3), np.int64),
+            instance_ids=instance_ids,
+            nyu40_ids=nyu40,
+            instance_labels={1: "chair", 2: "table"},
+        )
 
 
 def test_rendering_and_simulate_scene_on_a_synthetic_plane(tmp_path):
@@ -443,8 +452,23 @@ def test_simulate_scene_and_cli_on_the_real_scene(scannet_scene, tmp_path, capsy
     parser = argparse.ArgumentParser(prog="fmfusion")
     cli_simulate.register(parser.add_subparsers(dest="command"))
     out = tmp_path / "sim"
-    args = parser.parse_args(["simulate", str(scannet_scene), "--out", str(out), "--seed", "3", "--every", "50",
-                              "--max-frames", "3", "--set", "missed_tag_prob=0.5", "--no-prompt-augmentation"])
+    args = parser.parse_args(
+        [
+            "simulate",
+            str(scannet_scene),
+            "--out",
+            str(out),
+            "--seed",
+            "3",
+            "--every",
+            "50",
+            "--max-frames",
+            "3",
+            "--set",
+            "missed_tag_prob=0.5",
+            "--no-prompt-augmentation",
+        ]
+    )
     assert args.func(args) == 0
     assert "simulated 3 frames" in capsys.readouterr().out
     assert list_detection_frames(out) == ["frame-000000", "frame-000050", "frame-000100"]

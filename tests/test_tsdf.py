@@ -21,12 +21,25 @@ from fmfusion_jax.engine.state import init_map_state, init_voxel_blocks, voxel_o
 
 H, W = 60, 80
 # Walls off the voxel lattice, so that float32 and float64 floor() agree on the surface points.
-ROOM = ref.BoxRoom(lo=(0.013, 0.021, 0.007), hi=(3.011, 2.517, 2.209),
-                   boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),), spheres=(((1.9, 1.3, 0.8), 0.3),))
+ROOM = ref.BoxRoom(
+    lo=(0.013, 0.021, 0.007),
+    hi=(3.011, 2.517, 2.209),
+    boxes=(((0.6, 0.5, 0.007), (1.3, 1.2, 0.75)),),
+    spheres=(((1.9, 1.3, 0.8), 0.3),),
+)
 K = ref.scannet_like_intrinsics(W, H)
 CONFIG = MapConfig.for_bounds(
-    ROOM.lo, ROOM.hi, voxel_size=0.04, block_size=4, sdf_trunc=0.1, image_height=H, image_width=W,
-    block_capacity=4096, max_touched_blocks=2048, integrate_chunk_blocks=256, alloc_pixel_stride=1,
+    ROOM.lo,
+    ROOM.hi,
+    voxel_size=0.04,
+    block_size=4,
+    sdf_trunc=0.1,
+    image_height=H,
+    image_width=W,
+    block_capacity=4096,
+    max_touched_blocks=2048,
+    integrate_chunk_blocks=256,
+    alloc_pixel_stride=1,
 )
 POSES = ref.orbit_poses(ROOM, 5, radius=0.8, height=1.3)
 
@@ -178,9 +191,18 @@ def test_overflow_counters_with_a_tiny_pool():
 
 
 def test_points_outside_the_index_are_counted():
-    small = MapConfig.for_bounds((0.0, 0.0, 0.0), (1.5, 1.5, 1.0), margin=0.0, voxel_size=0.04, block_size=4,
-                                 sdf_trunc=0.1, image_height=H, image_width=W, block_capacity=2048,
-                                 max_touched_blocks=1024)
+    small = MapConfig.for_bounds(
+        (0.0, 0.0, 0.0),
+        (1.5, 1.5, 1.0),
+        margin=0.0,
+        voxel_size=0.04,
+        block_size=4,
+        sdf_trunc=0.1,
+        image_height=H,
+        image_width=W,
+        block_capacity=2048,
+        max_touched_blocks=1024,
+    )
     depth, color, T = frame(0)
     blocks = tsdf.integrate_tsdf(init_voxel_blocks(small), depth, color, T, K, small)
     valid = (depth >= small.depth_min) & (depth <= small.depth_max)

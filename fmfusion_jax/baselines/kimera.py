@@ -74,6 +74,7 @@ _CONSOLIDATE_ENTRIES = 4_000_000
 # --------------------------------------------------------------------------------------------------
 # Labels and the semantic update.
 
+
 def hard_association(manual_likelihood: np.ndarray) -> np.ndarray:
     """int64[O]: the closed-set class of each open-set label: the argmax of its row of the manual
     likelihood `(O, C)`, which holds 0.9 at the hard-associated class and 0.1 elsewhere."""
@@ -114,8 +115,7 @@ def bayes_update(log_probs: np.ndarray, measured: np.ndarray, log_likelihood: np
     return _normalize_log(np.asarray(log_probs, np.float64) + log_likelihood[np.asarray(measured)])
 
 
-def log_posterior_from_counts(counts: np.ndarray, log_likelihood: np.ndarray,
-                              log_prior: np.ndarray | None = None) -> np.ndarray:
+def log_posterior_from_counts(counts: np.ndarray, log_likelihood: np.ndarray, log_prior: np.ndarray | None = None) -> np.ndarray:
     """The normalized log posterior `(V, C)` after `counts[v, z]` measurements of class z in voxel v, in any
     order (uniform prior unless `log_prior (C,)` is given): log prior + sum_z n_z log p(z | c)."""
     logits = np.asarray(counts, np.float64) @ log_likelihood
@@ -126,6 +126,7 @@ def log_posterior_from_counts(counts: np.ndarray, log_likelihood: np.ndarray,
 
 # --------------------------------------------------------------------------------------------------
 # Voxel keys: a global voxel (x, y, z) of the map's lattice as one int64.
+
 
 def grid_dims(map_config: MapConfig) -> np.ndarray:
     """int64[3]: voxels per axis of the map's block index (`grid_shape * block_size`)."""
@@ -150,9 +151,15 @@ def voxel_centres(keys: np.ndarray, map_config: MapConfig) -> np.ndarray:
     return (np.asarray(map_config.grid_origin) + (g + 0.5) * map_config.voxel_size).astype(np.float32)
 
 
-def frame_measurements(pixel_class: np.ndarray, depth_s: np.ndarray, T_world_camera: np.ndarray,
-                       intrinsics: Sequence[float], map_config: MapConfig, num_classes: int,
-                       offsets: Sequence[float] = RAY_OFFSETS_VOXELS) -> np.ndarray:
+def frame_measurements(
+    pixel_class: np.ndarray,
+    depth_s: np.ndarray,
+    T_world_camera: np.ndarray,
+    intrinsics: Sequence[float],
+    map_config: MapConfig,
+    num_classes: int,
+    offsets: Sequence[float] = RAY_OFFSETS_VOXELS,
+) -> np.ndarray:
     """The distinct (voxel, class) measurements of one frame, as int64 `key * C + class`, sorted.
 
     Args:
@@ -167,8 +174,9 @@ def frame_measurements(pixel_class: np.ndarray, depth_s: np.ndarray, T_world_cam
     """
     stride, vs = map_config.pixel_stride, map_config.voxel_size
     depth_s = np.asarray(depth_s, np.float64)
-    rows, cols = np.nonzero((np.asarray(pixel_class) >= 0) & (depth_s >= map_config.depth_min)
-                            & (depth_s <= map_config.depth_max))
+    rows, cols = np.nonzero(
+        (np.asarray(pixel_class) >= 0) & (depth_s >= map_config.depth_min) & (depth_s <= map_config.depth_max)
+    )
     if rows.size == 0:
         return np.zeros(0, np.int64)
     fx, fy, cx, cy = (float(x) for x in intrinsics)
@@ -263,6 +271,7 @@ class LabelCounts:
 # --------------------------------------------------------------------------------------------------
 # Export: surface voxels, Cluster-All, instances.
 
+
 def surface_voxel_keys(state, map_config: MapConfig, min_weight: float, band: float | None = None) -> np.ndarray:
     """int64[S] sorted keys of the voxels on the global TSDF surface: weight >= `min_weight` and
     `|sdf| <= band` metres (default one voxel). `state`: a `MapState` (its blocks are read on the host)."""
@@ -316,9 +325,15 @@ def cluster_all(keys: np.ndarray, labels: np.ndarray, dims: np.ndarray) -> tuple
     return rank[component], int(count)
 
 
-def component_instances(keys: np.ndarray, probabilities: np.ndarray, measurements: np.ndarray,
-                        component: np.ndarray, map_config: MapConfig, min_points: int,
-                        num_open_labels: int) -> list[MapInstance]:
+def component_instances(
+    keys: np.ndarray,
+    probabilities: np.ndarray,
+    measurements: np.ndarray,
+    component: np.ndarray,
+    map_config: MapConfig,
+    min_points: int,
+    num_open_labels: int,
+) -> list[MapInstance]:
     """One `MapInstance` per component of at least `min_points` voxels.
 
     Args:
@@ -338,16 +353,22 @@ def component_instances(keys: np.ndarray, probabilities: np.ndarray, measurement
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     instances = []
     for k in np.flatnonzero(sizes >= max(1, min_points)):
-        members = order[starts[k]:starts[k] + sizes[k]]
-        instances.append(MapInstance(
-            instance_id=int(k), distribution=probabilities[members].mean(axis=0, dtype=np.float64),
-            points=voxel_centres(keys[members], map_config), observations=int(measurements[members].max()),
-            open_label_histogram=np.zeros(num_open_labels, np.float32)))
+        members = order[starts[k] : starts[k] + sizes[k]]
+        instances.append(
+            MapInstance(
+                instance_id=int(k),
+                distribution=probabilities[members].mean(axis=0, dtype=np.float64),
+                points=voxel_centres(keys[members], map_config),
+                observations=int(measurements[members].max()),
+                open_label_histogram=np.zeros(num_open_labels, np.float32),
+            )
+        )
     return instances
 
 
 # --------------------------------------------------------------------------------------------------
 # The mapper.
+
 
 @dataclasses.dataclass
 class KimeraResult:
@@ -416,13 +437,15 @@ class KimeraMapper:
         depth_s = np.asarray(frame.depth, np.float32)[::stride, ::stride]
         lo, hi = config.detections.depth_percentiles
         det_image = detection_pixel_image(batch.masks, batch.valid, stride)
-        det_image = np.asarray(filter_detection_depth(det_image, depth_s, batch.valid.shape[0], lo, hi,
-                                                      depth_max=map_config.depth_max))
+        det_image = np.asarray(
+            filter_detection_depth(det_image, depth_s, batch.valid.shape[0], lo, hi, depth_max=map_config.depth_max)
+        )
         classes = detection_classes(batch.label_scores, batch.valid, self.hard_class)
         pixel_class = np.where(det_image >= 0, classes[np.maximum(det_image, 0)], -1)
         k = frame.intrinsics
-        pairs = frame_measurements(pixel_class, depth_s, frame.T_world_camera, (k.fx, k.fy, k.cx, k.cy), map_config,
-                                   self.label_sets.num_classes)
+        pairs = frame_measurements(
+            pixel_class, depth_s, frame.T_world_camera, (k.fx, k.fy, k.cx, k.cy), map_config, self.label_sets.num_classes
+        )
         self.counts.add(pairs)
         self.counters["detections"] += int(batch.valid.sum())
         self.counters["measurements"] += len(pairs)
@@ -439,19 +462,31 @@ class KimeraMapper:
         probabilities = np.exp(log_posterior).astype(np.float32)
         labels = np.argmax(log_posterior, axis=1)
         component, num_components = cluster_all(keys, labels, grid_dims(self.map_config))
-        instances = component_instances(keys, probabilities, counts.sum(axis=1), component, self.map_config,
-                                        export.min_points, self.label_sets.num_open)
+        instances = component_instances(
+            keys, probabilities, counts.sum(axis=1), component, self.map_config, export.min_points, self.label_sets.num_open
+        )
         instances = postprocess_instances(instances, self.label_sets, export)
         self.seconds["export"] = time.perf_counter() - start
-        counters = dict(self.counters, surface_voxels=len(surface), labelled_surface_voxels=len(keys),
-                        components=num_components, instances=len(instances))
-        log.info("kimera: %d labelled surface voxels of %d, %d components, %d instances", len(keys), len(surface),
-                 num_components, len(instances))
+        counters = dict(
+            self.counters,
+            surface_voxels=len(surface),
+            labelled_surface_voxels=len(keys),
+            components=num_components,
+            instances=len(instances),
+        )
+        log.info(
+            "kimera: %d labelled surface voxels of %d, %d components, %d instances",
+            len(keys),
+            len(surface),
+            num_components,
+            len(instances),
+        )
         return KimeraResult(instances, geometry, counters, {k: round(v, 3) for k, v in self.seconds.items()})
 
 
-def run_kimera(scene, detection_source, config: PipelineConfig, progress: bool = True,
-               label_sets: LabelSets | None = None) -> KimeraResult:
+def run_kimera(
+    scene, detection_source, config: PipelineConfig, progress: bool = True, label_sets: LabelSets | None = None
+) -> KimeraResult:
     """The Kimera-style baseline over every frame of an opened `scene` (`io.scene.Scene`), with detections
     from `detection_source(frame)` on the detection frames (`pipeline.DetectionSchedule`, as FM-Fusion)."""
     from fmfusion_jax.pipeline import build_map_config, scheduled_detections

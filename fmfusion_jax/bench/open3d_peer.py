@@ -63,8 +63,9 @@ from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 #: Keys of `Open3DInstancePipeline.add_frame`'s timings, in the order the stages run.
 STAGES = ("tsdf", "projection", "association", "label_fusion", "integration", "merge")
 
-INSTALL_HINT = ('pip install -e ".[bench]" (open3d-cpu==0.19.0); on Debian/Ubuntu its library also needs '
-                "apt-get install libusb-1.0-0")
+INSTALL_HINT = (
+    'pip install -e ".[bench]" (open3d-cpu==0.19.0); on Debian/Ubuntu its library also needs apt-get install libusb-1.0-0'
+)
 
 #: A projected instance point is visible when the frame's depth at its pixel is within this of its own depth (m).
 VISIBILITY_TOLERANCE = 0.05
@@ -123,8 +124,15 @@ class VoxelBlockGridTSDF:
     metres happens before the timed call, as the JAX loop's host-to-device copy does.
     """
 
-    def __init__(self, voxel_size: float, sdf_trunc: float, depth_max: float, intrinsics: CameraIntrinsics,
-                 block_count: int = 50000, device: str = "CPU:0"):
+    def __init__(
+        self,
+        voxel_size: float,
+        sdf_trunc: float,
+        depth_max: float,
+        intrinsics: CameraIntrinsics,
+        block_count: int = 50000,
+        device: str = "CPU:0",
+    ):
         o3d = _open3d()
         self._o3d = o3d
         self._device = o3d.core.Device(device)
@@ -135,7 +143,11 @@ class VoxelBlockGridTSDF:
             attr_names=("tsdf", "weight", "color"),
             attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
             attr_channels=((1), (1), (3)),
-            voxel_size=self.voxel_size, block_resolution=8, block_count=int(block_count), device=self._device)
+            voxel_size=self.voxel_size,
+            block_resolution=8,
+            block_count=int(block_count),
+            device=self._device,
+        )
         self._intrinsic = o3d.core.Tensor(intrinsics.matrix, o3d.core.float64)
 
     def integrate(self, frame: RGBDFrame) -> float:
@@ -147,10 +159,20 @@ class VoxelBlockGridTSDF:
         color = color.to(self._device)
         T_camera_world = o3d.core.Tensor(np.linalg.inv(frame.T_world_camera), o3d.core.float64)
         start = time.perf_counter()
-        blocks = self.grid.compute_unique_block_coordinates(depth, self._intrinsic, T_camera_world, 1000.0,
-                                                            self.depth_max, self.trunc_voxel_multiplier)
-        self.grid.integrate(blocks, depth, color, self._intrinsic, self._intrinsic, T_camera_world, 1000.0,
-                            self.depth_max, self.trunc_voxel_multiplier)
+        blocks = self.grid.compute_unique_block_coordinates(
+            depth, self._intrinsic, T_camera_world, 1000.0, self.depth_max, self.trunc_voxel_multiplier
+        )
+        self.grid.integrate(
+            blocks,
+            depth,
+            color,
+            self._intrinsic,
+            self._intrinsic,
+            T_camera_world,
+            1000.0,
+            self.depth_max,
+            self.trunc_voxel_multiplier,
+        )
         return _elapsed_ms(start)
 
     def extract_points(self, weight_threshold: float = 0.0) -> np.ndarray:
@@ -283,8 +305,9 @@ class Open3DInstancePipeline:
     `instance_points` for sanity checks.
     """
 
-    def __init__(self, config: PipelineConfig, intrinsics: CameraIntrinsics, likelihood: np.ndarray,
-                 label_sets: LabelSets | None = None):
+    def __init__(
+        self, config: PipelineConfig, intrinsics: CameraIntrinsics, likelihood: np.ndarray, label_sets: LabelSets | None = None
+    ):
         o3d = _open3d()
         self._o3d = o3d
         self.config = config
@@ -292,8 +315,9 @@ class Open3DInstancePipeline:
         self.label_sets = label_sets or load_label_sets()
         self.likelihood = np.asarray(likelihood, np.float64)
         self.mode = config.label_fusion.mode
-        self._camera = o3d.camera.PinholeCameraIntrinsic(intrinsics.width, intrinsics.height, intrinsics.fx,
-                                                         intrinsics.fy, intrinsics.cx, intrinsics.cy)
+        self._camera = o3d.camera.PinholeCameraIntrinsic(
+            intrinsics.width, intrinsics.height, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+        )
         self.global_volume = self._new_volume()
         self.instances: dict[int, _Instance] = {}
         self._next_id = 0
@@ -315,8 +339,10 @@ class Open3DInstancePipeline:
         o3d = self._o3d
         shape = (self.intrinsics.height, self.intrinsics.width)
         if frame.depth.shape != shape or frame.color.shape[:2] != shape:
-            raise UserError(f"{frame.name}: depth {frame.depth.shape} / colour {frame.color.shape[:2]} differ from "
-                            f"the camera's image size {shape}")
+            raise UserError(
+                f"{frame.name}: depth {frame.depth.shape} / colour {frame.color.shape[:2]} differ from "
+                f"the camera's image size {shape}"
+            )
         if detections is not None and detections.image_shape != shape:
             raise UserError(f"{detections.frame_name}: detection masks are {detections.image_shape}, frames {shape}")
         depth = np.ascontiguousarray(frame.depth, np.float32)
@@ -337,8 +363,11 @@ class Open3DInstancePipeline:
 
         start = time.perf_counter()
         masks, scores = self._filter_detections(detections, depth)
-        visible = {i: projection for i, projection in projections.items() if projection is not None
-                   and projection.pixels > self.config.association.min_projected_pixels}  # in the order of ids
+        visible = {
+            i: projection
+            for i, projection in projections.items()
+            if projection is not None and projection.pixels > self.config.association.min_projected_pixels
+        }  # in the order of ids
         in_view = list(visible)
         match = self._associate(masks, list(visible.values()))
         target = np.array([in_view[j] if j >= 0 else -1 for j in match], np.int64)
@@ -389,16 +418,22 @@ class Open3DInstancePipeline:
 
     def _new_volume(self) -> Any:
         integration = self._o3d.pipelines.integration
-        return integration.ScalableTSDFVolume(voxel_length=self.config.tsdf.voxel_size,
-                                              sdf_trunc=self.config.tsdf.sdf_trunc,
-                                              color_type=integration.TSDFVolumeColorType.RGB8)
+        return integration.ScalableTSDFVolume(
+            voxel_length=self.config.tsdf.voxel_size,
+            sdf_trunc=self.config.tsdf.sdf_trunc,
+            color_type=integration.TSDFVolumeColorType.RGB8,
+        )
 
     def _integrate(self, volume: Any, color: Any, depth: np.ndarray, T_camera_world: np.ndarray) -> None:
         """`depth` `(H, W)` float32 metres (0: skip) with the frame's colour into `volume`."""
         o3d = self._o3d
         rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            color, o3d.geometry.Image(depth), depth_scale=1.0, depth_trunc=self.config.dataset.depth_max,
-            convert_rgb_to_intensity=False)
+            color,
+            o3d.geometry.Image(depth),
+            depth_scale=1.0,
+            depth_trunc=self.config.dataset.depth_max,
+            convert_rgb_to_intensity=False,
+        )
         volume.integrate(rgbd, self._camera, T_camera_world)
 
     def _refresh(self, instance: _Instance) -> None:
@@ -447,7 +482,7 @@ class Open3DInstancePipeline:
         crop = cv2.morphologyEx(crop, cv2.MORPH_CLOSE, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
         r0, c0 = max(v0, 0), max(u0, 0)
         r1, c1 = min(v0 + crop.shape[0], k.height), min(u0 + crop.shape[1], k.width)
-        mask = crop[r0 - v0:r1 - v0, c0 - u0:c1 - u0].astype(bool)
+        mask = crop[r0 - v0 : r1 - v0, c0 - u0 : c1 - u0].astype(bool)
         return _Projection(slice(r0, r1), slice(c0, c1), mask, int(np.count_nonzero(mask)))
 
     def _filter_detections(self, detections: FrameDetections, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -553,5 +588,11 @@ class Open3DInstancePipeline:
             self.counters["merged"] += 1
 
 
-__all__ = ["STAGES", "INSTALL_HINT", "VISIBILITY_TOLERANCE", "open3d_unavailable_reason", "Open3DInstancePipeline",
-           "VoxelBlockGridTSDF"]
+__all__ = [
+    "STAGES",
+    "INSTALL_HINT",
+    "VISIBILITY_TOLERANCE",
+    "open3d_unavailable_reason",
+    "Open3DInstancePipeline",
+    "VoxelBlockGridTSDF",
+]

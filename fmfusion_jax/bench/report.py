@@ -39,15 +39,22 @@ STAGE_ROWS = (
 
 #: Our timed functions, by timer name (`compile_ms` keys of the ours worker).
 COMPILED_NAMES = {
-    "fusion": "fuse_detections", "tsdf": "integrate_frame (non-detection frames)", "refine": "refine (_merge_step)",
-    "geometry_fusion": "fuse_geometry", "stage:tsdf": "integrate_frame", "stage:detections": "detection_image",
-    "stage:projection": "project_instances", "stage:association": "associate", "stage:label_fusion": "fuse_table",
+    "fusion": "fuse_detections",
+    "tsdf": "integrate_frame (non-detection frames)",
+    "refine": "refine (_merge_step)",
+    "geometry_fusion": "fuse_geometry",
+    "stage:tsdf": "integrate_frame",
+    "stage:detections": "detection_image",
+    "stage:projection": "project_instances",
+    "stage:association": "associate",
+    "stage:label_fusion": "fuse_table",
     "stage:integration": "integrate_instance_votes",
 }
 
 
-def frame_sums(frames: Sequence[dict], compiled: Sequence[dict] | None, keys: Sequence[str] | None,
-               start: int = 1, stop: int | None = None) -> list[float]:
+def frame_sums(
+    frames: Sequence[dict], compiled: Sequence[dict] | None, keys: Sequence[str] | None, start: int = 1, stop: int | None = None
+) -> list[float]:
     """Per frame of `frames[start:stop]`: the sum of the `keys` stages that ran (None: all), ms.
 
     A frame is left out when none of the stages ran, or when one of them compiled in it.
@@ -103,8 +110,13 @@ def stage_table(ours: dict, peer: dict | None) -> dict:
     rows = []
     for label, pass_name, keys, peer_keys in STAGE_ROWS:
         frames, compiled = _pass(ours, pass_name)
-        row: dict[str, Any] = {"label": label, "ours_all": median(frame_sums(frames, compiled, keys)),
-                               "ours": math.nan, "peer": math.nan, "ratio": math.nan}
+        row: dict[str, Any] = {
+            "label": label,
+            "ours_all": median(frame_sums(frames, compiled, keys)),
+            "ours": math.nan,
+            "peer": math.nan,
+            "ratio": math.nan,
+        }
         if p:
             assert peer is not None  # p > 0: the peer is usable
             row["ours"] = median(frame_sums(frames, compiled, keys, stop=p))
@@ -128,16 +140,23 @@ def per_object_costs(generated: Sequence[dict]) -> dict:
         scene, ours, peer = entry["scene"], entry.get("ours"), entry.get("peer")
         if not _usable(ours):
             continue
-        point = {"scene": scene["name"], "objects": scene.get("objects"), "room_size": scene.get("room_size"),
-                 "frames": len(ours["frames"]),
-                 "detections": float(np.mean(ours["detections_in"][1:] or [math.nan])),
-                 "live_instances": float(np.mean(ours["live_instances"][1:] or [math.nan])),
-                 "fusion_ms": median(frame_sums(ours["frames"], ours["compiled"], ("fusion",))),
-                 "whole_ms": whole_frame_ms(ours)}
+        point = {
+            "scene": scene["name"],
+            "objects": scene.get("objects"),
+            "room_size": scene.get("room_size"),
+            "frames": len(ours["frames"]),
+            "detections": float(np.mean(ours["detections_in"][1:] or [math.nan])),
+            "live_instances": float(np.mean(ours["live_instances"][1:] or [math.nan])),
+            "fusion_ms": median(frame_sums(ours["frames"], ours["compiled"], ("fusion",))),
+            "whole_ms": whole_frame_ms(ours),
+        }
         if _usable(peer):
-            point.update(peer_frames=len(peer["frames"]), peer_whole_ms=whole_frame_ms(peer),
-                         peer_detections=float(np.mean(peer["detections_in"][1:] or [math.nan])),
-                         peer_live_instances=float(np.mean(peer["live_instances"][1:] or [math.nan])))
+            point.update(
+                peer_frames=len(peer["frames"]),
+                peer_whole_ms=whole_frame_ms(peer),
+                peer_detections=float(np.mean(peer["detections_in"][1:] or [math.nan])),
+                peer_live_instances=float(np.mean(peer["live_instances"][1:] or [math.nan])),
+            )
         points.append(point)
 
     def fit(load: str, ms: str) -> dict:
@@ -145,10 +164,13 @@ def per_object_costs(generated: Sequence[dict]) -> dict:
         base, slope = fit_line([q[load] for q in have], [q[ms] for q in have])
         return {"base_ms": base, "per_object_ms": slope, "points": len(have)}
 
-    fits = {"ours_vs_detections": fit("detections", "whole_ms"), "ours_vs_instances": fit("live_instances", "whole_ms"),
-            "ours_fusion_vs_detections": fit("detections", "fusion_ms"),
-            "peer_vs_detections": fit("peer_detections", "peer_whole_ms"),
-            "peer_vs_instances": fit("peer_live_instances", "peer_whole_ms")}
+    fits = {
+        "ours_vs_detections": fit("detections", "whole_ms"),
+        "ours_vs_instances": fit("live_instances", "whole_ms"),
+        "ours_fusion_vs_detections": fit("detections", "fusion_ms"),
+        "peer_vs_detections": fit("peer_detections", "peer_whole_ms"),
+        "peer_vs_instances": fit("peer_live_instances", "peer_whole_ms"),
+    }
     return {"points": points, "fits": fits}
 
 
@@ -172,13 +194,16 @@ def sweep_costs(sweep: dict | None) -> dict | None:
         assert result is not None  # have_ours / have_peer hold only for a result
         for run in result["runs"]:
             point = by_k.setdefault(run["k"], {"k": run["k"]})
-            point.update({
-                f"{name}_frames": len(run["frames"]),
-                f"{name}_detections": _mean(run["detections_fused"][1:]),
-                f"{name}_detections_in": _mean(run["detections_in"][1:]),
-                f"{name}_live_instances": _mean(run["live_instances"][1:]),
-                f"{name}_fusion_ms": median(frame_sums(run["frames"], run["compiled"], fusion_keys)),
-                f"{name}_whole_ms": median(frame_sums(run["frames"], run["compiled"], None))})
+            point.update(
+                {
+                    f"{name}_frames": len(run["frames"]),
+                    f"{name}_detections": _mean(run["detections_fused"][1:]),
+                    f"{name}_detections_in": _mean(run["detections_in"][1:]),
+                    f"{name}_live_instances": _mean(run["live_instances"][1:]),
+                    f"{name}_fusion_ms": median(frame_sums(run["frames"], run["compiled"], fusion_keys)),
+                    f"{name}_whole_ms": median(frame_sums(run["frames"], run["compiled"], None)),
+                }
+            )
     points = [by_k[k] for k in sorted(by_k)]
 
     def fit(name: str, ms: str) -> dict:
@@ -186,11 +211,22 @@ def sweep_costs(sweep: dict | None) -> dict | None:
         base, slope = fit_line([q[f"{name}_detections"] for q in have], [q[f"{name}_{ms}"] for q in have])
         return {"base_ms": base, "per_object_ms": slope, "points": len(have)}
 
-    fits = {"ours_whole": fit("ours", "whole_ms"), "ours_fusion": fit("ours", "fusion_ms"),
-            "peer_whole": fit("peer", "whole_ms"), "peer_fusion": fit("peer", "fusion_ms")}
-    return {"scene": sweep["scene"]["name"], "kind": sweep["scene"]["kind"], "caps": list(sweep.get("sweep", [])),
-            "points": points, "fits": fits, "groups": (ours or {}).get("groups"),
-            "ours_note": "" if have_ours else why_missing(ours), "peer_note": "" if have_peer else why_missing(peer)}
+    fits = {
+        "ours_whole": fit("ours", "whole_ms"),
+        "ours_fusion": fit("ours", "fusion_ms"),
+        "peer_whole": fit("peer", "whole_ms"),
+        "peer_fusion": fit("peer", "fusion_ms"),
+    }
+    return {
+        "scene": sweep["scene"]["name"],
+        "kind": sweep["scene"]["kind"],
+        "caps": list(sweep.get("sweep", [])),
+        "points": points,
+        "fits": fits,
+        "groups": (ours or {}).get("groups"),
+        "ours_note": "" if have_ours else why_missing(ours),
+        "peer_note": "" if have_peer else why_missing(peer),
+    }
 
 
 def summarize(runs: Sequence[dict], primary: str, sweep: dict | None = None) -> dict:
@@ -204,14 +240,19 @@ def summarize(runs: Sequence[dict], primary: str, sweep: dict | None = None) -> 
         summary["stages"] = stage_table(ours, peer)
         summary["compile_ms"] = {COMPILED_NAMES.get(k, k): v for k, v in ours.get("compile_ms", {}).items()}
         tsdf = median(frame_sums(ours["stage_frames"], ours["stage_compiled"], ("tsdf",)))
-        summary["vbg"] = {"ours_ms": tsdf, "vbg_ms": math.nan, "ratio": math.nan,
-                          "note": why_missing(vbg)}
+        summary["vbg"] = {"ours_ms": tsdf, "vbg_ms": math.nan, "ratio": math.nan, "note": why_missing(vbg)}
         if _usable(vbg):
             vbg_ms = median(frame_sums(vbg["frames"], None, ("tsdf",)))
             summary["vbg"].update(vbg_ms=vbg_ms, ratio=tsdf / vbg_ms if vbg_ms > 0 else math.nan, note="")
-    summary["memory"] = {name: {k: result.get(k) for k in ("peak_rss_mb", "baseline_rss_mb", "device_memory_mb",
-                                                           "map_state_mb") if result.get(k) is not None}
-                         for name, result in (("ours", ours), ("peer", peer), ("vbg", vbg)) if _usable(result)}
+    summary["memory"] = {
+        name: {
+            k: result.get(k)
+            for k in ("peak_rss_mb", "baseline_rss_mb", "device_memory_mb", "map_state_mb")
+            if result.get(k) is not None
+        }
+        for name, result in (("ours", ours), ("peer", peer), ("vbg", vbg))
+        if _usable(result)
+    }
     summary["per_object"] = per_object_costs([run for run in runs if run["scene"]["kind"] == "generated"])
     summary["sweep"] = sweep_costs(sweep)
     summary["targets"] = targets(summary, main)
@@ -223,31 +264,52 @@ def targets(summary: dict, main: dict) -> list[dict]:
     rows = []
     stages = summary.get("stages")
     whole = next((r for r in stages["rows"] if r["label"].startswith("**whole")), None) if stages else None
-    ok = whole is not None and math.isfinite(whole["ratio"])
-    # (mypy does not follow `ok` to `whole is not None`)
-    rows.append({"target": "whole fusion step >= 10x faster than the Open3D per-instance pipeline",
-                 "figure": f"{whole['ratio']:.1f}x (on {stages['peer_frames']} frames)" if ok else  # type: ignore[index]
-                 f"n/a ({why_missing(main.get('peer'))})", "met": (whole["ratio"] >= 10) if ok else None})  # type: ignore[index]
+    if whole is not None and stages is not None and math.isfinite(whole["ratio"]):
+        figure, met = f"{whole['ratio']:.1f}x (on {stages['peer_frames']} frames)", whole["ratio"] >= 10
+    else:
+        figure, met = f"n/a ({why_missing(main.get('peer'))})", None
+    rows.append({"target": "whole fusion step >= 10x faster than the Open3D per-instance pipeline", "figure": figure, "met": met})
     vbg = summary.get("vbg", {})
     ok = math.isfinite(vbg.get("ratio", math.nan))
-    rows.append({"target": "global TSDF <= 1.5x Open3D VoxelBlockGrid",
-                 "figure": f"{vbg['ratio']:.2f}x ({vbg['ours_ms']:.1f} vs {vbg['vbg_ms']:.1f} ms)" if ok else
-                 f"n/a ({vbg.get('note') or 'not run'})", "met": (vbg["ratio"] <= 1.5) if ok else None})
+    rows.append(
+        {
+            "target": "global TSDF <= 1.5x Open3D VoxelBlockGrid",
+            "figure": f"{vbg['ratio']:.2f}x ({vbg['ours_ms']:.1f} vs {vbg['vbg_ms']:.1f} ms)"
+            if ok
+            else f"n/a ({vbg.get('note') or 'not run'})",
+            "met": (vbg["ratio"] <= 1.5) if ok else None,
+        }
+    )
     rows.append(_per_object_target(summary.get("sweep")))
     ours = main.get("ours") or {}
     real = main["scene"]["kind"] == "real"
-    rows.append({"target": "peak memory for a whole ScanNet room at 1.5 cm < 4 GB",
-                 "figure": (f"{ours['peak_rss_mb'] / 1024:.2f} GiB peak RSS ({main['scene']['frames']} frames of "
-                            f"{main['scene']['name']})") if _usable(ours) and real else "n/a (no real scene run)",
-                 "met": (ours["peak_rss_mb"] < 4096) if _usable(ours) and real else None})
+    rows.append(
+        {
+            "target": "peak memory for a whole ScanNet room at 1.5 cm < 4 GB",
+            "figure": (
+                f"{ours['peak_rss_mb'] / 1024:.2f} GiB peak RSS ({main['scene']['frames']} frames of {main['scene']['name']})"
+            )
+            if _usable(ours) and real
+            else "n/a (no real scene run)",
+            "met": (ours["peak_rss_mb"] < 4096) if _usable(ours) and real else None,
+        }
+    )
     device = summary.get("device") or {}
     gpu = device.get("platform") in ("gpu", "cuda", "rocm")
     fusion = next((r for r in stages["rows"] if r["label"].startswith("**fusion")), None) if stages else None
     # (stage_table's rows hold the fusion step's beside the whole frame's)
-    rows.append({"target": "GPU: whole fusion step < 5 ms per frame",
-                 "figure": (f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on "  # type: ignore[index]
-                            f"{device.get('device_kind')}") if gpu and whole else "n/a (no GPU in this run)",
-                 "met": (whole["ours_all"] < 5.0) if gpu and whole else None})
+    rows.append(
+        {
+            "target": "GPU: whole fusion step < 5 ms per frame",
+            "figure": (
+                f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on "  # type: ignore[index]
+                f"{device.get('device_kind')}"
+            )
+            if gpu and whole
+            else "n/a (no GPU in this run)",
+            "met": (whole["ours_all"] < 5.0) if gpu and whole else None,
+        }
+    )
     return rows
 
 
@@ -262,13 +324,18 @@ def _per_object_target(sweep: dict | None) -> dict:
         why = sweep.get("ours_note") or "needs two caps with different detections fused per frame"
         return {"target": target, "figure": f"n/a ({why})", "met": None}
     peer = fits["peer_whole"]["per_object_ms"]
-    peer_text = (f"Open3D peer {_signed_ms(peer)}" if math.isfinite(peer) else
-                 f"Open3D peer n/a ({sweep.get('peer_note') or 'one cap'})")
-    return {"target": target,
-            "figure": (f"{_signed_ms(slope)} per detection per frame, whole frame (fusion step "
-                       f"{_signed_ms(fits['ours_fusion']['per_object_ms'])}; {peer_text}); controlled sweep on "
-                       f"{sweep['scene']}, caps {' '.join(map(str, sweep['caps']))}"),
-            "met": slope < 1.0}
+    peer_text = (
+        f"Open3D peer {_signed_ms(peer)}" if math.isfinite(peer) else f"Open3D peer n/a ({sweep.get('peer_note') or 'one cap'})"
+    )
+    return {
+        "target": target,
+        "figure": (
+            f"{_signed_ms(slope)} per detection per frame, whole frame (fusion step "
+            f"{_signed_ms(fits['ours_fusion']['per_object_ms'])}; {peer_text}); controlled sweep on "
+            f"{sweep['scene']}, caps {' '.join(map(str, sweep['caps']))}"
+        ),
+        "met": slope < 1.0,
+    }
 
 
 def _signed_ms(value: float) -> str:
@@ -289,56 +356,81 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
     by_name = {run["scene"]["name"]: run for run in runs}
     main = by_name[summary["primary"]]
     scene = main["scene"]
-    lines = ["# fmfusion bench", "",
-             f"Command: `{command}`  ",
-             f"Device: {device.get('device_kind', '?')} ({device.get('platform', '?')}), "
-             f"{device.get('cpus', '?')} CPUs, "
-             f"jax {device.get('jax', '?')}; Open3D {_peer_version(runs) or 'not run'}.  ",
-             "Figures: median ms per frame over frames 1.. (frame 0 warms up; calls that compiled left out).", ""]
+    lines = [
+        "# fmfusion bench",
+        "",
+        f"Command: `{command}`  ",
+        f"Device: {device.get('device_kind', '?')} ({device.get('platform', '?')}), "
+        f"{device.get('cpus', '?')} CPUs, "
+        f"jax {device.get('jax', '?')}; Open3D {_peer_version(runs) or 'not run'}.  ",
+        "Figures: median ms per frame over frames 1.. (frame 0 warms up; calls that compiled left out).",
+        "",
+    ]
     stages = summary.get("stages")
     lines += [f"## Time per stage: {scene['name']} ({scene['kind']}, {scene['frames']} frames)", ""]
     if stages is None:
         lines += [f"Our pipeline did not run: {why_missing(main.get('ours'))}", ""]
     else:
         p = stages["peer_frames"]
-        peer_note = (f"compared on frames 1-{p - 1} (the frames the peer ran)" if p else
-                     f"not run: {why_missing(main.get('peer'))}")
-        lines += [f"Ours vs the Open3D per-instance reference pipeline (global ScalableTSDFVolume + one volume per "
-                  f"instance), {peer_note}. Stage rows time each stage jitted apart; the fusion step is the same "
-                  "stages in one jit.", "",
-                  f"| stage | ours, ms ({f'frames 1-{p - 1}' if p else 'the peer frames'}) | Open3D peer, ms | "
-                  "peer / ours | "
-                  f"ours, ms (all {stages['frames']} frames) |",
-                  "|---|---:|---:|---:|---:|"]
+        peer_note = (
+            f"compared on frames 1-{p - 1} (the frames the peer ran)" if p else f"not run: {why_missing(main.get('peer'))}"
+        )
+        lines += [
+            f"Ours vs the Open3D per-instance reference pipeline (global ScalableTSDFVolume + one volume per "
+            f"instance), {peer_note}. Stage rows time each stage jitted apart; the fusion step is the same "
+            "stages in one jit.",
+            "",
+            f"| stage | ours, ms ({f'frames 1-{p - 1}' if p else 'the peer frames'}) | Open3D peer, ms | "
+            "peer / ours | "
+            f"ours, ms (all {stages['frames']} frames) |",
+            "|---|---:|---:|---:|---:|",
+        ]
         for row in stages["rows"]:
-            lines.append(f"| {row['label']} | {_ms(row['ours'])} | {_ms(row['peer'])} | {_ratio(row['ratio'])} | "
-                         f"{_ms(row['ours_all'])} |")
+            lines.append(
+                f"| {row['label']} | {_ms(row['ours'])} | {_ms(row['peer'])} | {_ratio(row['ratio'])} | {_ms(row['ours_all'])} |"
+            )
         ours = main["ours"]
-        lines += ["", f"Geometry fusion runs every {ours.get('geometry_fusion_every')} frames. Map: {ours.get('map')}; "
-                  f"{ours.get('blocks_used')} of {ours.get('block_capacity')} blocks used; counters "
-                  f"{ours.get('counters')}.", ""]
+        lines += [
+            "",
+            f"Geometry fusion runs every {ours.get('geometry_fusion_every')} frames. Map: {ours.get('map')}; "
+            f"{ours.get('blocks_used')} of {ours.get('block_capacity')} blocks used; counters "
+            f"{ours.get('counters')}.",
+            "",
+        ]
         if ours.get("staged_mismatch"):
             lines += [f"**Warning**: {ours['staged_mismatch']}.", ""]
-        lines += ["Compile time (first call minus the median call):", "",
-                  "| jitted function | compile, s |", "|---|---:|"]
+        lines += ["Compile time (first call minus the median call):", "", "| jitted function | compile, s |", "|---|---:|"]
         lines += [f"| {name} | {ms / 1e3:.2f} |" for name, ms in summary["compile_ms"].items()]
         lines.append("")
         vbg = summary["vbg"]
-        lines += ["## Global TSDF vs Open3D VoxelBlockGrid", "",
-                  f"Same frames: our `integrate_frame` {_ms(vbg['ours_ms'])} ms, VoxelBlockGrid "
-                  f"{_ms(vbg['vbg_ms'])} ms: ours / VBG = {_ratio(vbg['ratio'])}"
-                  + (f" ({vbg['note']})" if vbg.get("note") else "") + ".", ""]
-    lines += ["## Peak memory", "", "| pipeline | peak RSS, MiB | RSS before fusing, MiB | map state, MiB | "
-              "device peak, MiB |", "|---|---:|---:|---:|---:|"]
+        lines += [
+            "## Global TSDF vs Open3D VoxelBlockGrid",
+            "",
+            f"Same frames: our `integrate_frame` {_ms(vbg['ours_ms'])} ms, VoxelBlockGrid "
+            f"{_ms(vbg['vbg_ms'])} ms: ours / VBG = {_ratio(vbg['ratio'])}"
+            + (f" ({vbg['note']})" if vbg.get("note") else "")
+            + ".",
+            "",
+        ]
+    lines += [
+        "## Peak memory",
+        "",
+        "| pipeline | peak RSS, MiB | RSS before fusing, MiB | map state, MiB | device peak, MiB |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for name, memory in summary["memory"].items():
-        lines.append(f"| {name} | {_mb(memory.get('peak_rss_mb'))} | {_mb(memory.get('baseline_rss_mb'))} | "
-                     f"{_mb(memory.get('map_state_mb'))} | {_mb(memory.get('device_memory_mb'))} |")
+        lines.append(
+            f"| {name} | {_mb(memory.get('peak_rss_mb'))} | {_mb(memory.get('baseline_rss_mb'))} | "
+            f"{_mb(memory.get('map_state_mb'))} | {_mb(memory.get('device_memory_mb'))} |"
+        )
     lines += ["", "Each pipeline runs in a process of its own; ours is measured after its fused pass.", ""]
     lines += _sweep_lines(summary.get("sweep"))
     lines += _per_object_lines(summary["per_object"])
     lines += ["## Targets", "", "| target | figure | met |", "|---|---|---|"]
-    lines += [f"| {t['target']} | {t['figure']} | {'—' if t['met'] is None else 'yes' if t['met'] else '**no**'} |"
-              for t in summary["targets"]]
+    lines += [
+        f"| {t['target']} | {t['figure']} | {'—' if t['met'] is None else 'yes' if t['met'] else '**no**'} |"
+        for t in summary["targets"]
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -347,24 +439,38 @@ def _per_object_lines(per_object: dict) -> list[str]:
     lines = ["## Cost per object (generated rooms)", ""]
     if not points:
         return lines + ["No generated scene was run.", ""]
-    lines += ["Context only: the rooms differ in size and in much else besides their detections per frame, which "
-              "vary little, so these lines do not isolate an object's cost (the controlled sweep above does).", ""]
-    lines += ["| scene | objects | room, m | frames | detections / frame | live instances | ours fusion step, ms | "
-              "ours whole frame, ms | peer frames | peer whole frame, ms | peer live instances |",
-              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += [
+        "Context only: the rooms differ in size and in much else besides their detections per frame, which "
+        "vary little, so these lines do not isolate an object's cost (the controlled sweep above does).",
+        "",
+    ]
+    lines += [
+        "| scene | objects | room, m | frames | detections / frame | live instances | ours fusion step, ms | "
+        "ours whole frame, ms | peer frames | peer whole frame, ms | peer live instances |",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for q in points:
         room = "x".join(f"{x:.1f}" for x in q["room_size"]) if q.get("room_size") else "?"
-        lines.append(f"| {q['scene']} | {q['objects']} | {room} | {q['frames']} | {q['detections']:.1f} | "
-                     f"{q['live_instances']:.1f} | {_ms(q['fusion_ms'])} | {_ms(q['whole_ms'])} | "
-                     f"{q.get('peer_frames', '—')} | {_ms(q.get('peer_whole_ms', math.nan))} | "
-                     f"{q.get('peer_live_instances', math.nan):.1f} |")
-    names = {"ours_vs_detections": "ours, whole frame vs detections per frame",
-             "ours_fusion_vs_detections": "ours, fusion step vs detections per frame",
-             "ours_vs_instances": "ours, whole frame vs live instances",
-             "peer_vs_detections": "Open3D peer, whole frame vs detections per frame",
-             "peer_vs_instances": "Open3D peer, whole frame vs live instances"}
-    lines += ["", "Least-squares lines ms per frame = base + per object x load (Table IV's base + per object):", "",
-              "| fit | base, ms | per object, ms | scenes |", "|---|---:|---:|---:|"]
+        lines.append(
+            f"| {q['scene']} | {q['objects']} | {room} | {q['frames']} | {q['detections']:.1f} | "
+            f"{q['live_instances']:.1f} | {_ms(q['fusion_ms'])} | {_ms(q['whole_ms'])} | "
+            f"{q.get('peer_frames', '—')} | {_ms(q.get('peer_whole_ms', math.nan))} | "
+            f"{q.get('peer_live_instances', math.nan):.1f} |"
+        )
+    names = {
+        "ours_vs_detections": "ours, whole frame vs detections per frame",
+        "ours_fusion_vs_detections": "ours, fusion step vs detections per frame",
+        "ours_vs_instances": "ours, whole frame vs live instances",
+        "peer_vs_detections": "Open3D peer, whole frame vs detections per frame",
+        "peer_vs_instances": "Open3D peer, whole frame vs live instances",
+    }
+    lines += [
+        "",
+        "Least-squares lines ms per frame = base + per object x load (Table IV's base + per object):",
+        "",
+        "| fit | base, ms | per object, ms | scenes |",
+        "|---|---:|---:|---:|",
+    ]
     for key, fit in per_object["fits"].items():
         lines.append(f"| {names[key]} | {_ms(fit['base_ms'])} | {_signed(fit['per_object_ms'])} | {fit['points']} |")
     return lines + [""]
@@ -377,34 +483,49 @@ def _sweep_lines(sweep: dict | None) -> list[str]:
     points = sweep["points"]
     frames = max([q.get("ours_frames", 0) for q in points] + [q.get("peer_frames", 0) for q in points] + [0])
     groups = sweep.get("groups")
-    lines += [f"The first {frames} frames of {sweep['scene']} ({sweep['kind']}), fused once per cap k: each frame's "
-              "detections capped on the host to its k highest-scoring usable ones (the packer's rule; frames with k "
-              "or fewer left alone), so the map, the frames and the padded shapes stay the same (nothing "
-              "recompiles) and only the objects fused per frame vary. The runs of the caps advance together, a "
-              "frame each in turn" + (f" (ours in groups {groups}, as many maps as fit in memory)"
-                                      if groups and len(groups) > 1 else "")
-              + "; ours compiled in an untimed uncapped pass first. Medians over frames 1..; detections and "
-              "instances are means per frame. Fewer detections also make fewer instances, so the slope is the cost "
-              "of one more object fused per frame, its instance's share of projection, merge and geometry fusion "
-              "included.", ""]
-    notes = [f"{name}: {note}" for name, note in (("ours", sweep["ours_note"]), ("Open3D peer", sweep["peer_note"]))
-             if note]
+    lines += [
+        f"The first {frames} frames of {sweep['scene']} ({sweep['kind']}), fused once per cap k: each frame's "
+        "detections capped on the host to its k highest-scoring usable ones (the packer's rule; frames with k "
+        "or fewer left alone), so the map, the frames and the padded shapes stay the same (nothing "
+        "recompiles) and only the objects fused per frame vary. The runs of the caps advance together, a "
+        "frame each in turn"
+        + (f" (ours in groups {groups}, as many maps as fit in memory)" if groups and len(groups) > 1 else "")
+        + "; ours compiled in an untimed uncapped pass first. Medians over frames 1..; detections and "
+        "instances are means per frame. Fewer detections also make fewer instances, so the slope is the cost "
+        "of one more object fused per frame, its instance's share of projection, merge and geometry fusion "
+        "included.",
+        "",
+    ]
+    notes = [f"{name}: {note}" for name, note in (("ours", sweep["ours_note"]), ("Open3D peer", sweep["peer_note"])) if note]
     if notes:
         lines += ["Not measured: " + "; ".join(notes) + ".", ""]
     if points:
-        lines += ["| cap k | detections fused / frame | ours live instances | ours fusion step, ms | "
-                  "ours whole frame, ms | peer live instances | peer fusion step, ms | peer whole frame, ms |",
-                  "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        lines += [
+            "| cap k | detections fused / frame | ours live instances | ours fusion step, ms | "
+            "ours whole frame, ms | peer live instances | peer fusion step, ms | peer whole frame, ms |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
         for q in points:
             detections = q.get("ours_detections", q.get("peer_detections", math.nan))
-            lines.append(f"| {q['k']} | {detections:.2f} | {q.get('ours_live_instances', math.nan):.1f} | "
-                         f"{_ms(q.get('ours_fusion_ms', math.nan))} | {_ms(q.get('ours_whole_ms', math.nan))} | "
-                         f"{q.get('peer_live_instances', math.nan):.1f} | {_ms(q.get('peer_fusion_ms', math.nan))} | "
-                         f"{_ms(q.get('peer_whole_ms', math.nan))} |")
-    names = {"ours_whole": "ours, whole frame", "ours_fusion": "ours, fusion step",
-             "peer_whole": "Open3D peer, whole frame", "peer_fusion": "Open3D peer, fusion step"}
-    lines += ["", "Least-squares lines ms per frame = base + per object x detections fused per frame:", "",
-              "| fit | base, ms | per object, ms | caps |", "|---|---:|---:|---:|"]
+            lines.append(
+                f"| {q['k']} | {detections:.2f} | {q.get('ours_live_instances', math.nan):.1f} | "
+                f"{_ms(q.get('ours_fusion_ms', math.nan))} | {_ms(q.get('ours_whole_ms', math.nan))} | "
+                f"{q.get('peer_live_instances', math.nan):.1f} | {_ms(q.get('peer_fusion_ms', math.nan))} | "
+                f"{_ms(q.get('peer_whole_ms', math.nan))} |"
+            )
+    names = {
+        "ours_whole": "ours, whole frame",
+        "ours_fusion": "ours, fusion step",
+        "peer_whole": "Open3D peer, whole frame",
+        "peer_fusion": "Open3D peer, fusion step",
+    }
+    lines += [
+        "",
+        "Least-squares lines ms per frame = base + per object x detections fused per frame:",
+        "",
+        "| fit | base, ms | per object, ms | caps |",
+        "|---|---:|---:|---:|",
+    ]
     for key, fit in sweep["fits"].items():
         lines.append(f"| {names[key]} | {_ms(fit['base_ms'])} | {_signed(fit['per_object_ms'])} | {fit['points']} |")
     return lines + [""]

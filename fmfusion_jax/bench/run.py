@@ -1,8 +1,8 @@
 """`fmfusion bench`: prepares the scenes, runs every pipeline on them in its own process, writes the report.
 
-    scenes (real + generated, cached) ──► a worker process per (pipeline, scene) ──► report ──► bench.md/.json
-                                      └──► the per-object sweep on the main scene (`bench.sweep`): a
-                                           process per pipeline, running every cap
+scenes (real + generated, cached) ──► a worker process per (pipeline, scene) ──► report ──► bench.md/.json
+                                  └──► the per-object sweep on the main scene (`bench.sweep`): a
+                                       process per pipeline, running every cap
 """
 
 from __future__ import annotations
@@ -23,8 +23,16 @@ from fmfusion_jax.errors import UserError
 
 DEFAULT_OUT = Path("outputs/bench")
 #: The sizes of `--quick`: a smoke test in well under a minute.
-QUICK_SIZES = {"frames": 6, "objects": (2, 8), "generated_frames": 6, "width": 160, "height": 120, "peer_frames": 6,
-               "sweep": (1, 4), "sweep_frames": 4}
+QUICK_SIZES = {
+    "frames": 6,
+    "objects": (2, 8),
+    "generated_frames": 6,
+    "width": 160,
+    "height": 120,
+    "peer_frames": 6,
+    "sweep": (1, 4),
+    "sweep_frames": 4,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,8 +56,11 @@ class BenchOptions:
     progress: bool = True
 
 
-def run_bench(options: BenchOptions, command: str = "fmfusion bench",
-              say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True)) -> dict:
+def run_bench(
+    options: BenchOptions,
+    command: str = "fmfusion bench",
+    say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True),
+) -> dict:
     """Runs the benchmark; writes `bench.md` and `bench.json` into `options.out`; returns the summary."""
     from fmfusion_jax.bench.worker import peer_unavailable_reason
     from fmfusion_jax.runner import prepare_output_dir
@@ -83,17 +94,21 @@ def run_bench(options: BenchOptions, command: str = "fmfusion bench",
     sweep = None
     if options.sweep:
         sweep = {"scene": primary.to_json(), "sweep": list(options.sweep), "frames": options.sweep_frames}
-        sweep["ours"] = _child("ours-sweep", primary, options.sweep_frames, options, work, say,
-                               sweep=list(options.sweep))
-        sweep["peer"] = ({"unavailable": peer_reason} if peer_reason else
-                         _child("peer-sweep", primary, options.sweep_frames, options, work, say,
-                                sweep=list(options.sweep)))
+        sweep["ours"] = _child("ours-sweep", primary, options.sweep_frames, options, work, say, sweep=list(options.sweep))
+        sweep["peer"] = (
+            {"unavailable": peer_reason}
+            if peer_reason
+            else _child("peer-sweep", primary, options.sweep_frames, options, work, say, sweep=list(options.sweep))
+        )
 
     summary = report.summarize(runs, primary.name, sweep)
     summary["command"] = command
-    (out / "bench.json").write_text(json.dumps({"summary": summary, "runs": runs, "sweep": sweep,
-                                                "options": _jsonable(dataclasses.asdict(options))},
-                                               default=float) + "\n")
+    (out / "bench.json").write_text(
+        json.dumps(
+            {"summary": summary, "runs": runs, "sweep": sweep, "options": _jsonable(dataclasses.asdict(options))}, default=float
+        )
+        + "\n"
+    )
     markdown = report.render_markdown(summary, runs, command)
     (out / "bench.md").write_text(markdown)
     summary["markdown"] = markdown
@@ -104,18 +119,27 @@ def _prepare_scenes(options: BenchOptions, cache: Path, say) -> list[BenchScene]
     scenes = []
     if options.scene is not None:
         say(f"preparing {options.scene} ({options.frames or 'all'} frames; detections simulated once into {cache})")
-        scenes.append(prepare_real_scene(options.scene, cache, options.frames, options.seed, options.progress,
-                                          options.overrides))
+        scenes.append(prepare_real_scene(options.scene, cache, options.frames, options.seed, options.progress, options.overrides))
     for objects in options.objects:
         say(f"preparing a generated room with {objects} objects (made once into {cache})")
-        scenes.append(prepare_generated_scene(cache, objects, options.generated_frames, options.width,
-                                              options.height, options.seed, options.progress,
-                                              options.overrides))
+        scenes.append(
+            prepare_generated_scene(
+                cache,
+                objects,
+                options.generated_frames,
+                options.width,
+                options.height,
+                options.seed,
+                options.progress,
+                options.overrides,
+            )
+        )
     return scenes
 
 
-def _child(pipeline: str, scene: BenchScene, frames: int | None, options: BenchOptions, work: Path, say,
-           sweep: list[int] | None = None) -> dict:
+def _child(
+    pipeline: str, scene: BenchScene, frames: int | None, options: BenchOptions, work: Path, say, sweep: list[int] | None = None
+) -> dict:
     """Runs one pipeline on one scene in a fresh Python process (`bench.worker`); its result, or
     `{"error": ...}` when it failed (its messages went to stderr). `sweep`: the caps of a sweep pipeline."""
     stem = f"{pipeline}-{scene.name}"
@@ -125,13 +149,17 @@ def _child(pipeline: str, scene: BenchScene, frames: int | None, options: BenchO
         spec["sweep"] = sweep
     spec_path.write_text(json.dumps(spec))
     result_path.unlink(missing_ok=True)
-    names = {"ours": "ours", "peer": "Open3D per-instance peer", "vbg": "Open3D VoxelBlockGrid",
-             "ours-sweep": "the per-object sweep of ours", "peer-sweep": "the per-object sweep of the Open3D peer"}
+    names = {
+        "ours": "ours",
+        "peer": "Open3D per-instance peer",
+        "vbg": "Open3D VoxelBlockGrid",
+        "ours-sweep": "the per-object sweep of ours",
+        "peer-sweep": "the per-object sweep of the Open3D peer",
+    }
     caps = f", detections capped to {' '.join(map(str, sweep))}" if sweep else ""
     say(f"running {names[pipeline]} on {scene.name} ({min(frames or scene.frames, scene.frames)} frames{caps})")
     start = time.perf_counter()
-    completed = subprocess.run([sys.executable, "-m", "fmfusion_jax.bench.worker", str(spec_path), str(result_path)],
-                               check=False)
+    completed = subprocess.run([sys.executable, "-m", "fmfusion_jax.bench.worker", str(spec_path), str(result_path)], check=False)
     seconds = time.perf_counter() - start
     if completed.returncode != 0 or not result_path.is_file():
         say(f"  {names[pipeline]} failed (exit {completed.returncode}) after {seconds:.0f} s")

@@ -42,8 +42,9 @@ class BenchScene:
         return cls(**values)
 
 
-def prepare_real_scene(scene_dir: Path, cache_dir: Path, max_frames: int | None, seed: int = 0,
-                       progress: bool = True, overrides: Sequence[str] = ()) -> BenchScene:
+def prepare_real_scene(
+    scene_dir: Path, cache_dir: Path, max_frames: int | None, seed: int = 0, progress: bool = True, overrides: Sequence[str] = ()
+) -> BenchScene:
     """The real scene's first `max_frames` frames (None: all), with detections simulated on every frame of
     the scene into `cache_dir/<scene>/detections` (once: any frame count reuses them)."""
     from fmfusion_jax.config import load_config
@@ -53,18 +54,33 @@ def prepare_real_scene(scene_dir: Path, cache_dir: Path, max_frames: int | None,
 
     config = load_config(REAL_SCENE_CONFIG, [*([f"dataset.max_frames={max_frames}"] if max_frames else []), *overrides])
     dataset = config.dataset
-    scene = open_scene(scene_dir, layout=dataset.layout, stride=dataset.frame_stride, depth_max=dataset.depth_max,
-                       depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
+    scene = open_scene(
+        scene_dir,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=dataset.max_frames,
+    )
     folder = cache_dir / scene.name
-    detections_dir = simulated_detections(scene_dir, folder / "detections", NoiseModel.preset("default", seed=seed),
-                                          every=1, progress=progress)
+    detections_dir = simulated_detections(
+        scene_dir, folder / "detections", NoiseModel.preset("default", seed=seed), every=1, progress=progress
+    )
     config_path = folder / f"config-{len(scene)}.yaml"
     config_path.write_text(config.to_yaml())
     return BenchScene(scene.name, "real", Path(scene_dir), detections_dir, config_path, len(scene))
 
 
-def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: int, height: int, seed: int = 0,
-                            progress: bool = True, overrides: Sequence[str] = ()) -> BenchScene:
+def prepare_generated_scene(
+    cache_dir: Path,
+    objects: int,
+    frames: int,
+    width: int,
+    height: int,
+    seed: int = 0,
+    progress: bool = True,
+    overrides: Sequence[str] = (),
+) -> BenchScene:
     """A generated room with `objects` objects (its size grows with them, `procedural.default_room_size`),
     `frames` frames of `width x height` along a loop around it, and simulated detections on every frame.
 
@@ -78,17 +94,23 @@ def prepare_generated_scene(cache_dir: Path, objects: int, frames: int, width: i
 
     folder = cache_dir / f"synth-o{objects}-f{frames}-{width}x{height}-s{seed}"
     scene_dir = generated_scene(GeneratedSceneSpec(seed, objects, frames, width, height), folder, progress)
-    detections_dir = simulated_detections(scene_dir, folder / "detections", demo_noise(seed, width, height),
-                                          every=1, progress=progress)
-    room_size = cast("tuple[float, float, float]",  # W, D, H
-                     tuple(float(x) for x in json.loads((scene_dir / "synthesis.json").read_text())["room_size"]))
+    detections_dir = simulated_detections(
+        scene_dir, folder / "detections", demo_noise(seed, width, height), every=1, progress=progress
+    )
+    room_size = cast(
+        "tuple[float, float, float]",  # W, D, H
+        tuple(float(x) for x in json.loads((scene_dir / "synthesis.json").read_text())["room_size"]),
+    )
     # detections on every frame; geometry fusion timed however short the run: in runs of under 10 frames on
     # every frame, so that its compilation falls in the first frame, which the medians leave out
-    geometry_fusion_every = (1 if frames < 10 else
-                             min(load_config("demo").refinement.geometry_fusion_every, frames // 2))
-    config = demo_config(frames, width, height, ["detections.every=1",
-                                                 f"refinement.geometry_fusion_every={geometry_fusion_every}", *overrides],
-                         room_size=room_size)
+    geometry_fusion_every = 1 if frames < 10 else min(load_config("demo").refinement.geometry_fusion_every, frames // 2)
+    config = demo_config(
+        frames,
+        width,
+        height,
+        ["detections.every=1", f"refinement.geometry_fusion_every={geometry_fusion_every}", *overrides],
+        room_size=room_size,
+    )
     config_path = folder / "config.yaml"
     config_path.write_text(config.to_yaml())
     return BenchScene(folder.name, "generated", scene_dir, detections_dir, config_path, frames, objects, room_size)

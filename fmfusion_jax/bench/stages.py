@@ -27,8 +27,9 @@ project_instances = jax.jit(step.project_instances, static_argnames=("config",))
 associate = jax.jit(step.associate, static_argnames=("config", "fusion"))
 # the table and the pool are updated in place, as inside the fused step (no copy of the voxel pool)
 fuse_table = jax.jit(step.fuse_table, static_argnames=("config", "fusion"), donate_argnames=("table",))
-integrate_instance_votes = jax.jit(step.integrate_instance_votes, static_argnames=("config", "fusion"),
-                                   donate_argnames=("blocks",))
+integrate_instance_votes = jax.jit(
+    step.integrate_instance_votes, static_argnames=("config", "fusion"), donate_argnames=("blocks",)
+)
 frame_stats = jax.jit(step.frame_stats)
 
 
@@ -36,17 +37,39 @@ def staged_fuse_detections(timer: StageTimer):
     """A function with the signature of `step.fuse_detections` that runs its stages one jit at a time,
     each timed by `timer` under its `FUSION_STAGES` name. The state is donated, as to the fused step."""
 
-    def fuse(state: MapState, frame: step.FrameInputs, batch: DetectionBatch, likelihood: jax.Array,
-             config: MapConfig, fusion: step.FusionConfig) -> tuple[MapState, step.FrameStats]:
+    def fuse(
+        state: MapState,
+        frame: step.FrameInputs,
+        batch: DetectionBatch,
+        likelihood: jax.Array,
+        config: MapConfig,
+        fusion: step.FusionConfig,
+    ) -> tuple[MapState, step.FrameStats]:
         state = timer.run("tsdf", step.integrate_frame, state, frame, config)
         det_image = timer.run("detections", detection_image, frame, batch, config, fusion)
         seen = timer.run("projection", project_instances, state.blocks, frame, config)
-        matches = timer.run("association", associate, det_image, seen, batch.valid, state.instances.valid,
-                            config, fusion)
-        table, update = timer.run("label_fusion", fuse_table, state.instances, matches, batch.label_scores,
-                                 likelihood, frame.frame_index, config, fusion)
-        blocks = timer.run("integration", integrate_instance_votes, state.blocks, frame, det_image,
-                           matches.assignment.instance_for_detection, config, fusion)
+        matches = timer.run("association", associate, det_image, seen, batch.valid, state.instances.valid, config, fusion)
+        table, update = timer.run(
+            "label_fusion",
+            fuse_table,
+            state.instances,
+            matches,
+            batch.label_scores,
+            likelihood,
+            frame.frame_index,
+            config,
+            fusion,
+        )
+        blocks = timer.run(
+            "integration",
+            integrate_instance_votes,
+            state.blocks,
+            frame,
+            det_image,
+            matches.assignment.instance_for_detection,
+            config,
+            fusion,
+        )
         return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
 
     return fuse

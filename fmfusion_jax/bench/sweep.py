@@ -36,8 +36,7 @@ from fmfusion_jax.engine.detections import select_detections
 from fmfusion_jax.types import FrameDetections
 
 
-def cap_detections(detections: FrameDetections, k: int, open_labels: Sequence[str],
-                   min_mask_pixels: int) -> FrameDetections:
+def cap_detections(detections: FrameDetections, k: int, open_labels: Sequence[str], min_mask_pixels: int) -> FrameDetections:
     """The frame's detections capped to the `k` highest-scoring usable ones (original order kept).
 
     Usable and score as `pack_detections` counts them (a mask of `min_mask_pixels` pixels or more, a
@@ -49,9 +48,12 @@ def cap_detections(detections: FrameDetections, k: int, open_labels: Sequence[st
     keep, usable = select_detections(detections, open_labels, k, min_mask_pixels)
     if usable <= k:
         return detections
-    return dataclasses.replace(detections, masks=np.asarray(detections.masks)[keep],
-                               labels=[detections.labels[i] for i in keep],
-                               boxes=np.asarray(detections.boxes)[keep])
+    return dataclasses.replace(
+        detections,
+        masks=np.asarray(detections.masks)[keep],
+        labels=[detections.labels[i] for i in keep],
+        boxes=np.asarray(detections.boxes)[keep],
+    )
 
 
 def _rotated(items: Sequence, shift: int) -> list:
@@ -82,7 +84,7 @@ def _free_bytes() -> float:
 def groups_that_fit(ks: Sequence[int], map_bytes: float, free_bytes: float) -> list[list[int]]:
     """The caps in groups whose maps fit together in half of `free_bytes` (at least one per group)."""
     together = max(1, min(len(ks), int(0.5 * free_bytes // max(map_bytes, 1.0))))
-    return [list(ks[i:i + together]) for i in range(0, len(ks), together)]
+    return [list(ks[i : i + together]) for i in range(0, len(ks), together)]
 
 
 def _new_run(k: int) -> dict:
@@ -120,28 +122,39 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
         warm_builder.add_frame(frame, detections)
     del warm_builder
     groups = groups_that_fit(sweep, map_config.memory_bytes(), _free_bytes())
-    print(f"ours sweep on {scene.name}: {len(opened)} frames, caps {list(sweep)} in {len(groups)} group(s), "
-          f"device {device['device_kind']} ({device['platform']}); warm-up {time.perf_counter() - start:.0f} s",
-          file=sys.stderr, flush=True)
+    print(
+        f"ours sweep on {scene.name}: {len(opened)} frames, caps {list(sweep)} in {len(groups)} group(s), "
+        f"device {device['device_kind']} ({device['platform']}); warm-up {time.perf_counter() - start:.0f} s",
+        file=sys.stderr,
+        flush=True,
+    )
 
     runs = {k: _new_run(k) for k in sweep}
     for group in groups:
         timers = {k: FrameTimer(first_ms=dict(warm.first_ms)) for k in group}  # compiled already: all samples
         builders = {k: builder(timers[k]) for k in group}
-        for position, (frame, detections) in enumerate(_frames_with_detections(
-                opened, folder, config, progress, f"ours sweep {scene.name} k={','.join(map(str, group))}")):
+        for position, (frame, detections) in enumerate(
+            _frames_with_detections(opened, folder, config, progress, f"ours sweep {scene.name} k={','.join(map(str, group))}")
+        ):
             for k in _rotated(group, position):
-                capped = None if detections is None else cap_detections(detections, k, open_labels,
-                                                                         det.min_mask_pixels)
+                capped = None if detections is None else cap_detections(detections, k, open_labels, det.min_mask_pixels)
                 timers[k].start_frame()
                 builders[k].add_frame(frame, capped)
                 _count(runs[k], detections, capped, builders[k].state.instances.valid.sum(), open_labels, det)
         for k in group:
             runs[k].update(frames=timers[k].frames, compiled=timers[k].compiled)
         del builders
-    return {"pipeline": "ours-sweep", "device": device, "map": map_config.describe(), "sweep": list(sweep),
-            "groups": groups, "runs": [runs[k] for k in sweep], "peak_rss_mb": peak_rss_mb(),
-            "baseline_rss_mb": baseline_mb, "seconds": time.perf_counter() - start}
+    return {
+        "pipeline": "ours-sweep",
+        "device": device,
+        "map": map_config.describe(),
+        "sweep": list(sweep),
+        "groups": groups,
+        "runs": [runs[k] for k in sweep],
+        "peak_rss_mb": peak_rss_mb(),
+        "baseline_rss_mb": baseline_mb,
+        "seconds": time.perf_counter() - start,
+    }
 
 
 def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep: Sequence[int]) -> dict:
@@ -170,23 +183,28 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     pipelines = {k: peer.Open3DInstancePipeline(config, opened.intrinsics, likelihood, label_sets) for k in sweep}
     runs = {k: _new_run(k) for k in sweep}
     start = time.perf_counter()
-    for position, (frame, detections) in enumerate(_frames_with_detections(opened, folder, config, progress,
-                                                                           f"Open3D peer sweep {scene.name}")):
+    for position, (frame, detections) in enumerate(
+        _frames_with_detections(opened, folder, config, progress, f"Open3D peer sweep {scene.name}")
+    ):
         for k in _rotated(list(sweep), position):
             capped = None if detections is None else cap_detections(detections, k, open_labels, det.min_mask_pixels)
             runs[k]["frames"].append({name: float(v) for name, v in pipelines[k].add_frame(frame, capped).items()})
             runs[k]["compiled"].append({})
             _count(runs[k], detections, capped, pipelines[k].num_instances, open_labels, det)
-    return {"pipeline": "peer-sweep", "sweep": list(sweep), "runs": [runs[k] for k in sweep],
-            "peak_rss_mb": peak_rss_mb(), "baseline_rss_mb": baseline_mb, "seconds": time.perf_counter() - start}
+    return {
+        "pipeline": "peer-sweep",
+        "sweep": list(sweep),
+        "runs": [runs[k] for k in sweep],
+        "peak_rss_mb": peak_rss_mb(),
+        "baseline_rss_mb": baseline_mb,
+        "seconds": time.perf_counter() - start,
+    }
 
 
-def _count(run: dict, detections: FrameDetections | None, capped: FrameDetections | None, live, open_labels,
-           det) -> None:
+def _count(run: dict, detections: FrameDetections | None, capped: FrameDetections | None, live, open_labels, det) -> None:
     """Appends a frame's detections given, detections fused (what the packer keeps) and live instances."""
     run["detections_in"].append(0 if detections is None else detections.num_detections)
-    fused = 0 if capped is None else len(select_detections(capped, open_labels, det.max_detections,
-                                                           det.min_mask_pixels)[0])
+    fused = 0 if capped is None else len(select_detections(capped, open_labels, det.max_detections, det.min_mask_pixels)[0])
     run["detections_fused"].append(fused)
     run["live_instances"].append(int(live))
 

@@ -63,8 +63,14 @@ def _open(scene: BenchScene, frames: int | None):
     config = load_config(str(scene.config_path))
     dataset = config.dataset
     limit = min(x for x in (frames, scene.frames, dataset.max_frames) if x)
-    opened = open_scene(scene.scene_dir, layout=dataset.layout, stride=dataset.frame_stride,
-                        depth_max=dataset.depth_max, depth_scale=dataset.depth_scale, max_frames=limit)
+    opened = open_scene(
+        scene.scene_dir,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=limit,
+    )
     folder = DetectionFolder(scene.detections_dir, image_shape=(opened.intrinsics.height, opened.intrinsics.width))
     return config, opened, folder
 
@@ -75,8 +81,9 @@ def _frames_with_detections(opened, folder, config, progress: bool, desc: str):
 
     from fmfusion_jax.pipeline import scheduled_detections
 
-    frames = tqdm(opened.frames(), total=len(opened), desc=desc, unit="frame", disable=not progress,
-                  dynamic_ncols=True, leave=False)
+    frames = tqdm(
+        opened.frames(), total=len(opened), desc=desc, unit="frame", disable=not progress, dynamic_ncols=True, leave=False
+    )
     yield from scheduled_detections(frames, lambda frame: folder.get(frame.name), config)
 
 
@@ -84,8 +91,7 @@ def device_description() -> dict:
     import jax
 
     device = jax.devices()[0]
-    return {"platform": device.platform, "device_kind": device.device_kind, "jax": jax.__version__,
-            "cpus": cpu_count()}
+    return {"platform": device.platform, "device_kind": device.device_kind, "jax": jax.__version__, "cpus": cpu_count()}
 
 
 def _device_memory_mb() -> float | None:
@@ -111,16 +117,21 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     bounds_min, bounds_max = opened.bounds()
     map_config = build_map_config(config, bounds_min, bounds_max, opened.intrinsics.height, opened.intrinsics.width)
     device = device_description()
-    print(f"ours on {scene.name}: {len(opened)} frames, device {device['device_kind']} ({device['platform']}), "
-          f"{device['cpus']} CPUs; map {map_config.describe()}", file=sys.stderr, flush=True)
+    print(
+        f"ours on {scene.name}: {len(opened)} frames, device {device['device_kind']} ({device['platform']}), "
+        f"{device['cpus']} CPUs; map {map_config.describe()}",
+        file=sys.stderr,
+        flush=True,
+    )
 
     def fuse(staged: bool) -> tuple[MapBuilder, FrameTimer, dict]:
         timer = FrameTimer()
         step_hook = {"fuse_detections": staged_fuse_detections(timer)} if staged else {}
         builder = MapBuilder(config, map_config, timer=timer, **step_hook)
         counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
-        for frame, detections in _frames_with_detections(opened, folder, config, progress,
-                                                         f"ours {'staged' if staged else 'fused'} {scene.name}"):
+        for frame, detections in _frames_with_detections(
+            opened, folder, config, progress, f"ours {'staged' if staged else 'fused'} {scene.name}"
+        ):
             timer.start_frame()
             builder.add_frame(frame, detections)
             counts["detections_in"].append(0 if detections is None else detections.num_detections)
@@ -130,12 +141,22 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     start = time.perf_counter()
     builder, timer, counts = fuse(staged=False)
     result = {
-        "pipeline": "ours", "device": device, "map": map_config.describe(),
-        "map_state_mb": map_config.memory_bytes() / 2**20, "frames": timer.frames, "compiled": timer.compiled,
-        "compile_ms": _compile_ms(timer), "counters": dict(builder.counters), **counts,
-        "blocks_used": int(builder.state.blocks.num_blocks), "block_capacity": map_config.block_capacity,
-        "peak_rss_mb": peak_rss_mb(), "baseline_rss_mb": baseline_mb, "device_memory_mb": _device_memory_mb(),
-        "geometry_fusion_every": config.refinement.geometry_fusion_every, "seconds_fused": time.perf_counter() - start,
+        "pipeline": "ours",
+        "device": device,
+        "map": map_config.describe(),
+        "map_state_mb": map_config.memory_bytes() / 2**20,
+        "frames": timer.frames,
+        "compiled": timer.compiled,
+        "compile_ms": _compile_ms(timer),
+        "counters": dict(builder.counters),
+        **counts,
+        "blocks_used": int(builder.state.blocks.num_blocks),
+        "block_capacity": map_config.block_capacity,
+        "peak_rss_mb": peak_rss_mb(),
+        "baseline_rss_mb": baseline_mb,
+        "device_memory_mb": _device_memory_mb(),
+        "geometry_fusion_every": config.refinement.geometry_fusion_every,
+        "seconds_fused": time.perf_counter() - start,
     }
     fused_digest = state_digest(builder.state)
     del builder  # frees the map before the second pass
@@ -143,8 +164,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     if state_digest(staged_builder.state) != fused_digest:  # the stages composed must make the same map
         result["staged_mismatch"] = "the stages jitted apart made a different map than the fused step"
     result.update(stage_frames=staged_timer.frames, stage_compiled=staged_timer.compiled)
-    result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items()
-                                 if k in FUSION_STAGES})
+    result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items() if k in FUSION_STAGES})
     return result
 
 
@@ -163,8 +183,7 @@ def state_digest(state) -> str:
 
 def _compile_ms(timer) -> dict[str, float]:
     """First call minus the median call, per timed function: the compile time (and first-run effects)."""
-    return {name: first - timer.median_ms(name) for name, first in timer.first_ms.items()
-            if timer.samples_ms.get(name)}
+    return {name: first - timer.median_ms(name) for name, first in timer.first_ms.items() if timer.samples_ms.get(name)}
 
 
 def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
@@ -179,16 +198,23 @@ def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
 
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
-    pipeline = peer.Open3DInstancePipeline(config, opened.intrinsics, load_likelihood(config.label_fusion.likelihood),
-                                           load_label_sets())
+    pipeline = peer.Open3DInstancePipeline(
+        config, opened.intrinsics, load_likelihood(config.label_fusion.likelihood), load_label_sets()
+    )
     times = []
     counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
     for frame, detections in _frames_with_detections(opened, folder, config, progress, f"Open3D peer {scene.name}"):
         times.append({k: float(v) for k, v in pipeline.add_frame(frame, detections).items()})
         counts["detections_in"].append(0 if detections is None else detections.num_detections)
         counts["live_instances"].append(int(pipeline.num_instances))
-    return {"pipeline": "peer", "frames": times, **counts, "peak_rss_mb": peak_rss_mb(),
-            "baseline_rss_mb": baseline_mb, "open3d": _open3d_version()}
+    return {
+        "pipeline": "peer",
+        "frames": times,
+        **counts,
+        "peak_rss_mb": peak_rss_mb(),
+        "baseline_rss_mb": baseline_mb,
+        "open3d": _open3d_version(),
+    }
 
 
 def run_vbg(scene: BenchScene, frames: int | None, progress: bool) -> dict:
@@ -201,12 +227,18 @@ def run_vbg(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     peer = importlib.import_module(PEER_MODULE)
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
-    tsdf = peer.VoxelBlockGridTSDF(config.tsdf.voxel_size, config.tsdf.sdf_trunc, config.dataset.depth_max,
-                                   opened.intrinsics)
-    times = [{"tsdf": float(tsdf.integrate(frame))}
-             for frame, _ in _frames_with_detections(opened, folder, config, progress, f"Open3D VBG {scene.name}")]
-    return {"pipeline": "vbg", "frames": times, "peak_rss_mb": peak_rss_mb(), "baseline_rss_mb": baseline_mb,
-            "open3d": _open3d_version()}
+    tsdf = peer.VoxelBlockGridTSDF(config.tsdf.voxel_size, config.tsdf.sdf_trunc, config.dataset.depth_max, opened.intrinsics)
+    times = [
+        {"tsdf": float(tsdf.integrate(frame))}
+        for frame, _ in _frames_with_detections(opened, folder, config, progress, f"Open3D VBG {scene.name}")
+    ]
+    return {
+        "pipeline": "vbg",
+        "frames": times,
+        "peak_rss_mb": peak_rss_mb(),
+        "baseline_rss_mb": baseline_mb,
+        "open3d": _open3d_version(),
+    }
 
 
 def _open3d_version() -> str | None:

@@ -53,8 +53,14 @@ def _accept_verbose_after_subcommands(parser: argparse.ArgumentParser) -> None:
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for sub in set(action.choices.values()):
-                sub.add_argument("-v", "--verbose", action="count", default=0, dest="verbose_after_command",
-                                 help="more logging (-v info, -vv debug)")
+                sub.add_argument(
+                    "-v",
+                    "--verbose",
+                    action="count",
+                    default=0,
+                    dest="verbose_after_command",
+                    help="more logging (-v info, -vv debug)",
+                )
                 _accept_verbose_after_subcommands(sub)
 
 

@@ -15,51 +15,91 @@ DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "bench", help="time the fusion step per stage (like the paper's Table IV) against Open3D peers",
+        "bench",
+        help="time the fusion step per stage (like the paper's Table IV) against Open3D peers",
         description="Runs the fusion step on the real scene with simulated detections and on generated rooms of "
-                    "growing object count, and reports per stage (global TSDF, projection, association, label "
-                    "fusion, instance integration, merge, geometry fusion) the median ms per frame, the compile "
-                    "times and the peak memory, beside the Open3D reference pipeline (a global "
-                    "ScalableTSDFVolume and one volume per instance, as the authors' code) and Open3D's "
-                    "VoxelBlockGrid integration on the same frames; then the base + per-object cost from a "
-                    "controlled sweep (the main scene's first frames fused once per cap on the detections per "
-                    "frame: same frames, same map, only the objects fused vary), with a line across the "
-                    "generated rooms as context. Each pipeline runs in a process of its own. The Open3D peer "
-                    "needs the optional open3d-cpu==0.19.0 (and the Debian package libusb-1.0-0); without it "
-                    "ours is still measured. Writes bench.md and bench.json into --out. Scenes and simulated "
-                    "detections are made once into a cache folder.",
-        formatter_class=HelpFormatter)
-    parser.add_argument("--scene", type=Path, default=None,
-                        help=f"real ScanNet scene with ground truth (default: {DEFAULT_SCENE} when present; "
-                             "not used by --quick unless given)")
+        "growing object count, and reports per stage (global TSDF, projection, association, label "
+        "fusion, instance integration, merge, geometry fusion) the median ms per frame, the compile "
+        "times and the peak memory, beside the Open3D reference pipeline (a global "
+        "ScalableTSDFVolume and one volume per instance, as the authors' code) and Open3D's "
+        "VoxelBlockGrid integration on the same frames; then the base + per-object cost from a "
+        "controlled sweep (the main scene's first frames fused once per cap on the detections per "
+        "frame: same frames, same map, only the objects fused vary), with a line across the "
+        "generated rooms as context. Each pipeline runs in a process of its own. The Open3D peer "
+        "needs the optional open3d-cpu==0.19.0 (and the Debian package libusb-1.0-0); without it "
+        "ours is still measured. Writes bench.md and bench.json into --out. Scenes and simulated "
+        "detections are made once into a cache folder.",
+        formatter_class=HelpFormatter,
+    )
+    parser.add_argument(
+        "--scene",
+        type=Path,
+        default=None,
+        help=f"real ScanNet scene with ground truth (default: {DEFAULT_SCENE} when present; not used by --quick unless given)",
+    )
     parser.add_argument("--no-scene", action="store_true", help="generated rooms only")
-    parser.add_argument("--frames", type=int, default=None, metavar="N",
-                        help="frames of the real scene (default: all; --quick 6; 0: all)")
-    parser.add_argument("--objects", type=int, nargs="*", default=None, metavar="N",
-                        help="object counts of the generated rooms (default 4 8 16 32; --quick 2 8; none: skip)")
-    parser.add_argument("--generated-frames", type=int, default=None, metavar="N",
-                        help="frames of each generated room (default 40; --quick 6)")
-    parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"),
-                        help="image size of the generated rooms (default 640 480; --quick 160 120)")
+    parser.add_argument(
+        "--frames", type=int, default=None, metavar="N", help="frames of the real scene (default: all; --quick 6; 0: all)"
+    )
+    parser.add_argument(
+        "--objects",
+        type=int,
+        nargs="*",
+        default=None,
+        metavar="N",
+        help="object counts of the generated rooms (default 4 8 16 32; --quick 2 8; none: skip)",
+    )
+    parser.add_argument(
+        "--generated-frames", type=int, default=None, metavar="N", help="frames of each generated room (default 40; --quick 6)"
+    )
+    parser.add_argument(
+        "--size",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="image size of the generated rooms (default 640 480; --quick 160 120)",
+    )
     parser.add_argument("--no-peer", action="store_true", help="ours only (no Open3D)")
-    parser.add_argument("--peer-frames", type=int, default=None, metavar="N",
-                        help="the Open3D per-instance pipeline (0.1-1 s per frame, growing with the map) runs on "
-                             "the first N frames of each scene; ours is compared with it on that same prefix "
-                             "(default: all frames; 0: all)")
-    parser.add_argument("--sweep", type=int, nargs="*", default=None, metavar="K",
-                        help="caps on the detections fused per frame for the per-object sweep on the main scene "
-                             "(the real one, else the largest generated room): each frame keeps its K "
-                             "highest-scoring detections (default 1 2 4 8 16; --quick 1 4; none: skip)")
-    parser.add_argument("--sweep-frames", type=int, default=None, metavar="N",
-                        help="the sweep (ours and the Open3D peer, once per cap) runs on the first N frames of the "
-                             "main scene (default 30; --quick 4; 0: all)")
+    parser.add_argument(
+        "--peer-frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the Open3D per-instance pipeline (0.1-1 s per frame, growing with the map) runs on "
+        "the first N frames of each scene; ours is compared with it on that same prefix "
+        "(default: all frames; 0: all)",
+    )
+    parser.add_argument(
+        "--sweep",
+        type=int,
+        nargs="*",
+        default=None,
+        metavar="K",
+        help="caps on the detections fused per frame for the per-object sweep on the main scene "
+        "(the real one, else the largest generated room): each frame keeps its K "
+        "highest-scoring detections (default 1 2 4 8 16; --quick 1 4; none: skip)",
+    )
+    parser.add_argument(
+        "--sweep-frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the sweep (ours and the Open3D peer, once per cap) runs on the first N frames of the "
+        "main scene (default 30; --quick 4; 0: all)",
+    )
     parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke test in well under a minute")
     parser.add_argument("--cache", type=Path, default=None, help="folder of the prepared scenes (default OUT/cache)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the generated rooms and simulated detections")
     parser.add_argument("--out", type=Path, default=Path("outputs/bench"), help="output folder")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 "
-                             "(repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 (repeatable)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -82,10 +122,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--sweep-frames must be >= 2 (frame 0 warms up)")
 
     defaults = dict(QUICK_SIZES) if args.quick else {}
-    given = {"frames": args.frames, "objects": None if args.objects is None else tuple(args.objects),
-             "generated_frames": args.generated_frames, "peer_frames": args.peer_frames,
-             "sweep": None if args.sweep is None else tuple(dict.fromkeys(args.sweep)),
-             "sweep_frames": args.sweep_frames}
+    given = {
+        "frames": args.frames,
+        "objects": None if args.objects is None else tuple(args.objects),
+        "generated_frames": args.generated_frames,
+        "peer_frames": args.peer_frames,
+        "sweep": None if args.sweep is None else tuple(dict.fromkeys(args.sweep)),
+        "sweep_frames": args.sweep_frames,
+    }
     if args.size is not None:
         given["width"], given["height"] = args.size
     options = {**defaults, **{k: v for k, v in given.items() if v is not None}}
@@ -93,8 +137,16 @@ def run(args: argparse.Namespace) -> int:
         if options.get(name) == 0:
             options[name] = None
     scene = None if args.no_scene else _real_scene(args.scene, quick=args.quick)
-    bench = BenchOptions(out=args.out, cache=args.cache, scene=scene, peer=not args.no_peer, seed=args.seed,
-                         overrides=tuple(args.overrides), progress=not args.no_progress, **options)
+    bench = BenchOptions(
+        out=args.out,
+        cache=args.cache,
+        scene=scene,
+        peer=not args.no_peer,
+        seed=args.seed,
+        overrides=tuple(args.overrides),
+        progress=not args.no_progress,
+        **options,
+    )
     summary = run_bench(bench, command=_command_line(args))
     print(summary["markdown"])
     print(f"written: {args.out / 'bench.md'}, {args.out / 'bench.json'}")
@@ -104,10 +156,15 @@ def run(args: argparse.Namespace) -> int:
 def _command_line(args: argparse.Namespace) -> str:
     """The command as given (for the report), rebuilt from the parsed options."""
     words = ["fmfusion", "bench"] + (["--quick"] if args.quick else [])
-    for flag, value in (("--scene", args.scene), ("--frames", args.frames),
-                        ("--generated-frames", args.generated_frames), ("--peer-frames", args.peer_frames),
-                        ("--sweep-frames", args.sweep_frames),
-                        ("--cache", args.cache), ("--out", args.out)):
+    for flag, value in (
+        ("--scene", args.scene),
+        ("--frames", args.frames),
+        ("--generated-frames", args.generated_frames),
+        ("--peer-frames", args.peer_frames),
+        ("--sweep-frames", args.sweep_frames),
+        ("--cache", args.cache),
+        ("--out", args.out),
+    ):
         if value is not None:
             words += [flag, str(value)]
     if args.objects is not None:
@@ -138,6 +195,5 @@ def _real_scene(given: Path | None, quick: bool) -> Path | None:
         return None
     if DEFAULT_SCENE.is_dir():
         return DEFAULT_SCENE
-    print(f"fmfusion bench: no real scene at {DEFAULT_SCENE} (give one with --scene); generated rooms only",
-          file=sys.stderr)
+    print(f"fmfusion bench: no real scene at {DEFAULT_SCENE} (give one with --scene); generated rooms only", file=sys.stderr)
     return None

@@ -13,23 +13,32 @@ def register(subparsers) -> None:
     from fmfusion_jax.demo import DEFAULT_FRAMES, DEFAULT_HEIGHT, DEFAULT_OBJECTS, DEFAULT_OUT, DEFAULT_WIDTH
 
     parser = subparsers.add_parser(
-        "demo", help="the whole job on a generated room: no data needed",
+        "demo",
+        help="the whole job on a generated room: no data needed",
         description="Generates a room of furniture (seeded), renders an RGB-D loop around it in the ScanNet "
-                    "layout with ground truth (OUT/synth<seed>_00), simulates the foundation models' detections from "
-                    "the ground truth (OUT/detections, as `fmfusion simulate`), fuses them into an instance map "
-                    "with configs/demo.yaml, writes the map's outputs into OUT (overview.png first, then "
-                    "instances.json, PLY files, map_state.npz, ...) and scores it with the ScanNet benchmark. "
-                    "About a minute on two CPU cores at the defaults.",
-        formatter_class=HelpFormatter)
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
-                        help="output folder (a previous demo's output there is replaced)")
+        "layout with ground truth (OUT/synth<seed>_00), simulates the foundation models' detections from "
+        "the ground truth (OUT/detections, as `fmfusion simulate`), fuses them into an instance map "
+        "with configs/demo.yaml, writes the map's outputs into OUT (overview.png first, then "
+        "instances.json, PLY files, map_state.npz, ...) and scores it with the ScanNet benchmark. "
+        "About a minute on two CPU cores at the defaults.",
+        formatter_class=HelpFormatter,
+    )
+    parser.add_argument(
+        "--out", type=Path, default=DEFAULT_OUT, help="output folder (a previous demo's output there is replaced)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the room, camera path, noise and detections")
     parser.add_argument("--objects", type=int, default=DEFAULT_OBJECTS, metavar="N", help="objects in the room")
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES, metavar="N", help="frames on the loop")
     parser.add_argument("--width", type=int, default=DEFAULT_WIDTH, help="image width")
     parser.add_argument("--height", type=int, default=DEFAULT_HEIGHT, help="image height")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a value of configs/demo.yaml, e.g. --set detections.every=1 (repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a value of configs/demo.yaml, e.g. --set detections.every=1 (repeatable)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -39,7 +48,15 @@ def run(args: argparse.Namespace) -> int:
 
     if args.frames < 2 or args.objects < 1:
         raise UserError(f"--frames must be >= 2 and --objects >= 1 (got {args.frames}, {args.objects})")
-    result = run_demo(args.out, seed=args.seed, num_objects=args.objects, num_frames=args.frames,
-                      width=args.width, height=args.height, overrides=args.overrides, progress=not args.no_progress)
+    result = run_demo(
+        args.out,
+        seed=args.seed,
+        num_objects=args.objects,
+        num_frames=args.frames,
+        width=args.width,
+        height=args.height,
+        overrides=args.overrides,
+        progress=not args.no_progress,
+    )
     print(result.text)
     return 0

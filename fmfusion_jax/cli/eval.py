@@ -35,31 +35,61 @@ _EXPLAIN_DEFAULT = Path("<default>")
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "eval", help="score instance predictions with the ScanNet benchmark (AP, AP50, AP25)",
+        "eval",
+        help="score instance predictions with the ScanNet benchmark (AP, AP50, AP25)",
         description="Scores instance predictions in the ScanNet benchmark format by the rules of the ScanNet 3D\n"
-                    "semantic instance benchmark (18 classes; AP over IoU 0.50:0.05:0.90, AP50, AP25; per mesh\n"
-                    "vertex; scenes pooled per class) and prints the per-class table.",
-        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("pred", nargs="*", type=Path, metavar="PRED",
-                        help="prediction <scene>.txt files or folders of them")
-    parser.add_argument("--pred", dest="pred_option", action="extend", nargs="+", type=Path, default=[],
-                        metavar="PRED", help="same as the positional PRED (either form, or both)")
-    parser.add_argument("--gt", action="extend", nargs="+", type=Path, default=[], metavar="GT",
-                        help="ground truth: scene folders, benchmark gt <scene>.txt files, or folders of either "
-                             "(required)")
-    parser.add_argument("--labels-tsv", type=Path, metavar="TSV",
-                        help="raw label -> nyu40 tsv for scene folders (default: scannetv2-labels.combined.tsv or "
-                             "scannet-labels.combined.tsv in the scene folder, then its parent)")
+        "semantic instance benchmark (18 classes; AP over IoU 0.50:0.05:0.90, AP50, AP25; per mesh\n"
+        "vertex; scenes pooled per class) and prints the per-class table.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("pred", nargs="*", type=Path, metavar="PRED", help="prediction <scene>.txt files or folders of them")
+    parser.add_argument(
+        "--pred",
+        dest="pred_option",
+        action="extend",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="PRED",
+        help="same as the positional PRED (either form, or both)",
+    )
+    parser.add_argument(
+        "--gt",
+        action="extend",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="GT",
+        help="ground truth: scene folders, benchmark gt <scene>.txt files, or folders of either (required)",
+    )
+    parser.add_argument(
+        "--labels-tsv",
+        type=Path,
+        metavar="TSV",
+        help="raw label -> nyu40 tsv for scene folders (default: scannetv2-labels.combined.tsv or "
+        "scannet-labels.combined.tsv in the scene folder, then its parent)",
+    )
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores to this JSON file")
-    parser.add_argument("--explain", nargs="?", const=_EXPLAIN_DEFAULT, type=Path, metavar="DIR",
-                        help="also write an error analysis (each ground-truth object's status, each prediction's "
-                             "kind: docs/error-analysis.md) as explain.md, explain.json and explain.png (the "
-                             "picture needs a scene folder as GT) into DIR, or DIR/<scene>/ for several scenes, "
-                             "and print its counts after the table; DIR defaults to the folder of the --json "
-                             "file, else ./explain")
-    parser.add_argument("--export-gt", type=Path, metavar="OUT_DIR",
-                        help="instead of evaluating, write each GT scene's instances as benchmark-format "
-                             "predictions (confidence 1) into OUT_DIR, to check that ground truth scores 1.0")
+    parser.add_argument(
+        "--explain",
+        nargs="?",
+        const=_EXPLAIN_DEFAULT,
+        type=Path,
+        metavar="DIR",
+        help="also write an error analysis (each ground-truth object's status, each prediction's "
+        "kind: docs/error-analysis.md) as explain.md, explain.json and explain.png (the "
+        "picture needs a scene folder as GT) into DIR, or DIR/<scene>/ for several scenes, "
+        "and print its counts after the table; DIR defaults to the folder of the --json "
+        "file, else ./explain",
+    )
+    parser.add_argument(
+        "--export-gt",
+        type=Path,
+        metavar="OUT_DIR",
+        help="instead of evaluating, write each GT scene's instances as benchmark-format "
+        "predictions (confidence 1) into OUT_DIR, to check that ground truth scores 1.0",
+    )
     parser.set_defaults(func=run)
 
 
@@ -67,15 +97,14 @@ def register(subparsers) -> None:
 class _GroundTruthSource:
     scene: str
     path: Path
-    kind: str        # "scene" (a ScanNet scene folder) or "txt" (benchmark ids per vertex)
-    explicit: bool   # named on the command line rather than found in a folder
+    kind: str  # "scene" (a ScanNet scene folder) or "txt" (benchmark ids per vertex)
+    explicit: bool  # named on the command line rather than found in a folder
 
 
 def run(args: argparse.Namespace) -> int:
     predictions = [*args.pred, *args.pred_option]
     if not args.gt:
-        raise UserError("no ground truth: pass --gt with a ScanNet scene folder, a benchmark gt .txt, "
-                        "or a folder of them")
+        raise UserError("no ground truth: pass --gt with a ScanNet scene folder, a benchmark gt .txt, or a folder of them")
     sources = _find_ground_truth(args.gt)
     if args.export_gt is not None:
         if predictions:
@@ -84,8 +113,10 @@ def run(args: argparse.Namespace) -> int:
             raise UserError("--explain explains predictions; it does not go with --export-gt")
         return _export_ground_truth(sources, args.export_gt, args.labels_tsv)
     if not predictions:
-        raise UserError("nothing to evaluate: pass prediction <scene>.txt files or folders (PRED), "
-                        "or --export-gt OUT_DIR to write the ground truth as predictions")
+        raise UserError(
+            "nothing to evaluate: pass prediction <scene>.txt files or folders (PRED), "
+            "or --export-gt OUT_DIR to write the ground truth as predictions"
+        )
     pairs = _pair(_find_predictions(predictions), sources)
     explain_dir = args.explain
     if explain_dir is _EXPLAIN_DEFAULT:
@@ -93,8 +124,9 @@ def run(args: argparse.Namespace) -> int:
     return _evaluate(pairs, args.labels_tsv, args.json, explain_dir)
 
 
-def _evaluate(pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | None, json_path: Path | None,
-              explain_dir: Path | None = None) -> int:
+def _evaluate(
+    pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | None, json_path: Path | None, explain_dir: Path | None = None
+) -> int:
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
     from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
 
@@ -201,12 +233,16 @@ def _find_ground_truth(paths: list[Path]) -> list[_GroundTruthSource]:
         elif path.is_dir() and _is_scene_folder(path):
             add(_GroundTruthSource(path.name, path, "scene", True))
         elif path.is_dir():
-            found = [_GroundTruthSource(p.name, p, "scene", False) for p in sorted(path.iterdir())
-                     if p.is_dir() and _is_scene_folder(p)]
+            found = [
+                _GroundTruthSource(p.name, p, "scene", False)
+                for p in sorted(path.iterdir())
+                if p.is_dir() and _is_scene_folder(p)
+            ]
             found += [_GroundTruthSource(p.stem, p, "txt", False) for p in sorted(path.glob("*.txt"))]
             if not found:
-                raise UserError(f"--gt {path}: no ScanNet scene folder (<scene>/<scene>_vh_clean_2.ply) or "
-                                "ground-truth <scene>.txt in it")
+                raise UserError(
+                    f"--gt {path}: no ScanNet scene folder (<scene>/<scene>_vh_clean_2.ply) or ground-truth <scene>.txt in it"
+                )
             for source in found:
                 add(source)
         else:
@@ -242,8 +278,10 @@ def _pair(predictions: list[Path], sources: list[_GroundTruthSource]) -> list[tu
     by_scene = {s.scene: s for s in sources}
     missing = [p.stem for p in predictions if p.stem not in by_scene]
     if missing:
-        raise UserError(f"no ground truth for scene(s) {', '.join(missing)}: pass their scene folders or gt .txt "
-                        "files with --gt (prediction files are named <scene>.txt)")
+        raise UserError(
+            f"no ground truth for scene(s) {', '.join(missing)}: pass their scene folders or gt .txt "
+            "files with --gt (prediction files are named <scene>.txt)"
+        )
     predicted = {p.stem for p in predictions}
     unpredicted = [s.scene for s in sources if s.explicit and s.scene not in predicted]
     if unpredicted:

@@ -13,16 +13,19 @@ SAMPLED_FRAMES = 30
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "info", help="summarize a scene folder (and a detection folder)",
+        "info",
+        help="summarize a scene folder (and a detection folder)",
         description="Summarizes a ScanNet or SceneNN scene folder: frames, camera, depth range, world bounds, "
-                    "trajectory, ground-truth files; with --detections, the detection files. Reads the poses and "
-                    f"{SAMPLED_FRAMES} depth images, so it takes a few seconds at most.")
+        "trajectory, ground-truth files; with --detections, the detection files. Reads the poses and "
+        f"{SAMPLED_FRAMES} depth images, so it takes a few seconds at most.",
+    )
     parser.add_argument("scene", type=Path, help="scene folder (ScanNet color/ depth/ pose/ intrinsic/, or SceneNN)")
     parser.add_argument("--layout", default="auto", choices=("auto", "scannet", "scenenn"), help="default: auto")
     parser.add_argument("--stride", type=int, default=1, help="use every N-th frame (default 1)")
     parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")
-    parser.add_argument("--detections", type=Path, metavar="DIR",
-                        help="folder of <frame>_label.json + <frame>_mask.{npy,png} detection files")
+    parser.add_argument(
+        "--detections", type=Path, metavar="DIR", help="folder of <frame>_label.json + <frame>_mask.{npy,png} detection files"
+    )
     parser.set_defaults(func=run)
 
 
@@ -52,25 +55,42 @@ def describe_scene(scene) -> list[tuple[str, str]]:
         lines.append(("  skipped", f"... and {len(scene.skipped) - 10} more"))
     lines += [
         ("image size", f"{intrinsics.width} x {intrinsics.height}"),
-        ("intrinsics", f"fx {intrinsics.fx:.2f}  fy {intrinsics.fy:.2f}  cx {intrinsics.cx:.2f}  cy {intrinsics.cy:.2f}"
-                       "  (depth camera)"),
+        (
+            "intrinsics",
+            f"fx {intrinsics.fx:.2f}  fy {intrinsics.fy:.2f}  cx {intrinsics.cx:.2f}  cy {intrinsics.cy:.2f}  (depth camera)",
+        ),
     ]
     if len(scene):
         sample = scene.sample_depth(max_frames=SAMPLED_FRAMES)
         p01, p25, p50, p75, p99 = sample.depth_percentiles
-        lines.append(("depth", f"{p01:.2f} / {p25:.2f} / {p50:.2f} / {p75:.2f} / {p99:.2f} m "
-                               f"(1/25/50/75/99th percentile), {100 * sample.valid_fraction:.1f}% of pixels valid, "
-                               f"truncated at {scene.depth_max:g} m; from {len(sample.frame_names)} frames"))
+        lines.append(
+            (
+                "depth",
+                f"{p01:.2f} / {p25:.2f} / {p50:.2f} / {p75:.2f} / {p99:.2f} m "
+                f"(1/25/50/75/99th percentile), {100 * sample.valid_fraction:.1f}% of pixels valid, "
+                f"truncated at {scene.depth_max:g} m; from {len(sample.frame_names)} frames",
+            )
+        )
         lower, upper = scene.bounds(sample=sample)
         size = upper - lower
-        lines.append(("bounds", f"min {_vector(lower)}  max {_vector(upper)}  size {_vector(size)} m "
-                                "(sampled depth + 0.25 m margin)"))
+        lines.append(
+            ("bounds", f"min {_vector(lower)}  max {_vector(upper)}  size {_vector(size)} m (sampled depth + 0.25 m margin)")
+        )
         frustum_lower, frustum_upper = scene.bounds(method="frustum")
-        lines.append(("  frusta", f"min {_vector(frustum_lower)}  max {_vector(frustum_upper)} m "
-                                  f"(every view frustum to {scene.depth_max:g} m)"))
+        lines.append(
+            (
+                "  frusta",
+                f"min {_vector(frustum_lower)}  max {_vector(frustum_upper)} m (every view frustum to {scene.depth_max:g} m)",
+            )
+        )
         positions = scene.poses()[:, :3, 3]
-        lines.append(("trajectory", f"{scene.trajectory_length():.2f} m over {len(scene)} poses; camera within "
-                                    f"{_vector(positions.min(axis=0))} .. {_vector(positions.max(axis=0))}"))
+        lines.append(
+            (
+                "trajectory",
+                f"{scene.trajectory_length():.2f} m over {len(scene)} poses; camera within "
+                f"{_vector(positions.min(axis=0))} .. {_vector(positions.max(axis=0))}",
+            )
+        )
     for role, path in scene.ground_truth_files().items():
         lines.append(("ground truth", f"{role + ':':<15} {path.name if path else 'absent'}"))
     return lines
@@ -102,15 +122,17 @@ def describe_detections(folder: Path, scene_frames: Sequence[str]) -> list[tuple
 
     lines = [("detections", f"{folder}: {len(matched)} of {len(scene_frames)} scene frames have detection files")]
     if unmatched:
-        lines.append(("  unmatched", f"{len(unmatched)} files name no frame of the scene (or are cut by the stride), "
-                                     f"e.g. {unmatched[0]}"))
+        lines.append(
+            ("  unmatched", f"{len(unmatched)} files name no frame of the scene (or are cut by the stride), e.g. {unmatched[0]}")
+        )
     if errors:
         lines.append(("  malformed", f"{len(errors)} files; first: {errors[0]}"))
     if counts:
         lines.append(("  per frame", f"median {np.median(counts):g}, max {max(counts)}, total {sum(counts)}"))
         open_labels = set(load_label_sets().open_labels)
-        histogram = ", ".join(f"{label}{'' if label in open_labels else '*'} {count}"
-                              for label, count in top_labels.most_common(10))
+        histogram = ", ".join(
+            f"{label}{'' if label in open_labels else '*'} {count}" for label, count in top_labels.most_common(10)
+        )
         lines.append(("  top labels", histogram + "  (best label per detection; * = not an open-set label)"))
     return lines
 

@@ -16,35 +16,56 @@ if TYPE_CHECKING:
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "run", help="fuse a scene and its detections into an instance map",
+        "run",
+        help="fuse a scene and its detections into an instance map",
         description="Fuses an RGB-D scene (ScanNet or SceneNN layout) and its open-set detections (authors' "
-                    "file format) into a map of 3D instances, then writes the map: instances.json, PLY clouds "
-                    "(semantic.ply, instances.ply, one per instance), mesh.ply, the ScanNet benchmark "
-                    "prediction files (when the scene has its _vh_clean_2.ply mesh), the config used and "
-                    "run.json with timings. With ground truth, it also scores the map (report.json).",
-        formatter_class=HelpFormatter)
+        "file format) into a map of 3D instances, then writes the map: instances.json, PLY clouds "
+        "(semantic.ply, instances.ply, one per instance), mesh.ply, the ScanNet benchmark "
+        "prediction files (when the scene has its _vh_clean_2.ply mesh), the config used and "
+        "run.json with timings. With ground truth, it also scores the map (report.json).",
+        formatter_class=HelpFormatter,
+    )
     parser.add_argument("scene", type=Path, help="scene folder")
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--detections", type=Path,
-                        help="folder of precomputed detections (frame-XXXXXX_label.json + _mask.png/.npy)")
-    source.add_argument("--models", type=Path,
-                        help="run the foundation models online instead: folder of ONNX exports "
-                             "(see docs/detectors.md)")
-    parser.add_argument("--providers", default="cpu", choices=("cpu", "cuda", "auto"),
-                        help="onnxruntime execution providers for --models")
+    source.add_argument(
+        "--detections", type=Path, help="folder of precomputed detections (frame-XXXXXX_label.json + _mask.png/.npy)"
+    )
+    source.add_argument(
+        "--models", type=Path, help="run the foundation models online instead: folder of ONNX exports (see docs/detectors.md)"
+    )
+    parser.add_argument(
+        "--providers", default="cpu", choices=("cpu", "cuda", "auto"), help="onnxruntime execution providers for --models"
+    )
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
-    parser.add_argument("--config", default="scannet",
-                        help="config file, or a packaged one: scannet, scannet-subsampled, scenenn")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value, e.g. --set detections.every=1 (repeatable)")
-    parser.add_argument("--on-error", choices=("skip", "stop"), default="skip",
-                        help="a frame whose image or detection file cannot be read: skip it with a warning naming "
-                             "the file (listed in run.json), or stop the run")
-    parser.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
-                        help="write a checkpoint every N frames into OUT.partial (always on Ctrl-C)")
+    parser.add_argument(
+        "--config", default="scannet", help="config file, or a packaged one: scannet, scannet-subsampled, scenenn"
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set detections.every=1 (repeatable)",
+    )
+    parser.add_argument(
+        "--on-error",
+        choices=("skip", "stop"),
+        default="skip",
+        help="a frame whose image or detection file cannot be read: skip it with a warning naming "
+        "the file (listed in run.json), or stop the run",
+    )
+    parser.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="write a checkpoint every N frames into OUT.partial (always on Ctrl-C)",
+    )
     resume = parser.add_mutually_exclusive_group()
-    resume.add_argument("--resume", action="store_true",
-                        help="continue an interrupted run from its checkpoint in OUT.partial (same arguments)")
+    resume.add_argument(
+        "--resume", action="store_true", help="continue an interrupted run from its checkpoint in OUT.partial (same arguments)"
+    )
     resume.add_argument("--restart", action="store_true", help="discard an interrupted run's checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
@@ -65,9 +86,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
     config = load_config(args.config, args.overrides)
     prepare_output_dir(args.out, create=False)  # a bad --out fails now, not after the fusion
-    scene = open_scene(args.scene, layout=config.dataset.layout, stride=config.dataset.frame_stride,
-                       depth_max=config.dataset.depth_max, depth_scale=config.dataset.depth_scale,
-                       max_frames=config.dataset.max_frames)
+    scene = open_scene(
+        args.scene,
+        layout=config.dataset.layout,
+        stride=config.dataset.frame_stride,
+        depth_max=config.dataset.depth_max,
+        depth_scale=config.dataset.depth_scale,
+        max_frames=config.dataset.max_frames,
+    )
     source: DetectionSource
     if args.models is not None:
         from detectors import FoundationModels
@@ -77,21 +103,37 @@ def run(args: argparse.Namespace) -> int:
     else:
         folder = DetectionFolder(args.detections, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
         if not len(folder):
-            raise UserError(f"{args.detections} holds no detection files (frame-XXXXXX_label.json + mask); "
-                            "make them with `fmfusion simulate` or `fmfusion detect`")
+            raise UserError(
+                f"{args.detections} holds no detection files (frame-XXXXXX_label.json + mask); "
+                "make them with `fmfusion simulate` or `fmfusion detect`"
+            )
         missing = [name for name in scene.frame_names if name not in folder]
         if len(missing) == len(scene.frame_names):
-            raise UserError(f"no detection file in {args.detections} matches a frame of {scene.name} "
-                            f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})")
+            raise UserError(
+                f"no detection file in {args.detections} matches a frame of {scene.name} "
+                f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})"
+            )
         source = lambda frame: folder.get(frame.name)  # noqa: E731
-    with StopRequest("stopping after the frame being fused, then writing a checkpoint and the map so far (outputs "
-                     "already being written are finished); Ctrl-C again to exit at once") as stop:
-        outcome = run_and_export(scene, source, config, args.out, progress=not args.no_progress,
-                                 on_error=args.on_error, checkpoint_every=args.checkpoint_every, resume=args.resume,
-                                 restart=args.restart, should_stop=stop)
+    with StopRequest(
+        "stopping after the frame being fused, then writing a checkpoint and the map so far (outputs "
+        "already being written are finished); Ctrl-C again to exit at once"
+    ) as stop:
+        outcome = run_and_export(
+            scene,
+            source,
+            config,
+            args.out,
+            progress=not args.no_progress,
+            on_error=args.on_error,
+            checkpoint_every=args.checkpoint_every,
+            resume=args.resume,
+            restart=args.restart,
+            should_stop=stop,
+        )
     print(outcome.summary)
     if not outcome.complete:
-        print(f"interrupted: the map so far is in {outcome.folder}; continue with the same command plus --resume",
-              file=sys.stderr)
+        print(
+            f"interrupted: the map so far is in {outcome.folder}; continue with the same command plus --resume", file=sys.stderr
+        )
         return 130
     return 0

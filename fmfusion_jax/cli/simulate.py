@@ -12,43 +12,73 @@ PRESETS = ("clean", "default", "hard", "label_model", "partial", "merged", "bord
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "simulate", help="simulate RAM/GroundingDINO/SAM detections from ground truth",
+        "simulate",
+        help="simulate RAM/GroundingDINO/SAM detections from ground truth",
         description="Renders the ground-truth instances of each frame of a ScanNet scene (mesh labels looked up "
-                    "at the frame's depth, so occlusion is respected) and turns them into detections with the "
-                    "failure modes of the foundation models: open-set labels drawn from the statistical "
-                    "likelihood, missed tags (corrected by prompt augmentation), partial, split and merged "
-                    "masks, noisy borders, missed and false detections. Writes <frame>_label.json + "
-                    "<frame>_mask.{png,npy} in the authors' format and simulation.json (parameters, seed, "
-                    "statistics). Each frame is reproducible from the seed alone. See "
-                    "docs/simulated-detections.md for the noise model.")
+        "at the frame's depth, so occlusion is respected) and turns them into detections with the "
+        "failure modes of the foundation models: open-set labels drawn from the statistical "
+        "likelihood, missed tags (corrected by prompt augmentation), partial, split and merged "
+        "masks, noisy borders, missed and false detections. Writes <frame>_label.json + "
+        "<frame>_mask.{png,npy} in the authors' format and simulation.json (parameters, seed, "
+        "statistics). Each frame is reproducible from the seed alone. See "
+        "docs/simulated-detections.md for the noise model.",
+    )
     parser.add_argument("scene", type=Path, help="ScanNet scene folder with its ground truth (mesh, segs, aggregation)")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
-                        help="output folder (new, empty, or a previous simulation's, which is replaced)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="output folder (new, empty, or a previous simulation's, which is replaced)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--noise-preset", default="default", choices=PRESETS,
-                        help="clean: ground-truth masks with each class's most likely label; default: the "
-                             "documented noise; hard: more of every failure mode; label_model, partial, merged, "
-                             "border, confusers: a noise family of the zoo at severity 1 (misspecified labels, "
-                             "partial masks, masks merged with a neighbour, borders bleeding onto floor and "
-                             "wall, confusers and false blobs with miscalibrated scores), on top of default "
-                             "(default: default)")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="override one noise parameter, e.g. --set missed_tag_prob=0.4 or, with "
-                             "--noise-preset border, --set bleed_px=8 (repeatable; value parsed as YAML)")
-    parser.add_argument("--no-prompt-augmentation", action="store_true",
-                        help="leave missed tags uncorrected (ablation B)")
+    parser.add_argument(
+        "--noise-preset",
+        default="default",
+        choices=PRESETS,
+        help="clean: ground-truth masks with each class's most likely label; default: the "
+        "documented noise; hard: more of every failure mode; label_model, partial, merged, "
+        "border, confusers: a noise family of the zoo at severity 1 (misspecified labels, "
+        "partial masks, masks merged with a neighbour, borders bleeding onto floor and "
+        "wall, confusers and false blobs with miscalibrated scores), on top of default "
+        "(default: default)",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override one noise parameter, e.g. --set missed_tag_prob=0.4 or, with "
+        "--noise-preset border, --set bleed_px=8 (repeatable; value parsed as YAML)",
+    )
+    parser.add_argument("--no-prompt-augmentation", action="store_true", help="leave missed tags uncorrected (ablation B)")
     parser.add_argument("--stride", type=int, default=1, help="read every N-th frame of the sequence (default 1)")
-    parser.add_argument("--every", type=int, default=1,
-                        help="simulate the frames whose index is a multiple of N: the detection frames of the "
-                             "fusion (default 1: all frames read)")
+    parser.add_argument(
+        "--every",
+        type=int,
+        default=1,
+        help="simulate the frames whose index is a multiple of N: the detection frames of the "
+        "fusion (default 1: all frames read)",
+    )
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N simulated frames")
-    parser.add_argument("--mask-format", default="png", choices=("png", "npy"),
-                        help="png: one uint8 label image per frame (authors' compact format); npy: (K, H, W) "
-                             "stack (default: png)")
-    parser.add_argument("--render-stride", type=int, default=2,
-                        help="pixel stride of the ground-truth rendering, upsampled by nearest neighbour (default 2)")
-    parser.add_argument("--max-distance", type=float, default=0.05,
-                        help="m; depth farther than this from the ground-truth mesh stays unlabelled (default 0.05)")
+    parser.add_argument(
+        "--mask-format",
+        default="png",
+        choices=("png", "npy"),
+        help="png: one uint8 label image per frame (authors' compact format); npy: (K, H, W) stack (default: png)",
+    )
+    parser.add_argument(
+        "--render-stride",
+        type=int,
+        default=2,
+        help="pixel stride of the ground-truth rendering, upsampled by nearest neighbour (default 2)",
+    )
+    parser.add_argument(
+        "--max-distance",
+        type=float,
+        default=0.05,
+        help="m; depth farther than this from the ground-truth mesh stays unlabelled (default 0.05)",
+    )
     parser.add_argument("--layout", default="auto", choices=("auto", "scannet"), help="default: auto")
     parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -96,16 +126,23 @@ def run(args: argparse.Namespace) -> int:
     if scene.layout != "scannet":
         raise UserError(f"{args.scene}: simulation needs ScanNet instance ground truth; this is a {scene.layout} scene")
     gt = load_scannet_ground_truth(scene.path)
-    summary = simulate_scene(scene, gt, args.out, noise, render_stride=args.render_stride, every=args.every,
-                             max_frames=args.max_frames, mask_format=args.mask_format,
-                             max_distance=args.max_distance, progress=not (args.quiet or args.no_progress))
+    summary = simulate_scene(
+        scene,
+        gt,
+        args.out,
+        noise,
+        render_stride=args.render_stride,
+        every=args.every,
+        max_frames=args.max_frames,
+        mask_format=args.mask_format,
+        max_distance=args.max_distance,
+        progress=not (args.quiet or args.no_progress),
+    )
     if not args.quiet:
         frames = len(summary.frame_names)
         rate = frames / summary.seconds if summary.seconds > 0 else float("inf")
-        print(f"simulated {frames} frames of {scene.name} in {summary.seconds:.1f} s ({rate:.1f} frames/s) "
-              f"-> {summary.out_dir}")
-        print(f"detections per frame: median {summary.median_detections:g}, "
-              f"total {sum(summary.detections_per_frame)}")
+        print(f"simulated {frames} frames of {scene.name} in {summary.seconds:.1f} s ({rate:.1f} frames/s) -> {summary.out_dir}")
+        print(f"detections per frame: median {summary.median_detections:g}, total {sum(summary.detections_per_frame)}")
         top = collections.Counter(summary.label_counts).most_common(12)
         print("main labels: " + ", ".join(f"{name} {count}" for name, count in top))
     return 0

@@ -28,22 +28,27 @@ examples:
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "synth", help="generate a procedural room as a ScanNet scene folder (frames + ground truth)",
+        "synth",
+        help="generate a procedural room as a ScanNet scene folder (frames + ground truth)",
         description="Generates a random room of box-shaped furniture (deterministic per seed), renders RGB-D frames\n"
-                    "along a camera loop and writes them with the mesh and instance ground truth in the ScanNet\n"
-                    "layout. 300 frames at 640x480 take well under a minute.",
-        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "along a camera loop and writes them with the mesh and instance ground truth in the ScanNet\n"
+        "layout. 300 frames at 640x480 take well under a minute.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="scene folder to write (must be empty or new)")
     parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
-    parser.add_argument("--objects", type=int, default=15, metavar="N",
-                        help="objects besides walls/floor/ceiling, 1..900 (default 15)")
+    parser.add_argument(
+        "--objects", type=int, default=15, metavar="N", help="objects besides walls/floor/ceiling, 1..900 (default 15)"
+    )
     parser.add_argument("--frames", type=int, default=300, metavar="N", help="frames to render (default 300)")
-    parser.add_argument("--room", metavar="WxDxH",
-                        help="room size in metres, e.g. 5x4x2.6 (default: 5x4x2.6 up to 12 objects, "
-                             "larger in proportion for more)")
+    parser.add_argument(
+        "--room",
+        metavar="WxDxH",
+        help="room size in metres, e.g. 5x4x2.6 (default: 5x4x2.6 up to 12 objects, larger in proportion for more)",
+    )
     parser.add_argument("--size", default="640x480", metavar="WxH", help="image size in pixels (default 640x480)")
-    parser.add_argument("--no-noise", action="store_true",
-                        help="exact depth (no sensor noise, holes or grazing-angle dropouts)")
+    parser.add_argument("--no-noise", action="store_true", help="exact depth (no sensor noise, holes or grazing-angle dropouts)")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty OUT_DIR")
     parser.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
@@ -86,8 +91,15 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise UserError(str(error)) from None
     print(f"scene   {scene.summary()}")
-    path = write_scannet_scene(scene, out, num_frames=args.frames, width=int(width), height=int(height),
-                               depth_noise=not args.no_noise, progress=not args.no_progress, overwrite=args.overwrite)
-    print(f"wrote   {path}  ({args.frames} frames {int(width)}x{int(height)}, "
-          f"{time.perf_counter() - started:.1f} s)")
+    path = write_scannet_scene(
+        scene,
+        out,
+        num_frames=args.frames,
+        width=int(width),
+        height=int(height),
+        depth_noise=not args.no_noise,
+        progress=not args.no_progress,
+        overwrite=args.overwrite,
+    )
+    print(f"wrote   {path}  ({args.frames} frames {int(width)}x{int(height)}, {time.perf_counter() - started:.1f} s)")
     return 0

@@ -66,8 +66,9 @@ def association_scores(det_image: jax.Array, pixel_instances: jax.Array, n_max: 
 
 
 @functools.partial(jax.jit, static_argnames=("metric",))
-def association_score_matrix(intersection: jax.Array, det_area: jax.Array, inst_area: jax.Array,
-                             metric: str = "projection_overlap") -> jax.Array:
+def association_score_matrix(
+    intersection: jax.Array, det_area: jax.Array, inst_area: jax.Array, metric: str = "projection_overlap"
+) -> jax.Array:
     """`(N, K)` float32 association scores in [0, 1] (0 where the denominator is 0).
 
     metric (static):
@@ -86,8 +87,9 @@ def association_score_matrix(intersection: jax.Array, det_area: jax.Array, inst_
 
 
 @functools.partial(jax.jit, static_argnames=("one_to_one",))
-def match_detections(scores: jax.Array, valid_det: jax.Array, valid_inst: jax.Array, threshold: float,
-                     one_to_one: bool = True) -> jax.Array:
+def match_detections(
+    scores: jax.Array, valid_det: jax.Array, valid_inst: jax.Array, threshold: float, one_to_one: bool = True
+) -> jax.Array:
     """Matches detections to instances: `(N,)` int32 instance index or -1.
 
     A pair is a candidate when both are valid and its score is strictly above `threshold` (the paper:
@@ -167,8 +169,9 @@ def allocate_instances(valid: jax.Array, needs_new: jax.Array) -> Allocation:
     slot = jnp.searchsorted(cum_free, need_rank + 1, side="left").astype(jnp.int32)
     ok = needs_new & (need_rank < n_free)
     new_valid = valid | (free & (cum_free <= n_need))
-    return Allocation(instance_for_detection=jnp.where(ok, slot, -1), new_valid=new_valid,
-                      overflow=jnp.maximum(n_need - n_free, 0))
+    return Allocation(
+        instance_for_detection=jnp.where(ok, slot, -1), new_valid=new_valid, overflow=jnp.maximum(n_need - n_free, 0)
+    )
 
 
 class Assignment(NamedTuple):
@@ -196,8 +199,13 @@ def assign_detections(matched: jax.Array, valid_det: jax.Array, valid: jax.Array
     needs_new = valid_det & (matched < 0)
     alloc = allocate_instances(valid, needs_new)
     inst = jnp.where(valid_det & (matched >= 0), matched, alloc.instance_for_detection)
-    return Assignment(instance_for_detection=inst, is_new=needs_new & (alloc.instance_for_detection >= 0),
-                      created=alloc.new_valid & ~valid, new_valid=alloc.new_valid, overflow=alloc.overflow)
+    return Assignment(
+        instance_for_detection=inst,
+        is_new=needs_new & (alloc.instance_for_detection >= 0),
+        created=alloc.new_valid & ~valid,
+        new_valid=alloc.new_valid,
+        overflow=alloc.overflow,
+    )
 
 
 @jax.jit

@@ -37,8 +37,9 @@ class DetectionBatch(NamedTuple):
     valid: np.ndarray
 
 
-def select_detections(frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int,
-                      min_mask_pixels: int) -> tuple[np.ndarray, int]:
+def select_detections(
+    frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int, min_mask_pixels: int
+) -> tuple[np.ndarray, int]:
     """Which detections `pack_detections` keeps: `(sorted indices, number usable)`.
 
     Usable: a mask of at least `min_mask_pixels` pixels and a score on some label of `open_labels`.
@@ -58,8 +59,9 @@ def select_detections(frame_detections: FrameDetections, open_labels: Sequence[s
     return keep, usable
 
 
-def pack_detections(frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int,
-                    min_mask_pixels: int) -> DetectionBatch:
+def pack_detections(
+    frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int, min_mask_pixels: int
+) -> DetectionBatch:
     """Pads a frame's detections into a `DetectionBatch` of capacity `max_detections` (host side).
 
     Dropped: masks with fewer than `min_mask_pixels` pixels (full resolution; the reference uses 1000
@@ -81,7 +83,9 @@ def pack_detections(frame_detections: FrameDetections, open_labels: Sequence[str
         warnings.warn(
             f"{frame_detections.frame_name}: {usable} detections, capacity {max_detections}; "
             f"keeping the {max_detections} highest-scoring (raise detections.max_detections to keep all)",
-            RuntimeWarning, stacklevel=2)
+            RuntimeWarning,
+            stacklevel=2,
+        )
     n = keep.size
     masks[:n] = np.asarray(frame_detections.masks, bool)[keep]
     scores[:n] = frame_detections.label_score_matrix(open_labels)[keep]
@@ -129,8 +133,16 @@ def depth_bin_count(depth_max: float, bin_size: float) -> int:
 
 
 @functools.partial(jax.jit, static_argnames=("n_max", "bin_size", "depth_max"))
-def filter_detection_depth(det_image: jax.Array, depth_s: jax.Array, n_max: int, lo: float = 0.1,
-                           hi: float = 0.9, *, bin_size: float = 0.01, depth_max: float = 4.0) -> jax.Array:
+def filter_detection_depth(
+    det_image: jax.Array,
+    depth_s: jax.Array,
+    n_max: int,
+    lo: float = 0.1,
+    hi: float = 0.9,
+    *,
+    bin_size: float = 0.01,
+    depth_max: float = 4.0,
+) -> jax.Array:
     """Drops each detection's pixels whose depth is outside that detection's [lo, hi] percentiles.
 
     Args:
@@ -158,8 +170,9 @@ def filter_detection_depth(det_image: jax.Array, depth_s: jax.Array, n_max: int,
     bins = jnp.clip(jnp.floor(depth_s / bin_size).astype(jnp.int32), 0, num_bins - 1)
     use = (det_image >= 0) & has_depth
     seg = jnp.where(use, det_image * num_bins + bins, n_max * num_bins)
-    hist = jax.ops.segment_sum(jnp.ones(seg.size, jnp.int32), seg.reshape(-1),
-                               num_segments=n_max * num_bins + 1)[:-1].reshape(n_max, num_bins)
+    hist = jax.ops.segment_sum(jnp.ones(seg.size, jnp.int32), seg.reshape(-1), num_segments=n_max * num_bins + 1)[:-1].reshape(
+        n_max, num_bins
+    )
     cdf = jnp.cumsum(hist, axis=1)
     count = cdf[:, -1]
     last = jnp.maximum(count - 1, 0).astype(jnp.float32)

@@ -138,9 +138,7 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
             continue
         volume = np.where(corners, tsdf, 1.0)
         try:
-            v, f, _, _ = marching_cubes(
-                volume, level=0.0, mask=mask, gradient_direction="descent", allow_degenerate=False
-            )
+            v, f, _, _ = marching_cubes(volume, level=0.0, mask=mask, gradient_direction="descent", allow_degenerate=False)
         except (RuntimeError, ValueError):  # no crossing inside the usable cubes
             continue
         if len(f) == 0:
@@ -194,9 +192,7 @@ def extract_surface_points(state, config: MapConfig, min_weight: float = 1.0, ch
             colors.append(c0 * (1 - frac[:, None]) + c1 * frac[:, None])
     if not points:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-    return _voxel_to_world(np.concatenate(points), config), np.clip(np.round(np.concatenate(colors)), 0, 255).astype(
-        np.uint8
-    )
+    return _voxel_to_world(np.concatenate(points), config), np.clip(np.round(np.concatenate(colors)), 0, 255).astype(np.uint8)
 
 
 def extract_instance_points(

@@ -29,8 +29,10 @@ def block_offset(old: MapConfig, new: MapConfig) -> np.ndarray:
     if np.any(np.abs(shift - offset) > 1e-6):
         raise ValueError(f"grid origins {old.grid_origin} and {new.grid_origin} are not whole blocks apart")
     if np.any(offset < 0) or np.any(offset + np.asarray(old.grid_shape) > np.asarray(new.grid_shape)):
-        raise ValueError(f"the new block index {new.grid_shape} at {new.grid_origin} does not cover the old "
-                         f"{old.grid_shape} at {old.grid_origin}")
+        raise ValueError(
+            f"the new block index {new.grid_shape} at {new.grid_origin} does not cover the old "
+            f"{old.grid_shape} at {old.grid_origin}"
+        )
     return offset
 
 
@@ -60,18 +62,36 @@ def grow_state(state: MapState, old: MapConfig, new: MapConfig) -> MapState:
 
     sx, sy, sz = old.grid_shape
     ox, oy, oz = (int(x) for x in offset)
-    index = fresh.block_index.at[ox:ox + sx, oy:oy + sy, oz:oz + sz].set(blocks.block_index)
+    index = fresh.block_index.at[ox : ox + sx, oy : oy + sy, oz : oz + sz].set(blocks.block_index)
     coords = jnp.where(allocated[:, None], blocks.block_coords + jnp.asarray(offset, jnp.int32), -1)
     grown_blocks = fresh._replace(
-        block_index=index, block_coords=fresh.block_coords.at[:b_old].set(coords), num_blocks=blocks.num_blocks,
-        tsdf=pool("tsdf"), weight=pool("weight"), color=pool("color"), instance_id=pool("instance_id"),
-        instance_weight=pool("instance_weight"), dropped_blocks=blocks.dropped_blocks,
-        out_of_bounds=blocks.out_of_bounds, touched_overflow=blocks.touched_overflow)
+        block_index=index,
+        block_coords=fresh.block_coords.at[:b_old].set(coords),
+        num_blocks=blocks.num_blocks,
+        tsdf=pool("tsdf"),
+        weight=pool("weight"),
+        color=pool("color"),
+        instance_id=pool("instance_id"),
+        instance_weight=pool("instance_weight"),
+        dropped_blocks=blocks.dropped_blocks,
+        out_of_bounds=blocks.out_of_bounds,
+        touched_overflow=blocks.touched_overflow,
+    )
 
     empty = init_instance_table(new)
-    rows = {name: getattr(empty, name).at[:k_old].set(getattr(table, name))
-            for name in ("valid", "label_evidence", "open_label_histogram", "observations", "missed", "voxel_count",
-                         "created_frame", "last_seen_frame")}
+    rows = {
+        name: getattr(empty, name).at[:k_old].set(getattr(table, name))
+        for name in (
+            "valid",
+            "label_evidence",
+            "open_label_histogram",
+            "observations",
+            "missed",
+            "voxel_count",
+            "created_frame",
+            "last_seen_frame",
+        )
+    }
     pairs = {name: getattr(empty, name).at[:k_old, :k_old].set(getattr(table, name)) for name in ("covered", "separated")}
     grown_table = empty._replace(**rows, **pairs, overflow=table.overflow)
     return MapState(grown_blocks, grown_table, state.frame_index)
@@ -86,8 +106,9 @@ def bounds_block_range(config: MapConfig) -> tuple[np.ndarray, np.ndarray]:
 def config_for_block_range(config: MapConfig, lo: np.ndarray, hi: np.ndarray) -> MapConfig:
     """`config` with its index covering world-lattice blocks `[lo, hi)` (ints, hi exclusive)."""
     lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
-    return dataclasses.replace(config, grid_origin=tuple((lo * config.block_length).tolist()),
-                               grid_shape=tuple(np.maximum(hi - lo, 1).tolist()))
+    return dataclasses.replace(
+        config, grid_origin=tuple((lo * config.block_length).tolist()), grid_shape=tuple(np.maximum(hi - lo, 1).tolist())
+    )
 
 
 __all__ = ["GROWABLE_FIELDS", "block_offset", "grow_state", "bounds_block_range", "config_for_block_range"]

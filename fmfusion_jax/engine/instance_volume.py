@@ -157,8 +157,9 @@ def pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, conf
     return _pixel_instances(blocks, depth, T_world_camera, intrinsics, config)
 
 
-def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig, detected=None,
-                         neutral=None, contrary_weight: float = 0.0) -> VoxelBlocks:
+def _apply_instance_hits(
+    blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig, detected=None, neutral=None, contrary_weight: float = 0.0
+) -> VoxelBlocks:
     num_blocks, v_per_block, num_slots = blocks.instance_id.shape
     n_entries = num_blocks * v_per_block * num_slots
     slot = jnp.asarray(slot, jnp.int32).reshape(-1)
@@ -227,8 +228,9 @@ def _apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: Map
 
 
 @functools.partial(jax.jit, static_argnames=("config", "contrary_weight"))
-def apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig, detected=None, neutral=None,
-                        contrary_weight: float = 0.0) -> VoxelBlocks:
+def apply_instance_hits(
+    blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig, detected=None, neutral=None, contrary_weight: float = 0.0
+) -> VoxelBlocks:
     """Apply one frame's instance votes given explicit voxel addresses (the core of `integrate_instances`).
 
     Args:
@@ -248,8 +250,17 @@ def apply_instance_hits(blocks: VoxelBlocks, slot, voxel, instance, config: MapC
     return _apply_instance_hits(blocks, slot, voxel, instance, config, detected, neutral, contrary_weight)
 
 
-def _integrate_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig,
-                         detected=None, neutral=None, contrary_weight: float = 0.0):
+def _integrate_instances(
+    blocks: VoxelBlocks,
+    depth,
+    T_world_camera,
+    intrinsics,
+    pixel_instance,
+    config: MapConfig,
+    detected=None,
+    neutral=None,
+    contrary_weight: float = 0.0,
+):
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     depth = jnp.asarray(depth, jnp.float32)
     pixel_instance = jnp.asarray(pixel_instance, jnp.int32)
@@ -257,14 +268,20 @@ def _integrate_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
         raise ValueError(f"pixel_instance has shape {pixel_instance.shape}, expected {config.subsampled_shape}")
     ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, 0.0)
     slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
-    return _apply_instance_hits(blocks, jnp.where(ok, slot, -1), v, pixel_instance, config, detected, neutral,
-                                contrary_weight)
+    return _apply_instance_hits(blocks, jnp.where(ok, slot, -1), v, pixel_instance, config, detected, neutral, contrary_weight)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "contrary_weight"))
 def integrate_instances(
-    blocks: VoxelBlocks, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig, detected=None,
-    neutral=None, contrary_weight: float = 0.0,
+    blocks: VoxelBlocks,
+    depth,
+    T_world_camera,
+    intrinsics,
+    pixel_instance,
+    config: MapConfig,
+    detected=None,
+    neutral=None,
+    contrary_weight: float = 0.0,
 ) -> VoxelBlocks:
     """Vote each subsampled pixel's instance into its surface voxel.
 
@@ -284,8 +301,9 @@ def integrate_instances(
       The pool after the slot update rule of the module docstring (scatters of `Hs * Ws` updates, 1 + 3S of them
       with contrary votes).
     """
-    return _integrate_instances(blocks, depth, T_world_camera, intrinsics, pixel_instance, config, detected,
-                                neutral, contrary_weight)
+    return _integrate_instances(
+        blocks, depth, T_world_camera, intrinsics, pixel_instance, config, detected, neutral, contrary_weight
+    )
 
 
 __all__ = ["pixel_instances", "integrate_instances", "apply_instance_hits"]

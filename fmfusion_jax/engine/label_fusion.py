@@ -55,8 +55,9 @@ def measurement_likelihood(label_scores: jax.Array, likelihood: jax.Array) -> ja
 
 
 @functools.partial(jax.jit, static_argnames=("score_weighted",))
-def measurement_log_likelihood(label_scores: jax.Array, likelihood: jax.Array, eps: float = DEFAULT_BAYES_EPS,
-                               score_weighted: bool = False) -> jax.Array:
+def measurement_log_likelihood(
+    label_scores: jax.Array, likelihood: jax.Array, eps: float = DEFAULT_BAYES_EPS, score_weighted: bool = False
+) -> jax.Array:
     """`(N, C)` log p(z_n | c) of eq. 4 up to a class-independent constant (see the module docstring).
 
     `sum_{i: s_i > 0} log max(L[i, c], eps)`, or `sum_i s_i log max(L[i, c], eps)` when
@@ -83,8 +84,13 @@ def _accumulate(evidence, instance_for_detection, values, valid, reset):
 
 
 @jax.jit
-def fuse_additive(evidence: jax.Array, instance_for_detection: jax.Array, measurement: jax.Array,
-                  valid: jax.Array, reset: jax.Array | None = None) -> jax.Array:
+def fuse_additive(
+    evidence: jax.Array,
+    instance_for_detection: jax.Array,
+    measurement: jax.Array,
+    valid: jax.Array,
+    reset: jax.Array | None = None,
+) -> jax.Array:
     """The paper's weighted additive update for all detections at once: `(K, C)` new evidence.
 
     Args:
@@ -98,8 +104,13 @@ def fuse_additive(evidence: jax.Array, instance_for_detection: jax.Array, measur
 
 
 @jax.jit
-def fuse_bayes(evidence: jax.Array, instance_for_detection: jax.Array, log_measurement: jax.Array,
-               valid: jax.Array, reset: jax.Array | None = None) -> jax.Array:
+def fuse_bayes(
+    evidence: jax.Array,
+    instance_for_detection: jax.Array,
+    log_measurement: jax.Array,
+    valid: jax.Array,
+    reset: jax.Array | None = None,
+) -> jax.Array:
     """The multiplicative Bayes update (eqs. 3-4) in log space: `(K, C)` new evidence (row max 0).
 
     Args:
@@ -112,16 +123,24 @@ def fuse_bayes(evidence: jax.Array, instance_for_detection: jax.Array, log_measu
 
 
 @functools.partial(jax.jit, static_argnames=("mode", "score_weighted"))
-def fuse_labels(evidence: jax.Array, instance_for_detection: jax.Array, label_scores: jax.Array,
-                likelihood: jax.Array, valid: jax.Array, mode: str = "additive", reset: jax.Array | None = None,
-                eps: float = DEFAULT_BAYES_EPS, score_weighted: bool = False) -> jax.Array:
+def fuse_labels(
+    evidence: jax.Array,
+    instance_for_detection: jax.Array,
+    label_scores: jax.Array,
+    likelihood: jax.Array,
+    valid: jax.Array,
+    mode: str = "additive",
+    reset: jax.Array | None = None,
+    eps: float = DEFAULT_BAYES_EPS,
+    score_weighted: bool = False,
+) -> jax.Array:
     """Measurement and update in one call for the static `mode` ("additive" | "bayes")."""
     _check_mode(mode)
     if mode == "additive":
-        return fuse_additive(evidence, instance_for_detection, measurement_likelihood(label_scores, likelihood),
-                             valid, reset)
-    return fuse_bayes(evidence, instance_for_detection,
-                      measurement_log_likelihood(label_scores, likelihood, eps, score_weighted), valid, reset)
+        return fuse_additive(evidence, instance_for_detection, measurement_likelihood(label_scores, likelihood), valid, reset)
+    return fuse_bayes(
+        evidence, instance_for_detection, measurement_log_likelihood(label_scores, likelihood, eps, score_weighted), valid, reset
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("mode",))
@@ -157,9 +176,14 @@ def confidence(dist: jax.Array) -> jax.Array:
 
 
 @jax.jit
-def update_label_statistics(open_label_histogram: jax.Array, observations: jax.Array,
-                            instance_for_detection: jax.Array, label_scores: jax.Array, valid: jax.Array,
-                            reset: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+def update_label_statistics(
+    open_label_histogram: jax.Array,
+    observations: jax.Array,
+    instance_for_detection: jax.Array,
+    label_scores: jax.Array,
+    valid: jax.Array,
+    reset: jax.Array | None = None,
+) -> tuple[jax.Array, jax.Array]:
     """Adds each fused detection's open-set scores to its instance's histogram and counts it.
 
     Args:

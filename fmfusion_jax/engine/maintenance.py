@@ -15,8 +15,7 @@ import jax.numpy as jnp
 
 
 @functools.partial(jax.jit, static_argnames=("stride",))
-def instances_in_view(inst_area: jax.Array, valid: jax.Array, stride: int,
-                      min_projected_pixels: float = 800.0) -> jax.Array:
+def instances_in_view(inst_area: jax.Array, valid: jax.Array, stride: int, min_projected_pixels: float = 800.0) -> jax.Array:
     """`(K,)` bool: valid instances whose projection in this frame covers more than `min_projected_pixels`.
 
     `inst_area` (from `association_scores`) counts subsampled pixels, each standing for `stride**2`
@@ -51,8 +50,9 @@ def mark_seen(last_seen_frame: jax.Array, matched: jax.Array, frame: jax.Array |
 
 
 @jax.jit
-def instances_to_remove(missed: jax.Array, voxel_count: jax.Array, valid: jax.Array, max_missed: int = 5,
-                        min_voxels: int = 500) -> jax.Array:
+def instances_to_remove(
+    missed: jax.Array, voxel_count: jax.Array, valid: jax.Array, max_missed: int = 5, min_voxels: int = 500
+) -> jax.Array:
     """`(K,)` bool: valid instances missed at least `max_missed` times that have fewer than `min_voxels`.
 
     Reference values: ScanNet 5 and 500, SceneNN 8 and 2000.
@@ -97,10 +97,14 @@ def _clear(rows: TableRows, mask: jax.Array, frame_value) -> TableRows:
         return jnp.where(m, jnp.zeros_like(x), x)
 
     return rows._replace(
-        label_evidence=z(rows.label_evidence), open_label_histogram=z(rows.open_label_histogram),
-        observations=z(rows.observations), missed=z(rows.missed), voxel_count=z(rows.voxel_count),
+        label_evidence=z(rows.label_evidence),
+        open_label_histogram=z(rows.open_label_histogram),
+        observations=z(rows.observations),
+        missed=z(rows.missed),
+        voxel_count=z(rows.voxel_count),
         created_frame=jnp.where(mask, jnp.asarray(frame_value, rows.created_frame.dtype), rows.created_frame),
-        last_seen_frame=jnp.where(mask, jnp.asarray(frame_value, rows.last_seen_frame.dtype), rows.last_seen_frame))
+        last_seen_frame=jnp.where(mask, jnp.asarray(frame_value, rows.last_seen_frame.dtype), rows.last_seen_frame),
+    )
 
 
 @jax.jit

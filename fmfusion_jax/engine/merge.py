@@ -44,8 +44,14 @@ def _pair_mask(valid: jax.Array) -> jax.Array:
 
 
 @jax.jit
-def merge_pairs(similarity: jax.Array, overlap: jax.Array, voxel_count: jax.Array, valid: jax.Array,
-                sim_threshold: float = 0.15, overlap_ratio: float = 0.4) -> jax.Array:
+def merge_pairs(
+    similarity: jax.Array,
+    overlap: jax.Array,
+    voxel_count: jax.Array,
+    valid: jax.Array,
+    sim_threshold: float = 0.15,
+    overlap_ratio: float = 0.4,
+) -> jax.Array:
     """`(K, K)` symmetric bool: pairs the online merge test joins (diagonal False).
 
     For a pair, `a` is the larger instance by voxel count (ties: lower index) and `b` the smaller; the
@@ -63,8 +69,14 @@ def merge_pairs(similarity: jax.Array, overlap: jax.Array, voxel_count: jax.Arra
 
 
 @jax.jit
-def post_merge_pairs(similarity: jax.Array, overlap: jax.Array, voxel_count: jax.Array, valid: jax.Array,
-                     sim_threshold: float = 0.1, iou_threshold: float = 0.2) -> jax.Array:
+def post_merge_pairs(
+    similarity: jax.Array,
+    overlap: jax.Array,
+    voxel_count: jax.Array,
+    valid: jax.Array,
+    sim_threshold: float = 0.1,
+    iou_threshold: float = 0.2,
+) -> jax.Array:
     """`(K, K)` symmetric bool: the post-processing merge test (3D IoU > 0.2 and sigma > 0.1).
 
     `overlap` here is the plain (not inflated) voxel overlap, `overlap[a, b]` read with `a` the larger
@@ -207,8 +219,7 @@ def merge_instance_table(rows: TableRows, representative: jax.Array, mode: str =
 
     def combine(x, op, cleared=0):
         expand = (slice(None),) + (None,) * (x.ndim - 1)
-        return jnp.where(is_rep[expand], fold(x, op),
-                         jnp.where(merged_away[expand], jnp.full_like(x, cleared), x))
+        return jnp.where(is_rep[expand], fold(x, op), jnp.where(merged_away[expand], jnp.full_like(x, cleared), x))
 
     evidence = combine(rows.label_evidence, jax.ops.segment_sum)
     if mode == "bayes":

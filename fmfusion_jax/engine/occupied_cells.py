@@ -89,8 +89,7 @@ def _gather_cells(rows: jax.Array, index: jax.Array, ok: jax.Array, fill) -> jax
     return jnp.where(ok[:, None], got, jnp.asarray(fill, rows.dtype))
 
 
-def _fold_occupied(ids_of, num_blocks, config: MapConfig, cell_step, flagged_step, carry, capacity=None,
-                   record: int = 0):
+def _fold_occupied(ids_of, num_blocks, config: MapConfig, cell_step, flagged_step, carry, capacity=None, record: int = 0):
     """Runs over the occupied cells (any instance slot set) of the allocated blocks, in pool order.
 
     Args:
@@ -141,14 +140,15 @@ def _fold_occupied(ids_of, num_blocks, config: MapConfig, cell_step, flagged_ste
         occupied = jnp.any(ids.reshape(chunk, cells_per_block, 8 * num_slots) >= 0, axis=-1) & fresh[:, None]
         occupied_list, found = _compact(occupied_list, 0, occupied, start * cells_per_block + local)
         visit = found if capacity is None else jnp.clip(capacity - seen, 0, found)
-        carry, flagged_list, flagged, tags = inner(occupied_list, visit, first_step,
-                                                   (carry, flagged_list, jnp.int32(0), tags))
+        carry, flagged_list, flagged, tags = inner(occupied_list, visit, first_step, (carry, flagged_list, jnp.int32(0), tags))
         if flagged_step is not None:
             carry = inner(flagged_list, flagged, lambda i, ok, c, s: flagged_step(i, ok, c), carry, flagged_sub)
         if record:  # past `record` the lists are invalid anyway: the writes may then land anywhere
             at = jnp.minimum(seen, record)
-            listed = (jax.lax.dynamic_update_slice_in_dim(listed[0], occupied_list, at, 0),
-                      jax.lax.dynamic_update_slice_in_dim(listed[1], tags, at, 0))
+            listed = (
+                jax.lax.dynamic_update_slice_in_dim(listed[0], occupied_list, at, 0),
+                jax.lax.dynamic_update_slice_in_dim(listed[1], tags, at, 0),
+            )
         return occupied_list, flagged_list, tags, seen + found, carry, listed
 
     empty = jnp.full((span,), -1, jnp.int32)
@@ -172,8 +172,9 @@ def _fold_listed(cells, tags, count, config: MapConfig, flag_of, flagged_step, c
         flag = fresh & (index >= 0) & flag_of(jax.lax.dynamic_slice_in_dim(tags, start, sub))
         return _compact(flagged_list, flagged, flag, index)
 
-    flagged_list, flagged = geo.fold_chunks(count, sub, cells.shape[0], pick,
-                                            (jnp.full(cells.shape, -1, jnp.int32), jnp.int32(0)))
+    flagged_list, flagged = geo.fold_chunks(
+        count, sub, cells.shape[0], pick, (jnp.full(cells.shape, -1, jnp.int32), jnp.int32(0))
+    )
 
     def step(start, fresh, carry):
         return flagged_step(jax.lax.dynamic_slice_in_dim(flagged_list, start, flagged_sub), fresh, carry)
@@ -371,13 +372,25 @@ def census(blocks: VoxelBlocks, config: MapConfig, overlap=None, keep=None, list
         return simple_counts, crowded_counts, pairs, overfull
 
     zero = jnp.zeros((), jnp.int32)
-    init = (jnp.zeros((k + 1,), jnp.int32), jnp.zeros((k + 1,), jnp.int32),
-            jnp.zeros((sentinel + 1 if with_pairs else 1,), jnp.int32), zero)
+    init = (
+        jnp.zeros((k + 1,), jnp.int32),
+        jnp.zeros((k + 1,), jnp.int32),
+        jnp.zeros((sentinel + 1 if with_pairs else 1,), jnp.int32),
+        zero,
+    )
     cap = config.cell_capacity
     full = cap >= pool_blocks * cells_per_block
     record = config.cell_list_capacity if list_cells else 0
-    folded = _fold_occupied(lambda carry: blocks.instance_id, blocks.num_blocks, config, cell_step, crowded_step,
-                            init, capacity=None if full else cap, record=record)
+    folded = _fold_occupied(
+        lambda carry: blocks.instance_id,
+        blocks.num_blocks,
+        config,
+        cell_step,
+        crowded_step,
+        init,
+        capacity=None if full else cap,
+        record=record,
+    )
     (simple_counts, crowded_counts, pairs, overfull), occupied, listed = folded
     if not record:
         listed = (jnp.zeros((0,), jnp.int32), jnp.zeros((0,), jnp.int32))
@@ -386,9 +399,15 @@ def census(blocks: VoxelBlocks, config: MapConfig, overlap=None, keep=None, list
         matrix = matrix.at[jnp.arange(k), jnp.arange(k)].add(simple_counts[:k])
     else:
         matrix = jnp.zeros((0, 0), jnp.int32)
-    return Census(counts=(simple_counts + crowded_counts)[:k], overlap=matrix, occupied=occupied,
-                   overfull=overfull, dropped_cells=jnp.maximum(occupied - cap, 0), cells=listed[0],
-                   tags=listed[1])
+    return Census(
+        counts=(simple_counts + crowded_counts)[:k],
+        overlap=matrix,
+        occupied=occupied,
+        overfull=overfull,
+        dropped_cells=jnp.maximum(occupied - cap, 0),
+        cells=listed[0],
+        tags=listed[1],
+    )
 
 
 def _instance_voxel_counts(blocks: VoxelBlocks, config: MapConfig) -> InstanceCounts:
@@ -492,8 +511,7 @@ def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, ac
         carry = _fold_listed(cells, tags, jnp.where(active & valid, count, 0), config, flag_of, flagged_step, carry)
         scan = active & ~valid
     num_blocks = jnp.where(scan, blocks.num_blocks, 0)
-    (ids, weights, extra), _, _ = _fold_occupied(lambda carry: carry[0], num_blocks, config, cell_step,
-                                                 flagged_step, carry)
+    (ids, weights, extra), _, _ = _fold_occupied(lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry)
     return blocks._replace(instance_id=ids, instance_weight=weights), extra
 
 

@@ -32,8 +32,11 @@ SCRATCH_SUFFIX = "@scratch"
 
 
 def _keys() -> list[str]:
-    return ([f"blocks.{name}" for name in VoxelBlocks._fields] + [f"instances.{name}" for name in InstanceTable._fields]
-            + ["frame_index"])
+    return (
+        [f"blocks.{name}" for name in VoxelBlocks._fields]
+        + [f"instances.{name}" for name in InstanceTable._fields]
+        + ["frame_index"]
+    )
 
 
 def _leaf(state: MapState, key: str):
@@ -49,9 +52,14 @@ def _layout_of(state: MapState) -> MapConfig:
     blocks, table = state.blocks, state.instances
     voxels, slots = blocks.instance_id.shape[1:]
     block_size = round(voxels ** (1 / 3))
-    return MapConfig(block_size=block_size, instance_slots=int(slots), block_capacity=int(blocks.tsdf.shape[0]),
-                     instance_capacity=int(table.valid.shape[0]), num_classes=int(table.label_evidence.shape[1]),
-                     num_open_labels=int(table.open_label_histogram.shape[1]))
+    return MapConfig(
+        block_size=block_size,
+        instance_slots=int(slots),
+        block_capacity=int(blocks.tsdf.shape[0]),
+        instance_capacity=int(table.valid.shape[0]),
+        num_classes=int(table.label_evidence.shape[1]),
+        num_open_labels=int(table.open_label_histogram.shape[1]),
+    )
 
 
 @functools.lru_cache(maxsize=16)
@@ -64,8 +72,9 @@ def _initial_rows(config: MapConfig) -> dict[str, np.ndarray]:
     return rows
 
 
-def state_to_arrays(state: MapState, map_config: MapConfig | None = None,
-                    check_unallocated: bool = True) -> dict[str, np.ndarray]:
+def state_to_arrays(
+    state: MapState, map_config: MapConfig | None = None, check_unallocated: bool = True
+) -> dict[str, np.ndarray]:
     """The state as host arrays: the pool's allocated rows and scratch row, every other array whole.
 
     Args:
@@ -90,12 +99,12 @@ def state_to_arrays(state: MapState, map_config: MapConfig | None = None,
         if key.startswith("blocks.") and name in POOL_FIELDS:
             if value.shape[0] != capacity:
                 raise ValueError(f"{key} has {value.shape[0]} slots, the config says {capacity}")
-            unallocated = value[n:capacity - 1]
+            unallocated = value[n : capacity - 1]
             if check_unallocated and not np.array_equal(unallocated, np.broadcast_to(initial[name], unallocated.shape)):
                 arrays[key] = value.copy()  # the invariant does not hold here: keep every slot
                 continue
             arrays[key] = value[:n].copy()
-            arrays[key + SCRATCH_SUFFIX] = value[capacity - 1:].copy()
+            arrays[key + SCRATCH_SUFFIX] = value[capacity - 1 :].copy()
         else:
             arrays[key] = value.copy()
     return arrays
@@ -132,24 +141,29 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
         if key.startswith("blocks.") and name in POOL_FIELDS and key + SCRATCH_SUFFIX in arrays:
             scratch = np.asarray(arrays[key + SCRATCH_SUFFIX])
             if value.shape[0] != n or scratch.shape[0] != 1:
-                raise ValueError(f"{key}: {value.shape[0]} allocated rows and {scratch.shape[0]} scratch rows, "
-                                 f"expected {n} and 1")
+                raise ValueError(
+                    f"{key}: {value.shape[0]} allocated rows and {scratch.shape[0]} scratch rows, expected {n} and 1"
+                )
             full = np.empty(spec.shape, spec.dtype)
             full[:] = initial[name]
             full[:n] = value
-            full[capacity - 1:] = scratch
+            full[capacity - 1 :] = scratch
             value = full
         if value.shape != spec.shape or value.dtype != spec.dtype:
-            raise ValueError(f"map state array {key} is {value.dtype}{list(value.shape)}, the config needs "
-                             f"{spec.dtype}{list(spec.shape)}")
+            raise ValueError(
+                f"map state array {key} is {value.dtype}{list(value.shape)}, the config needs {spec.dtype}{list(spec.shape)}"
+            )
         leaves[key] = value
     convert = jnp.asarray if device else (lambda x: x)
 
     def group(cls, prefix):
         return cls(**{name: convert(leaves[f"{prefix}.{name}"]) for name in cls._fields})
 
-    return MapState(blocks=group(VoxelBlocks, "blocks"), instances=group(InstanceTable, "instances"),
-                    frame_index=convert(leaves["frame_index"]))
+    return MapState(
+        blocks=group(VoxelBlocks, "blocks"),
+        instances=group(InstanceTable, "instances"),
+        frame_index=convert(leaves["frame_index"]),
+    )
 
 
 __all__ = ["state_to_arrays", "state_from_arrays", "POOL_FIELDS", "SCRATCH_SUFFIX"]

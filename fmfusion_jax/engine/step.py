@@ -94,14 +94,14 @@ class RefineStats(NamedTuple):
 @functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
 def integrate_frame(state: MapState, frame: FrameInputs, config: MapConfig) -> MapState:
     """Integrates one frame into the global TSDF (no detections)."""
-    blocks = integrate_tsdf(state.blocks, frame.depth, frame.color, frame.T_world_camera, frame.intrinsics,
-                            config)
+    blocks = integrate_tsdf(state.blocks, frame.depth, frame.color, frame.T_world_camera, frame.intrinsics, config)
     return state._replace(blocks=blocks, frame_index=frame.frame_index)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
-def fuse_detections(state: MapState, frame: FrameInputs, batch: DetectionBatch, likelihood: jax.Array,
-                    config: MapConfig, fusion: FusionConfig) -> tuple[MapState, FrameStats]:
+def fuse_detections(
+    state: MapState, frame: FrameInputs, batch: DetectionBatch, likelihood: jax.Array, config: MapConfig, fusion: FusionConfig
+) -> tuple[MapState, FrameStats]:
     """One detection frame: TSDF, projection, association, instance integration and label fusion.
 
     The composition of the stage functions below (which `fmfusion_jax.bench` also jits one by one to
@@ -117,10 +117,8 @@ def fuse_detections(state: MapState, frame: FrameInputs, batch: DetectionBatch, 
     det_image = detection_image(frame, batch, config, fusion)
     seen = project_instances(state.blocks, frame, config)
     matches = associate(det_image, seen, batch.valid, state.instances.valid, config, fusion)
-    table, update = fuse_table(state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config,
-                               fusion)
-    blocks = integrate_instance_votes(state.blocks, frame, det_image, matches.assignment.instance_for_detection,
-                                      config, fusion)
+    table, update = fuse_table(state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config, fusion)
+    blocks = integrate_instance_votes(state.blocks, frame, det_image, matches.assignment.instance_for_detection, config, fusion)
     return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
 
 
@@ -138,8 +136,14 @@ def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig
     removed pixels are `FILTERED_PIXEL`."""
     stride = config.pixel_stride
     raw = detections.detection_pixel_image(batch.masks, batch.valid, stride)
-    kept = detections.filter_detection_depth(raw, frame.depth[::stride, ::stride], batch.valid.shape[0],
-                                             fusion.depth_low, fusion.depth_high, depth_max=config.depth_max)
+    kept = detections.filter_detection_depth(
+        raw,
+        frame.depth[::stride, ::stride],
+        batch.valid.shape[0],
+        fusion.depth_low,
+        fusion.depth_high,
+        depth_max=config.depth_max,
+    )
     return jnp.where((raw >= 0) & (kept < 0), FILTERED_PIXEL, kept)
 
 
@@ -156,14 +160,21 @@ class Matches(NamedTuple):
     assignment: association.Assignment  # row of each detection (matched or new), the new valid rows
 
 
-def associate(det_image: jax.Array, seen: jax.Array, det_valid: jax.Array | np.ndarray, inst_valid: jax.Array,
-              config: MapConfig, fusion: FusionConfig) -> Matches:
+def associate(
+    det_image: jax.Array,
+    seen: jax.Array,
+    det_valid: jax.Array | np.ndarray,
+    inst_valid: jax.Array,
+    config: MapConfig,
+    fusion: FusionConfig,
+) -> Matches:
     """Projection-overlap association of the detections (`det_valid bool[N]`) with the live rows
     (`inst_valid bool[K]`), and new rows for the unmatched ones."""
     counts = association.association_scores(det_image, seen, det_valid.shape[0], config.instance_capacity)
     valid_det = det_valid & (counts.det_area > 0)  # a mask may lose all its pixels to the depth filter
-    scores = association.association_score_matrix(counts.intersection, counts.det_area, counts.inst_area,
-                                                   fusion.association_metric)
+    scores = association.association_score_matrix(
+        counts.intersection, counts.det_area, counts.inst_area, fusion.association_metric
+    )
     matched = association.match_detections(scores, valid_det, inst_valid, fusion.association_threshold)
     return Matches(counts, valid_det, association.assign_detections(matched, valid_det, inst_valid))
 
@@ -175,9 +186,15 @@ class TableUpdate(NamedTuple):
     in_view: jax.Array  # bool[K]: live rows (before this frame) in view
 
 
-def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array | np.ndarray, likelihood: jax.Array,
-               frame_index: jax.Array, config: MapConfig,
-               fusion: FusionConfig) -> tuple[InstanceTable, TableUpdate]:
+def fuse_table(
+    table: InstanceTable,
+    matches: Matches,
+    label_scores: jax.Array | np.ndarray,
+    likelihood: jax.Array,
+    frame_index: jax.Array,
+    config: MapConfig,
+    fusion: FusionConfig,
+) -> tuple[InstanceTable, TableUpdate]:
     """The instance table after the frame: new rows, label fusion (`label_scores float32[N, O]`),
     label statistics and missed counts."""
     assignment, k = matches.assignment, config.instance_capacity
@@ -185,23 +202,25 @@ def fuse_table(table: InstanceTable, matches: Matches, label_scores: jax.Array |
     rows = maintenance.TableRows.of(table)
     rows = maintenance.reset_rows(rows._replace(valid=assignment.new_valid), assignment.created, frame_index)
     fused_ok = matches.valid_det & (inst_for_det >= 0)
-    evidence = label_fusion.fuse_labels(rows.label_evidence, inst_for_det, label_scores, likelihood,
-                                        fused_ok, fusion.label_mode)
+    evidence = label_fusion.fuse_labels(rows.label_evidence, inst_for_det, label_scores, likelihood, fused_ok, fusion.label_mode)
     histogram, observations = label_fusion.update_label_statistics(
-        rows.open_label_histogram, rows.observations, inst_for_det, label_scores, fused_ok)
+        rows.open_label_histogram, rows.observations, inst_for_det, label_scores, fused_ok
+    )
     was_matched = maintenance.matched_instances(inst_for_det, fused_ok, k)
-    in_view = maintenance.instances_in_view(matches.counts.inst_area, table.valid, config.pixel_stride,
-                                            fusion.min_projected_pixels)
+    in_view = maintenance.instances_in_view(
+        matches.counts.inst_area, table.valid, config.pixel_stride, fusion.min_projected_pixels
+    )
     rows = rows._replace(
-        label_evidence=evidence, open_label_histogram=histogram, observations=observations,
+        label_evidence=evidence,
+        open_label_histogram=histogram,
+        observations=observations,
         missed=maintenance.update_missed(rows.missed, table.valid, in_view, was_matched),
-        last_seen_frame=maintenance.mark_seen(rows.last_seen_frame, was_matched, frame_index))
+        last_seen_frame=maintenance.mark_seen(rows.last_seen_frame, was_matched, frame_index),
+    )
     covered = count_covered(table.covered, matches, fused_ok, in_view & ~was_matched, fusion.association_threshold)
     # the separation counts only serve the cannot-link veto: not kept (and not costed) while it is off
-    separated = count_separated(table.separated, inst_for_det, fused_ok) if fusion.separate_min_frames > 0 \
-        else table.separated
-    table = table._replace(**rows._asdict(), covered=covered, separated=separated,
-                           overflow=table.overflow + assignment.overflow)
+    separated = count_separated(table.separated, inst_for_det, fused_ok) if fusion.separate_min_frames > 0 else table.separated
+    table = table._replace(**rows._asdict(), covered=covered, separated=separated, overflow=table.overflow + assignment.overflow)
     return table, TableUpdate(fused_ok, in_view)
 
 
@@ -217,8 +236,7 @@ def count_separated(separated: jax.Array, instance_for_detection: jax.Array, fus
     return jnp.asarray(separated).at[rows, cols].add(pair.reshape(-1).astype(separated.dtype), mode="drop")
 
 
-def count_covered(covered: jax.Array, matches: Matches, fused: jax.Array, candidates: jax.Array,
-                  threshold: float) -> jax.Array:
+def count_covered(covered: jax.Array, matches: Matches, fused: jax.Array, candidates: jax.Array, threshold: float) -> jax.Array:
     """`covered int32[K, K]` plus this frame: +1 at (a, b) when more than `threshold` of instance b's projection
     lies in the mask of a detection fused into a (`fused bool[N]`), b a `candidate` (`bool[K]`: in view, not
     detected itself) other than a. One row scatter of the N detections."""
@@ -231,17 +249,31 @@ def count_covered(covered: jax.Array, matches: Matches, fused: jax.Array, candid
     return jnp.asarray(covered).at[jnp.where(fused, inst_for_det, k)].add(cover.astype(covered.dtype), mode="drop")
 
 
-def integrate_instance_votes(blocks: VoxelBlocks, frame: FrameInputs, det_image: jax.Array,
-                             instance_for_detection: jax.Array, config: MapConfig, fusion: FusionConfig) -> VoxelBlocks:
+def integrate_instance_votes(
+    blocks: VoxelBlocks,
+    frame: FrameInputs,
+    det_image: jax.Array,
+    instance_for_detection: jax.Array,
+    config: MapConfig,
+    fusion: FusionConfig,
+) -> VoxelBlocks:
     """Instance volumes: every detection pixel votes for its row (`instance_for_detection int32[N]`) in the
     voxel it sees; with `fusion.contrary_vote_weight`, every pixel also votes against the instances detected
     in this frame whose voxel it sees outside their mask."""
     pixel_instance = association.instance_pixel_image(det_image, instance_for_detection)
     k = config.instance_capacity
-    detected = jnp.zeros((k + 1,), bool).at[jnp.where(instance_for_detection >= 0, instance_for_detection, k)].set(
-        True)[:k]
-    return integrate_instances(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, pixel_instance, config,
-                               detected, det_image == FILTERED_PIXEL, fusion.contrary_vote_weight)
+    detected = jnp.zeros((k + 1,), bool).at[jnp.where(instance_for_detection >= 0, instance_for_detection, k)].set(True)[:k]
+    return integrate_instances(
+        blocks,
+        frame.depth,
+        frame.T_world_camera,
+        frame.intrinsics,
+        pixel_instance,
+        config,
+        detected,
+        det_image == FILTERED_PIXEL,
+        fusion.contrary_vote_weight,
+    )
 
 
 def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:
@@ -296,8 +328,9 @@ class _MergeParams(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnames=("config", "label_mode", "veto"), donate_argnames=("state",))
-def _merge_step(state: MapState, params: _MergeParams, config: MapConfig, label_mode: str,
-                veto: bool) -> tuple[MapState, RefineStats]:
+def _merge_step(
+    state: MapState, params: _MergeParams, config: MapConfig, label_mode: str, veto: bool
+) -> tuple[MapState, RefineStats]:
     """Removal and merge (online, or the final post-processing merge), see `refine` and `finalize`.
 
     One pass over the voxels gives the voxel counts and the overlaps; the removal and the merge are then
@@ -321,8 +354,9 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig, label_
     census = occupied_census(blocks, config, final, list_cells=True)
     counts = census.counts
     rows = maintenance.TableRows.of(state.instances)
-    remove = maintenance.instances_to_remove(rows.missed, counts, rows.valid, params.remove_missed,
-                                             params.remove_min_voxels) & ~final
+    remove = (
+        maintenance.instances_to_remove(rows.missed, counts, rows.valid, params.remove_missed, params.remove_min_voxels) & ~final
+    )
     rows = maintenance.remove_instances(rows._replace(voxel_count=counts), remove).rows
     keep = rows.valid  # the ids that stay in the voxels (the renaming deletes every other id)
     rows = rows._replace(voxel_count=jnp.where(keep, counts, 0))
@@ -350,11 +384,12 @@ def _merge_step(state: MapState, params: _MergeParams, config: MapConfig, label_
     blocks, voxel_count = _apply_new_ids(blocks, census, merged.new_id, config)
     covered = merge.fold_pair_counts(table.covered, merged.new_id, table.valid)
     separated = merge.fold_pair_counts(table.separated, merged.new_id, table.valid) if veto else table.separated
-    table = table._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered,
-                           separated=separated)
-    stats = RefineStats(removed=jnp.sum(remove).astype(jnp.int32),
-                        merged=(jnp.sum(rows.valid) - jnp.sum(table.valid)).astype(jnp.int32),
-                        dropped_cells=census.dropped_cells + overfull)
+    table = table._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered, separated=separated)
+    stats = RefineStats(
+        removed=jnp.sum(remove).astype(jnp.int32),
+        merged=(jnp.sum(rows.valid) - jnp.sum(table.valid)).astype(jnp.int32),
+        dropped_cells=census.dropped_cells + overfull,
+    )
     return state._replace(blocks=blocks, instances=table), stats
 
 
@@ -369,13 +404,16 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
     pass over the voxels for the counts and overlaps, the decisions on the table, and a renaming of
     the voxels only when an instance is removed or merged.
     """
-    params = _MergeParams(final=np.bool_(False), remove_missed=np.int32(fusion.remove_missed),
-                          remove_min_voxels=np.int32(fusion.remove_min_voxels),
-                          similarity=np.float32(fusion.merge_similarity), overlap=np.float32(fusion.merge_overlap),
-                          reunite=np.int32(fusion.reunite_min_frames),
-                          separate=np.int32(fusion.separate_min_frames))
-    return _merge_step(state, params, config=config, label_mode=fusion.label_mode,
-                       veto=fusion.separate_min_frames > 0)
+    params = _MergeParams(
+        final=np.bool_(False),
+        remove_missed=np.int32(fusion.remove_missed),
+        remove_min_voxels=np.int32(fusion.remove_min_voxels),
+        similarity=np.float32(fusion.merge_similarity),
+        overlap=np.float32(fusion.merge_overlap),
+        reunite=np.int32(fusion.reunite_min_frames),
+        separate=np.int32(fusion.separate_min_frames),
+    )
+    return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
@@ -397,12 +435,16 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
     The state is donated.
     """
     state = fuse_geometry(state, config, fusion)
-    params = _MergeParams(final=np.bool_(True), remove_missed=np.int32(np.iinfo(np.int32).max),
-                          remove_min_voxels=np.int32(0), similarity=np.float32(fusion.post_merge_similarity),
-                          overlap=np.float32(fusion.post_merge_iou), reunite=np.int32(fusion.reunite_min_frames),
-                          separate=np.int32(fusion.separate_min_frames))
-    return _merge_step(state, params, config=config, label_mode=fusion.label_mode,
-                       veto=fusion.separate_min_frames > 0)
+    params = _MergeParams(
+        final=np.bool_(True),
+        remove_missed=np.int32(np.iinfo(np.int32).max),
+        remove_min_voxels=np.int32(0),
+        similarity=np.float32(fusion.post_merge_similarity),
+        overlap=np.float32(fusion.post_merge_iou),
+        reunite=np.int32(fusion.reunite_min_frames),
+        separate=np.int32(fusion.separate_min_frames),
+    )
+    return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
 
 def class_distribution(state: MapState, fusion: FusionConfig) -> jax.Array:

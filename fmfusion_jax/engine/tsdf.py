@@ -96,9 +96,7 @@ def _find_touched_blocks(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
     slot = jnp.where(granted, candidate, slot)
     index_flat = index_flat.at[jnp.where(granted, touched, num_grid)].set(candidate, mode="drop")
     coords = jnp.stack([touched // (sy * sz), (touched // sz) % sy, touched % sz], axis=-1).astype(jnp.int32)
-    block_coords = blocks.block_coords.at[jnp.where(granted, candidate, config.block_capacity)].set(
-        coords, mode="drop"
-    )
+    block_coords = blocks.block_coords.at[jnp.where(granted, candidate, config.block_capacity)].set(coords, mode="drop")
     blocks = blocks._replace(
         block_index=index_flat.reshape(config.grid_shape),
         block_coords=block_coords,
@@ -120,9 +118,7 @@ def block_voxel_centres(blocks: VoxelBlocks, slots, config: MapConfig):
     o = config.grid_origin
     # (world voxel + 0.5) * vs with the origin's whole voxels added first (exact integers in float32): the
     # same centre whatever the index's origin (see geo.lattice_floor)
-    return tuple(
-        (base[:, a : a + 1] + jnp.asarray(offsets[:, a] + 0.5, jnp.float32)[None] + o[a] / vs) * vs for a in range(3)
-    )
+    return tuple((base[:, a : a + 1] + jnp.asarray(offsets[:, a] + 0.5, jnp.float32)[None] + o[a] / vs) * vs for a in range(3))
 
 
 def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: MapConfig):

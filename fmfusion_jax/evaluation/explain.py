@@ -201,8 +201,12 @@ class SceneExplanation:
             gts = [g.status for g in self.ground_truth if g.class_name == name]
             preds = [p.kind for p in self.predictions if p.class_name == name]
             if gts or preds:
-                table[name] = {"objects": len(gts), "status": _count(gts, GT_STATUSES),
-                               "predictions": len(preds), "kind": _count(preds, PREDICTION_KINDS)}
+                table[name] = {
+                    "objects": len(gts),
+                    "status": _count(gts, GT_STATUSES),
+                    "predictions": len(preds),
+                    "kind": _count(preds, PREDICTION_KINDS),
+                }
         return table
 
     def summary_line(self) -> str:
@@ -214,21 +218,32 @@ class SceneExplanation:
     def to_json_dict(self) -> dict:
         return {
             "scene": self.scene_name,
-            "rules": {"iou_50": IOU_50, "iou_25": IOU_25, "overlap_iou": OVERLAP_IOU, "overlap_cover": OVERLAP_COVER,
-                      "smear_off_share": SMEAR_OFF_SHARE, "inside_share": INSIDE_SHARE,
-                      "min_fragments": MIN_FRAGMENTS, "min_region_size": MIN_REGION_SIZE},
-            "counts": {"objects": self.status_counts(), "predictions": self.kind_counts(),
-                       "ap50": self.ap50_counts(), "num_input_predictions": self.num_input_predictions,
-                       "num_skipped_predictions": self.num_skipped_predictions},
+            "rules": {
+                "iou_50": IOU_50,
+                "iou_25": IOU_25,
+                "overlap_iou": OVERLAP_IOU,
+                "overlap_cover": OVERLAP_COVER,
+                "smear_off_share": SMEAR_OFF_SHARE,
+                "inside_share": INSIDE_SHARE,
+                "min_fragments": MIN_FRAGMENTS,
+                "min_region_size": MIN_REGION_SIZE,
+            },
+            "counts": {
+                "objects": self.status_counts(),
+                "predictions": self.kind_counts(),
+                "ap50": self.ap50_counts(),
+                "num_input_predictions": self.num_input_predictions,
+                "num_skipped_predictions": self.num_skipped_predictions,
+            },
             "classes": self.class_counts(),
             "ground_truth": [dataclasses.asdict(g) for g in self.ground_truth],
-            "predictions": [{**dataclasses.asdict(p), "shares": dict(zip(SHARE_NAMES, p.shares))}
-                            for p in self.predictions],
+            "predictions": [{**dataclasses.asdict(p), "shares": dict(zip(SHARE_NAMES, p.shares))} for p in self.predictions],
         }
 
 
 # ---------------------------------------------------------------------------------------------------
 # The counts everything is decided from.
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class OverlapCounts:
@@ -284,8 +299,7 @@ def vertex_categories(gt_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return instance_ids, category
 
 
-def overlap_counts(gt_ids: np.ndarray, preds: InstancePredictions,
-                   min_region_size: int = MIN_REGION_SIZE) -> OverlapCounts:
+def overlap_counts(gt_ids: np.ndarray, preds: InstancePredictions, min_region_size: int = MIN_REGION_SIZE) -> OverlapCounts:
     """The shared-vertex counts of the predictions the benchmark evaluates (`OverlapCounts`).
 
     Args:
@@ -303,14 +317,22 @@ def overlap_counts(gt_ids: np.ndarray, preds: InstancePredictions,
     for k, row in enumerate(rows):
         counts[k] = np.bincount(category[preds.masks[row]], minlength=n + 3)
     instance_sizes = np.bincount(category, minlength=n + 3)[:n].astype(np.int64)
-    return OverlapCounts(instance_ids=instance_ids, instance_sizes=instance_sizes,
-                         counted=instance_sizes >= min_region_size, rows=rows.astype(np.int64),
-                         pred_sizes=sizes_in[rows].astype(np.int64), shared=counts[:, :n],
-                         wall=counts[:, n], floor=counts[:, n + 1], void=counts[:, n + 2])
+    return OverlapCounts(
+        instance_ids=instance_ids,
+        instance_sizes=instance_sizes,
+        counted=instance_sizes >= min_region_size,
+        rows=rows.astype(np.int64),
+        pred_sizes=sizes_in[rows].astype(np.int64),
+        shared=counts[:, :n],
+        wall=counts[:, n],
+        floor=counts[:, n + 1],
+        void=counts[:, n + 2],
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
 # The rules (module docstring), each a small function of the counts.
+
 
 def ap50_matches(counts: OverlapCounts, classes: np.ndarray, confidences: np.ndarray) -> np.ndarray:
     """`(I,)` int64 index (into the evaluated predictions) of each object's AP50 match, -1 for none.
@@ -367,8 +389,9 @@ def reference_objects(counts: OverlapCounts) -> tuple[np.ndarray, np.ndarray]:
     return reference, overlapping
 
 
-def prediction_kinds(counts: OverlapCounts, classes: np.ndarray, match: np.ndarray, reference: np.ndarray,
-                     overlapping: np.ndarray) -> list[str]:
+def prediction_kinds(
+    counts: OverlapCounts, classes: np.ndarray, match: np.ndarray, reference: np.ndarray, overlapping: np.ndarray
+) -> list[str]:
     """Each evaluated prediction's kind (`PREDICTION_KINDS`), by the rules of the module docstring."""
     passes = (counts.iou() > IOU_50) & counts.counted[None, :]
     same = _same_class(counts, classes)
@@ -412,9 +435,14 @@ def object_statuses(counts: OverlapCounts, classes: np.ndarray) -> list[str]:
     return statuses
 
 
-def explain_scene(gt_ids: np.ndarray, preds: InstancePredictions, vertices: np.ndarray | None = None,
-                  class_names: Mapping[int, str] | None = None, scene_name: str = "scene",
-                  min_region_size: int = MIN_REGION_SIZE) -> SceneExplanation:
+def explain_scene(
+    gt_ids: np.ndarray,
+    preds: InstancePredictions,
+    vertices: np.ndarray | None = None,
+    class_names: Mapping[int, str] | None = None,
+    scene_name: str = "scene",
+    min_region_size: int = MIN_REGION_SIZE,
+) -> SceneExplanation:
     """The error analysis of one scene (rules in the module docstring).
 
     Args:
@@ -443,36 +471,54 @@ def explain_scene(gt_ids: np.ndarray, preds: InstancePredictions, vertices: np.n
     ground_truth = []
     for status, i in zip(statuses, objects):
         best = int(np.argmax(iou[:, i])) if len(classes) and counts.shared[:, i].any() else -1
-        ground_truth.append(GroundTruthExplanation(
-            gt_id=int(counts.instance_ids[i]), nyu40=int(counts.instance_classes[i]),
-            class_name=class_names.get(int(counts.instance_classes[i]), str(counts.instance_classes[i])),
-            size=int(counts.instance_sizes[i]), status=status,
-            best_prediction=int(counts.rows[best]) if best >= 0 else None,
-            best_iou=float(iou[best, i]) if best >= 0 else 0.0,
-            best_class=class_names.get(int(classes[best]), str(classes[best])) if best >= 0 else None,
-            best_confidence=float(confidences[best]) if best >= 0 else None,
-            best_same_class_iou=float(iou[same[:, i], i].max(initial=0.0)),
-            passes_50=bool((iou[same[:, i], i] > IOU_50).any()),
-            passes_25=bool((iou[same[:, i], i] > IOU_25).any()),
-            match=int(counts.rows[match[i]]) if match[i] >= 0 else None,
-            num_fragments=int(pieces[:, i].sum()),
-            centroid=gt_centroids.get(int(i))))
+        ground_truth.append(
+            GroundTruthExplanation(
+                gt_id=int(counts.instance_ids[i]),
+                nyu40=int(counts.instance_classes[i]),
+                class_name=class_names.get(int(counts.instance_classes[i]), str(counts.instance_classes[i])),
+                size=int(counts.instance_sizes[i]),
+                status=status,
+                best_prediction=int(counts.rows[best]) if best >= 0 else None,
+                best_iou=float(iou[best, i]) if best >= 0 else 0.0,
+                best_class=class_names.get(int(classes[best]), str(classes[best])) if best >= 0 else None,
+                best_confidence=float(confidences[best]) if best >= 0 else None,
+                best_same_class_iou=float(iou[same[:, i], i].max(initial=0.0)),
+                passes_50=bool((iou[same[:, i], i] > IOU_50).any()),
+                passes_25=bool((iou[same[:, i], i] > IOU_25).any()),
+                match=int(counts.rows[match[i]]) if match[i] >= 0 else None,
+                num_fragments=int(pieces[:, i].sum()),
+                centroid=gt_centroids.get(int(i)),
+            )
+        )
 
     predictions = []
     object_iou = np.where(counts.counted[None, :], iou, -1.0)
     for p, row in enumerate(counts.rows):
         best = int(np.argmax(object_iou[p])) if (counts.shared[p] * counts.counted).any() else -1
-        predictions.append(PredictionExplanation(
-            index=int(row), nyu40=int(classes[p]), class_name=class_names.get(int(classes[p]), str(classes[p])),
-            confidence=float(confidences[p]), size=int(counts.pred_sizes[p]), kind=kinds[p], ap50=roles[p],
-            best_gt=int(counts.instance_ids[best]) if best >= 0 else None,
-            best_iou=float(iou[p, best]) if best >= 0 else 0.0,
-            best_gt_class=class_names.get(int(counts.instance_classes[best])) if best >= 0 else None,
-            reference_gt=int(counts.instance_ids[reference[p]]) if reference[p] >= 0 else None,
-            shares=_shares(counts, p, reference[p]), centroid=pred_centroids.get(p)))
-    return SceneExplanation(scene_name, tuple(ground_truth), tuple(predictions),
-                            num_input_predictions=preds.num_instances,
-                            num_skipped_predictions=preds.num_instances - len(counts.rows))
+        predictions.append(
+            PredictionExplanation(
+                index=int(row),
+                nyu40=int(classes[p]),
+                class_name=class_names.get(int(classes[p]), str(classes[p])),
+                confidence=float(confidences[p]),
+                size=int(counts.pred_sizes[p]),
+                kind=kinds[p],
+                ap50=roles[p],
+                best_gt=int(counts.instance_ids[best]) if best >= 0 else None,
+                best_iou=float(iou[p, best]) if best >= 0 else 0.0,
+                best_gt_class=class_names.get(int(counts.instance_classes[best])) if best >= 0 else None,
+                reference_gt=int(counts.instance_ids[reference[p]]) if reference[p] >= 0 else None,
+                shares=_shares(counts, p, reference[p]),
+                centroid=pred_centroids.get(p),
+            )
+        )
+    return SceneExplanation(
+        scene_name,
+        tuple(ground_truth),
+        tuple(predictions),
+        num_input_predictions=preds.num_instances,
+        num_skipped_predictions=preds.num_instances - len(counts.rows),
+    )
 
 
 def _same_class(counts: OverlapCounts, classes: np.ndarray) -> np.ndarray:
@@ -491,13 +537,20 @@ def _shares(counts: OverlapCounts, p: int, reference: int) -> tuple[float, ...]:
     """Prediction `p`'s vertex shares per `SHARE_NAMES` (rounded to 4 decimals)."""
     on_object = counts.shared[p, reference] if reference >= 0 else 0
     on_objects = counts.shared[p, counts.counted].sum()
-    values = (on_object, on_objects - on_object, counts.shared[p, ~counts.counted].sum(),
-              counts.wall[p], counts.floor[p], counts.void[p])
+    values = (
+        on_object,
+        on_objects - on_object,
+        counts.shared[p, ~counts.counted].sum(),
+        counts.wall[p],
+        counts.floor[p],
+        counts.void[p],
+    )
     return tuple(round(float(v) / float(counts.pred_sizes[p]), 4) for v in values)
 
 
-def _centroids(gt_ids: np.ndarray, preds: InstancePredictions, counts: OverlapCounts,
-               vertices: np.ndarray | None) -> tuple[dict[int, tuple], dict[int, tuple]]:
+def _centroids(
+    gt_ids: np.ndarray, preds: InstancePredictions, counts: OverlapCounts, vertices: np.ndarray | None
+) -> tuple[dict[int, tuple], dict[int, tuple]]:
     """Vertex means (rounded to mm) of the objects (by instance index) and evaluated predictions (by
     position); empty without vertices."""
     if vertices is None:
@@ -523,59 +576,93 @@ def _count(values: list[str], names: tuple[str, ...]) -> dict[str, int]:
 # ---------------------------------------------------------------------------------------------------
 # explain.md / explain.json / explain.png
 
+
 def explanation_markdown(explanation: SceneExplanation) -> str:
     """`explain.md`: summary counts, per-class counts, the objects, the predictions sorted by kind."""
     e = explanation
     ap50 = e.ap50_counts()
-    lines = [f"# Error analysis: {e.scene_name}", "",
-             f"{len(e.ground_truth)} ground-truth objects (18 benchmark classes, at least {MIN_REGION_SIZE} "
-             f"vertices); {len(e.predictions)} evaluated predictions of {e.num_input_predictions} "
-             f"({e.num_skipped_predictions} not evaluated: under {MIN_REGION_SIZE} vertices or of another class). "
-             f"At AP50 the benchmark counts {ap50['true_positive']} true positives, "
-             f"{ap50['false_positive']} false positives and ignores {ap50['ignored']} predictions.",
-             "", "Rules: docs/error-analysis.md (and `fmfusion_jax/evaluation/explain.py`). "
-             "IoU passes 0.5 / 0.25 when strictly greater, as in the benchmark.", "",
-             "## Summary", "",
-             "| objects by status | count |", "|---|---:|",
-             *(f"| {k} | {v} |" for k, v in e.status_counts().items()), "",
-             "| predictions by kind | count |", "|---|---:|",
-             *(f"| {k} | {v} |" for k, v in e.kind_counts().items()), "",
-             "## Per class", ""]
+    lines = [
+        f"# Error analysis: {e.scene_name}",
+        "",
+        f"{len(e.ground_truth)} ground-truth objects (18 benchmark classes, at least {MIN_REGION_SIZE} "
+        f"vertices); {len(e.predictions)} evaluated predictions of {e.num_input_predictions} "
+        f"({e.num_skipped_predictions} not evaluated: under {MIN_REGION_SIZE} vertices or of another class). "
+        f"At AP50 the benchmark counts {ap50['true_positive']} true positives, "
+        f"{ap50['false_positive']} false positives and ignores {ap50['ignored']} predictions.",
+        "",
+        "Rules: docs/error-analysis.md (and `fmfusion_jax/evaluation/explain.py`). "
+        "IoU passes 0.5 / 0.25 when strictly greater, as in the benchmark.",
+        "",
+        "## Summary",
+        "",
+        "| objects by status | count |",
+        "|---|---:|",
+        *(f"| {k} | {v} |" for k, v in e.status_counts().items()),
+        "",
+        "| predictions by kind | count |",
+        "|---|---:|",
+        *(f"| {k} | {v} |" for k, v in e.kind_counts().items()),
+        "",
+        "## Per class",
+        "",
+    ]
     per_class = e.class_counts()
     for total, key, names in (("objects", "status", GT_STATUSES), ("predictions", "kind", PREDICTION_KINDS)):
         lines += [f"| class | {total} | " + " | ".join(names) + " |", "|---|" + "---:|" * (1 + len(names))]
-        lines += [f"| {name} | {row[total]} | " + " | ".join(str(n) for n in row[key].values()) + " |"
-                  for name, row in per_class.items() if row[total]]
+        lines += [
+            f"| {name} | {row[total]} | " + " | ".join(str(n) for n in row[key].values()) + " |"
+            for name, row in per_class.items()
+            if row[total]
+        ]
         lines.append("")
-    lines += ["## Ground-truth objects", "",
-              "Best prediction: the highest IoU, any class. Fragments: predictions with more than half of "
-              "their vertices inside the object that do not pass 0.5 with it.", "",
-              "| gt id | class | vertices | status | best pred | its class | conf | IoU | same-class IoU | "
-              "AP50 match | fragments | centroid |",
-              "|---:|---|---:|---|---:|---|---:|---:|---:|---:|---:|---|"]
+    lines += [
+        "## Ground-truth objects",
+        "",
+        "Best prediction: the highest IoU, any class. Fragments: predictions with more than half of "
+        "their vertices inside the object that do not pass 0.5 with it.",
+        "",
+        "| gt id | class | vertices | status | best pred | its class | conf | IoU | same-class IoU | "
+        "AP50 match | fragments | centroid |",
+        "|---:|---|---:|---|---:|---|---:|---:|---:|---:|---:|---|",
+    ]
     order = {s: k for k, s in enumerate(GT_STATUSES)}
     for g in sorted(e.ground_truth, key=lambda g: (order[g.status], g.gt_id)):
-        lines.append(f"| {g.gt_id} | {g.class_name} | {g.size} | {g.status} | {_cell(g.best_prediction)} | "
-                     f"{_cell(g.best_class)} | {_num(g.best_confidence)} | {g.best_iou:.3f} | "
-                     f"{g.best_same_class_iou:.3f} | {_cell(g.match)} | {g.num_fragments} | {_xyz(g.centroid)} |")
-    lines += ["", "## Predictions by kind", "",
-              "Pred: row in the prediction file (mask `<scene>_<pred>.txt`). Shares of its vertices against its "
-              "reference object: on it, on other objects, on small objects, wall, floor, void.", "",
-              "| pred | class | conf | vertices | kind | AP50 | best gt | its class | IoU | reference gt | "
-              "object | other obj. | small obj. | wall | floor | void | centroid |",
-              "|---:|---|---:|---:|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        lines.append(
+            f"| {g.gt_id} | {g.class_name} | {g.size} | {g.status} | {_cell(g.best_prediction)} | "
+            f"{_cell(g.best_class)} | {_num(g.best_confidence)} | {g.best_iou:.3f} | "
+            f"{g.best_same_class_iou:.3f} | {_cell(g.match)} | {g.num_fragments} | {_xyz(g.centroid)} |"
+        )
+    lines += [
+        "",
+        "## Predictions by kind",
+        "",
+        "Pred: row in the prediction file (mask `<scene>_<pred>.txt`). Shares of its vertices against its "
+        "reference object: on it, on other objects, on small objects, wall, floor, void.",
+        "",
+        "| pred | class | conf | vertices | kind | AP50 | best gt | its class | IoU | reference gt | "
+        "object | other obj. | small obj. | wall | floor | void | centroid |",
+        "|---:|---|---:|---:|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
     order = {k: n for n, k in enumerate(PREDICTION_KINDS)}
     for p in sorted(e.predictions, key=lambda p: (order[p.kind], -p.confidence, p.index)):
         shares = " | ".join(f"{s:.2f}" for s in p.shares)
-        lines.append(f"| {p.index} | {p.class_name} | {p.confidence:.3f} | {p.size} | {p.kind} | {p.ap50} | "
-                     f"{_cell(p.best_gt)} | {_cell(p.best_gt_class)} | {p.best_iou:.3f} | {_cell(p.reference_gt)} | "
-                     f"{shares} | {_xyz(p.centroid)} |")
+        lines.append(
+            f"| {p.index} | {p.class_name} | {p.confidence:.3f} | {p.size} | {p.kind} | {p.ap50} | "
+            f"{_cell(p.best_gt)} | {_cell(p.best_gt_class)} | {p.best_iou:.3f} | {_cell(p.reference_gt)} | "
+            f"{shares} | {_xyz(p.centroid)} |"
+        )
     return "\n".join(lines) + "\n"
 
 
-def write_explanation(out_dir: str | Path, explanation: SceneExplanation, gt_ids: np.ndarray | None = None,
-                      preds: InstancePredictions | None = None, vertices: np.ndarray | None = None,
-                      faces: np.ndarray | None = None, title: str | None = None) -> list[Path]:
+def write_explanation(
+    out_dir: str | Path,
+    explanation: SceneExplanation,
+    gt_ids: np.ndarray | None = None,
+    preds: InstancePredictions | None = None,
+    vertices: np.ndarray | None = None,
+    faces: np.ndarray | None = None,
+    title: str | None = None,
+) -> list[Path]:
     """Writes `explain.md`, `explain.json` and, given the vertices (and the ids and predictions the
     explanation was made from), `explain.png` into `out_dir` (created).
 
@@ -593,8 +680,7 @@ def write_explanation(out_dir: str | Path, explanation: SceneExplanation, gt_ids
     if vertices is not None and gt_ids is not None and preds is not None:
         from fmfusion_jax.evaluation.explain_picture import write_explanation_picture
 
-        written.append(write_explanation_picture(out_dir / "explain.png", explanation, gt_ids, preds, vertices,
-                                                 faces, title))
+        written.append(write_explanation_picture(out_dir / "explain.png", explanation, gt_ids, preds, vertices, faces, title))
     return written
 
 

@@ -18,10 +18,21 @@ from fmfusion_jax.io.benchmark_format import InstancePredictions
 from fmfusion_jax.viz.overview import height_cut, mesh_spacing, point_spacing, put_fitted, scale_bar, view_rotation
 
 #: RGB colours of the object statuses and prediction kinds.
-STATUS_COLORS = {"found": (50, 170, 60), "wrong_class": (150, 70, 200), "low_iou": (245, 150, 30),
-                 "fragmented": (235, 210, 30), "missed": (220, 35, 35)}
-KIND_COLORS = {"true_positive": (50, 170, 60), "duplicate": (40, 120, 230), "wrong_class": (150, 70, 200),
-               "smear": (230, 40, 130), "fragment": (235, 210, 30), "no_object": (120, 70, 30)}
+STATUS_COLORS = {
+    "found": (50, 170, 60),
+    "wrong_class": (150, 70, 200),
+    "low_iou": (245, 150, 30),
+    "fragmented": (235, 210, 30),
+    "missed": (220, 35, 35),
+}
+KIND_COLORS = {
+    "true_positive": (50, 170, 60),
+    "duplicate": (40, 120, 230),
+    "wrong_class": (150, 70, 200),
+    "smear": (230, 40, 130),
+    "fragment": (235, 210, 30),
+    "no_object": (120, 70, 30),
+}
 #: Which kind shows where predictions overlap: errors over true positives, smears and no_object on top.
 KIND_DRAW_ORDER = ("true_positive", "fragment", "duplicate", "wrong_class", "no_object", "smear")
 #: Greys of the mesh where no status / kind colour is drawn: wall, floor, void, instances (small ones too).
@@ -30,9 +41,15 @@ _OUTLINE = (60, 60, 60)
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
-def render_explanation(explanation: SceneExplanation, gt_ids: np.ndarray, preds: InstancePredictions,
-                       vertices: np.ndarray, faces: np.ndarray | None = None, title: str | None = None,
-                       panel_width: int = 800) -> np.ndarray:
+def render_explanation(
+    explanation: SceneExplanation,
+    gt_ids: np.ndarray,
+    preds: InstancePredictions,
+    vertices: np.ndarray,
+    faces: np.ndarray | None = None,
+    title: str | None = None,
+    panel_width: int = 800,
+) -> np.ndarray:
     """The picture, `(H, W, 3)` uint8 BGR.
 
     Args:
@@ -48,13 +65,16 @@ def render_explanation(explanation: SceneExplanation, gt_ids: np.ndarray, preds:
     vertex_object = np.where(category < n, category, -1)
     counted = np.array([int(i) in object_of for i in instance_ids] + [False], bool)
     vertex_object[~counted[vertex_object]] = -1
-    grey = np.select([category == n, category == n + 1, category < n], [_GREY["wall"], _GREY["floor"], _GREY["object"]],
-                     _GREY["void"])
+    grey = np.select(
+        [category == n, category == n + 1, category < n], [_GREY["wall"], _GREY["floor"], _GREY["object"]], _GREY["void"]
+    )
     base = np.repeat(grey.astype(np.uint8)[:, None], 3, axis=1)
 
     left = base.copy()
-    status_rgb = np.array([STATUS_COLORS[object_of[int(i)].status] if int(i) in object_of else (0, 0, 0)
-                           for i in instance_ids] + [(0, 0, 0)], np.uint8).reshape(-1, 3)
+    status_rgb = np.array(
+        [STATUS_COLORS[object_of[int(i)].status] if int(i) in object_of else (0, 0, 0) for i in instance_ids] + [(0, 0, 0)],
+        np.uint8,
+    ).reshape(-1, 3)
     left[vertex_object >= 0] = status_rgb[vertex_object[vertex_object >= 0]]
 
     right = base.copy()
@@ -95,9 +115,10 @@ def render_explanation(explanation: SceneExplanation, gt_ids: np.ndarray, preds:
 
     outline = _outlines(np.where(left_winner >= 0, vertex_object[np.maximum(left_winner, 0)], -1))
     panels = []
-    for colors, winner, labels in ((left, left_winner, _object_labels(explanation, instance_ids, vertex_object,
-                                                                          u, v)),
-                                   (right, right_winner, _prediction_labels(explanation, preds, u, v, visible))):
+    for colors, winner, labels in (
+        (left, left_winner, _object_labels(explanation, instance_ids, vertex_object, u, v)),
+        (right, right_winner, _prediction_labels(explanation, preds, u, v, visible)),
+    ):
         image = np.full((height, panel_width, 3), 238, np.uint8)
         image[winner >= 0] = colors[winner[winner >= 0]]
         image[outline] = _OUTLINE
@@ -107,16 +128,26 @@ def render_explanation(explanation: SceneExplanation, gt_ids: np.ndarray, preds:
         panels.append(image)
 
     status_counts, kind_counts = explanation.status_counts(), explanation.kind_counts()
-    legends = [[(f"{s} {status_counts[s]}", STATUS_COLORS[s]) for s in GT_STATUSES],
-               [(f"{k} {kind_counts[k]}", KIND_COLORS[k]) for k in PREDICTION_KINDS]]
-    captions = [f"objects by status ({len(explanation.ground_truth)})",
-                f"predictions by kind ({len(explanation.predictions)}), objects outlined"]
+    legends = [
+        [(f"{s} {status_counts[s]}", STATUS_COLORS[s]) for s in GT_STATUSES],
+        [(f"{k} {kind_counts[k]}", KIND_COLORS[k]) for k in PREDICTION_KINDS],
+    ]
+    captions = [
+        f"objects by status ({len(explanation.ground_truth)})",
+        f"predictions by kind ({len(explanation.predictions)}), objects outlined",
+    ]
     return _compose(panels, captions, legends, title or f"{explanation.scene_name}: error analysis", scale)
 
 
-def write_explanation_picture(path: str | Path, explanation: SceneExplanation, gt_ids: np.ndarray,
-                              preds: InstancePredictions, vertices: np.ndarray, faces: np.ndarray | None = None,
-                              title: str | None = None) -> Path:
+def write_explanation_picture(
+    path: str | Path,
+    explanation: SceneExplanation,
+    gt_ids: np.ndarray,
+    preds: InstancePredictions,
+    vertices: np.ndarray,
+    faces: np.ndarray | None = None,
+    title: str | None = None,
+) -> Path:
     """Renders (`render_explanation`) and writes the PNG; returns its path."""
     path = Path(path)
     if not cv2.imwrite(str(path), render_explanation(explanation, gt_ids, preds, vertices, faces, title)):
@@ -124,8 +155,7 @@ def write_explanation_picture(path: str | Path, explanation: SceneExplanation, g
     return path
 
 
-def _winners(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarray, radius: int,
-             index: np.ndarray) -> np.ndarray:
+def _winners(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarray, radius: int, index: np.ndarray) -> np.ndarray:
     """`(H, W)` int64 `index` of the point drawn at each pixel, -1 where none: points are discs of
     `radius` pixels, the highest (largest `z`) wins.
 
@@ -144,7 +174,7 @@ def _winners(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarray
     by_height = top[np.argsort(z[top], kind="stable")]
     ranks = np.zeros(height * width, np.float32)  # exact integers up to 2**24 points
     ranks[pixel[by_height]] = np.arange(1, len(by_height) + 1)
-    dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    dy, dx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
     disc = (dx * dx + dy * dy <= radius * radius + radius).astype(np.uint8)
     spread = cv2.dilate(ranks.reshape(shape), disc).astype(np.int64)
     return np.concatenate([[-1], index[by_height]])[spread]
@@ -162,8 +192,9 @@ def _outlines(labels: np.ndarray) -> np.ndarray:
     return border
 
 
-def _object_labels(explanation: SceneExplanation, instance_ids: np.ndarray, vertex_object: np.ndarray,
-                   u: np.ndarray, v: np.ndarray) -> list[tuple[str, tuple[int, int], tuple[int, int, int]]]:
+def _object_labels(
+    explanation: SceneExplanation, instance_ids: np.ndarray, vertex_object: np.ndarray, u: np.ndarray, v: np.ndarray
+) -> list[tuple[str, tuple[int, int], tuple[int, int, int]]]:
     """Each object's id at the pixel mean of its vertices."""
     position = {int(i): k for k, i in enumerate(instance_ids)}
     labels = []
@@ -174,8 +205,9 @@ def _object_labels(explanation: SceneExplanation, instance_ids: np.ndarray, vert
     return labels
 
 
-def _prediction_labels(explanation: SceneExplanation, preds: InstancePredictions, u: np.ndarray, v: np.ndarray,
-                       visible: np.ndarray) -> list[tuple[str, tuple[int, int], tuple[int, int, int]]]:
+def _prediction_labels(
+    explanation: SceneExplanation, preds: InstancePredictions, u: np.ndarray, v: np.ndarray, visible: np.ndarray
+) -> list[tuple[str, tuple[int, int], tuple[int, int, int]]]:
     """Each prediction's row at the pixel mean of its visible vertices (true positives not labelled: the
     left panel names their objects)."""
     labels = []
@@ -195,8 +227,9 @@ def _label(image: np.ndarray, text: str, x: int, y: int, rgb: tuple[int, int, in
     cv2.putText(image, text, (x0 + 2, y0 + h + 1), _FONT, 0.4, (20, 20, 20), 1, cv2.LINE_AA)
 
 
-def _compose(panels: list[np.ndarray], captions: list[str], legends: list[list[tuple[str, tuple]]], title: str,
-             scale: float) -> np.ndarray:
+def _compose(
+    panels: list[np.ndarray], captions: list[str], legends: list[list[tuple[str, tuple]]], title: str, scale: float
+) -> np.ndarray:
     """Title, the panels side by side with their captions, and each panel's legend under it."""
     margin, gap, title_h, caption_h, legend_row = 12, 16, 44, 30, 24
     panel_h, panel_w = panels[0].shape[:2]
@@ -210,7 +243,7 @@ def _compose(panels: list[np.ndarray], captions: list[str], legends: list[list[t
         x = margin + k * (panel_w + gap)
         put_fitted(canvas, caption, (x, title_h + 20), panel_w - 220, 0.6, 1)
         scale_bar(canvas, x + panel_w - 2, title_h + 20, scale)
-        canvas[top:top + panel_h, x:x + panel_w] = panel
+        canvas[top : top + panel_h, x : x + panel_w] = panel
         cv2.rectangle(canvas, (x, top), (x + panel_w - 1, top + panel_h - 1), (160, 160, 160), 1)
         for j, (text, rgb) in enumerate(items):
             row, col = divmod(j, per_row)

@@ -81,8 +81,9 @@ class SceneMatches:
     intersections: np.ndarray
 
 
-def match_scene(gt_ids: np.ndarray, preds: InstancePredictions, min_region_size: int = MIN_REGION_SIZE,
-                scene_name: str = "scene") -> SceneMatches:
+def match_scene(
+    gt_ids: np.ndarray, preds: InstancePredictions, min_region_size: int = MIN_REGION_SIZE, scene_name: str = "scene"
+) -> SceneMatches:
     """Counts each prediction's overlap with the ground truth of its class and with void.
 
     Args:
@@ -91,8 +92,10 @@ def match_scene(gt_ids: np.ndarray, preds: InstancePredictions, min_region_size:
     """
     gt_ids = np.asarray(gt_ids, np.int64).reshape(-1)
     if preds.num_vertices != gt_ids.shape[0]:
-        raise DataError(f"{scene_name}: predictions cover {preds.num_vertices} vertices but the ground truth has "
-                        f"{gt_ids.shape[0]}: were they made on another mesh?")
+        raise DataError(
+            f"{scene_name}: predictions cover {preds.num_vertices} vertices but the ground truth has "
+            f"{gt_ids.shape[0]}: were they made on another mesh?"
+        )
     benchmark_classes = np.asarray(BENCHMARK_NYU40_IDS, np.int64)
     void = ~np.isin(gt_ids // 1000, benchmark_classes)
 
@@ -140,8 +143,9 @@ class ClassDetections:
     has_pred: bool
 
 
-def class_detections(scenes: Sequence[SceneMatches], nyu40: int, overlap: float,
-                     min_region_size: int = MIN_REGION_SIZE) -> ClassDetections:
+def class_detections(
+    scenes: Sequence[SceneMatches], nyu40: int, overlap: float, min_region_size: int = MIN_REGION_SIZE
+) -> ClassDetections:
     """True and false positives of class `nyu40` at IoU threshold `overlap`, pooled over scenes."""
     per_scene = [scene_class_detections(scene, nyu40, overlap, min_region_size) for scene in scenes]
     return ClassDetections(
@@ -153,8 +157,9 @@ def class_detections(scenes: Sequence[SceneMatches], nyu40: int, overlap: float,
     )
 
 
-def scene_class_detections(scene: SceneMatches, nyu40: int, overlap: float,
-                           min_region_size: int = MIN_REGION_SIZE) -> ClassDetections:
+def scene_class_detections(
+    scene: SceneMatches, nyu40: int, overlap: float, min_region_size: int = MIN_REGION_SIZE
+) -> ClassDetections:
     """True and false positives of class `nyu40` at IoU threshold `overlap` in one scene (the module
     docstring's matching and ignore rules)."""
     gt_cols = np.flatnonzero(scene.gt_classes == nyu40)
@@ -192,8 +197,13 @@ def scene_class_detections(scene: SceneMatches, nyu40: int, overlap: float,
         if ignored / pred_sizes[p] <= overlap:
             scores.append(float(confidences[p]))
             is_true.append(False)
-    return ClassDetections(np.asarray(scores, np.float64), np.asarray(is_true, bool), num_missed,
-                           has_gt=bool(counted.any()), has_pred=pred_rows.size > 0)
+    return ClassDetections(
+        np.asarray(scores, np.float64),
+        np.asarray(is_true, bool),
+        num_missed,
+        has_gt=bool(counted.any()),
+        has_pred=pred_rows.size > 0,
+    )
 
 
 def precision_recall_curve(scores: np.ndarray, is_true: np.ndarray, num_missed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -309,8 +319,13 @@ class BenchmarkResult:
             "mAP50": _json_float(self.mAP50),
             "mAP25": _json_float(self.mAP25),
             "classes": {
-                name: {"AP": _json_float(ap[name]), "AP50": _json_float(ap50[name]), "AP25": _json_float(ap25[name]),
-                       "num_gt": self.gt_counts[name], "num_pred": self.pred_counts[name]}
+                name: {
+                    "AP": _json_float(ap[name]),
+                    "AP50": _json_float(ap50[name]),
+                    "AP25": _json_float(ap25[name]),
+                    "num_gt": self.gt_counts[name],
+                    "num_pred": self.pred_counts[name],
+                }
                 for name in self.class_names
             },
             "overlaps": [float(o) for o in self.overlaps],
@@ -318,8 +333,9 @@ class BenchmarkResult:
         }
 
 
-def evaluate_scenes(scenes: Sequence[tuple[np.ndarray, InstancePredictions]],
-                    scene_names: Sequence[str] | None = None) -> BenchmarkResult:
+def evaluate_scenes(
+    scenes: Sequence[tuple[np.ndarray, InstancePredictions]], scene_names: Sequence[str] | None = None
+) -> BenchmarkResult:
     """Evaluates predictions against ground truth over one or more scenes (pooled per class).
 
     Args:
@@ -336,10 +352,11 @@ def evaluate_scenes(scenes: Sequence[tuple[np.ndarray, InstancePredictions]],
         for oi, overlap in enumerate(OVERLAPS):
             ap_table[ci, oi] = class_ap(class_detections(matches, nyu40, overlap))
     names = benchmark_class_names()
-    gt_counts = {n: sum(int(np.sum((m.gt_classes == c) & (m.gt_sizes >= MIN_REGION_SIZE))) for m in matches)
-                 for n, c in zip(names, BENCHMARK_NYU40_IDS)}
-    pred_counts = {n: sum(int(np.sum(m.pred_classes == c)) for m in matches)
-                   for n, c in zip(names, BENCHMARK_NYU40_IDS)}
+    gt_counts = {
+        n: sum(int(np.sum((m.gt_classes == c) & (m.gt_sizes >= MIN_REGION_SIZE))) for m in matches)
+        for n, c in zip(names, BENCHMARK_NYU40_IDS)
+    }
+    pred_counts = {n: sum(int(np.sum(m.pred_classes == c)) for m in matches) for n, c in zip(names, BENCHMARK_NYU40_IDS)}
     return BenchmarkResult(names, ap_table, OVERLAPS.copy(), gt_counts, pred_counts, scene_names)
 
 

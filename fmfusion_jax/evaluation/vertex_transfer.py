@@ -7,8 +7,9 @@ from collections.abc import Sequence
 import numpy as np
 
 
-def points_to_vertex_masks(vertices: np.ndarray, instance_points: Sequence[np.ndarray],
-                           radius: float = 0.08, neighbours: int = 1) -> np.ndarray:
+def points_to_vertex_masks(
+    vertices: np.ndarray, instance_points: Sequence[np.ndarray], radius: float = 0.08, neighbours: int = 1
+) -> np.ndarray:
     """Vertex masks of instances: a vertex joins the instance of its nearest point closer than `radius`
     (`neighbours` = 1), or the instance holding most of its `neighbours` nearest points within `radius`
     (ties: the one with the nearest point). Voting keeps the masks whole where two instances' points

@@ -56,8 +56,7 @@ class InstancePredictions:
         ids = np.asarray(self.nyu40_ids).astype(np.int64).reshape(-1)
         confidences = np.asarray(self.confidences, np.float64).reshape(-1)
         if ids.shape[0] != masks.shape[0] or confidences.shape[0] != masks.shape[0]:
-            raise ValueError(f"{masks.shape[0]} masks but {ids.shape[0]} nyu40 ids and {confidences.shape[0]} "
-                             "confidences")
+            raise ValueError(f"{masks.shape[0]} masks but {ids.shape[0]} nyu40 ids and {confidences.shape[0]} confidences")
         # Normalised copies on a frozen dataclass.
         object.__setattr__(self, "masks", masks)
         object.__setattr__(self, "nyu40_ids", ids)
@@ -144,21 +143,28 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         if mask_path in seen:
             raise DataError(f"{where}: mask {relative} is already listed on line {seen[mask_path]}")
         seen[mask_path] = number
-        mask = read_mask_file(mask_path, where, max_bytes=_MAX_MASK_BYTES if num_vertices is None
-                              else _MASK_BYTES_PER_VERTEX * num_vertices + 64)
+        mask = read_mask_file(
+            mask_path, where, max_bytes=_MAX_MASK_BYTES if num_vertices is None else _MASK_BYTES_PER_VERTEX * num_vertices + 64
+        )
         if num_vertices is None:
             num_vertices = mask.shape[0]
         if mask.shape[0] != num_vertices:
-            raise DataError(f"{mask_path} (listed at {where}): {mask.shape[0]} lines but the mesh has {num_vertices} "
-                            "vertices: was it predicted on another mesh?")
+            raise DataError(
+                f"{mask_path} (listed at {where}): {mask.shape[0]} lines but the mesh has {num_vertices} "
+                "vertices: was it predicted on another mesh?"
+            )
         masks.append(mask)
         ids.append(nyu40)
         confidences.append(confidence)
     unscored = sorted({nyu40 for nyu40 in ids if nyu40 not in BENCHMARK_NYU40_IDS})
     if unscored:
-        logger.warning("%s: %d predictions have nyu40 ids outside the %d benchmark classes (%s): they are not scored",
-                       txt_path, sum(nyu40 in unscored for nyu40 in ids), len(BENCHMARK_NYU40_IDS),
-                       ", ".join(map(str, unscored[:5])) + (" ..." if len(unscored) > 5 else ""))
+        logger.warning(
+            "%s: %d predictions have nyu40 ids outside the %d benchmark classes (%s): they are not scored",
+            txt_path,
+            sum(nyu40 in unscored for nyu40 in ids),
+            len(BENCHMARK_NYU40_IDS),
+            ", ".join(map(str, unscored[:5])) + (" ..." if len(unscored) > 5 else ""),
+        )
     if not masks:
         return InstancePredictions.empty(num_vertices or 0)
     return InstancePredictions(np.stack(masks), np.asarray(ids, np.int64), np.asarray(confidences, np.float64))

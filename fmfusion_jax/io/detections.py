@@ -84,8 +84,10 @@ def format_tags(tags: Sequence[str], frame_name: str) -> str:
     """``["a", "b"]`` -> ``"a. b"``; `ValueError` for a tag that would not read back the same."""
     for tag in tags:
         if not isinstance(tag, str) or not tag or tag != tag.strip() or "." in tag:
-            raise ValueError(f"{frame_name}: tag {tag!r} cannot be written as a '. '-separated tag "
-                             "(must be a non-empty string without '.' or surrounding spaces)")
+            raise ValueError(
+                f"{frame_name}: tag {tag!r} cannot be written as a '. '-separated tag "
+                "(must be a non-empty string without '.' or surrounding spaces)"
+            )
     return ". ".join(tags)
 
 
@@ -103,8 +105,9 @@ def read_frame_labels(folder: str | Path, frame_name: str) -> dict[str, Any] | N
         raise DataError(f"{path}: not a regular file")
     size = path.stat().st_size
     if size > MAX_LABEL_FILE_BYTES:
-        raise DataError(f"{path}: {size / 2**20:.1f} MiB, more than a detection file can be "
-                        f"({MAX_LABEL_FILE_BYTES // 2**20} MiB)")
+        raise DataError(
+            f"{path}: {size / 2**20:.1f} MiB, more than a detection file can be ({MAX_LABEL_FILE_BYTES // 2**20} MiB)"
+        )
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError) as error:
@@ -119,8 +122,10 @@ def read_frame_labels(folder: str | Path, frame_name: str) -> dict[str, Any] | N
     if not isinstance(entries, list):
         raise DataError(f"{path}: 'mask' must be a list of detection entries")
     if len(entries) > MAX_DETECTIONS_PER_FRAME + 1:
-        raise DataError(f"{path}: {len(entries)} entries, more than the {MAX_DETECTIONS_PER_FRAME} detections a "
-                        "frame may hold (filter the detector's output first)")
+        raise DataError(
+            f"{path}: {len(entries)} entries, more than the {MAX_DETECTIONS_PER_FRAME} detections a "
+            "frame may hold (filter the detector's output first)"
+        )
 
     detections = []
     for position, entry in enumerate(entries):
@@ -155,8 +160,9 @@ def read_frame_labels(folder: str | Path, frame_name: str) -> dict[str, Any] | N
     }
 
 
-def read_frame_detections(folder: str | Path, frame_name: str,
-                          image_shape: tuple[int, int] | None = None) -> FrameDetections | None:
+def read_frame_detections(
+    folder: str | Path, frame_name: str, image_shape: tuple[int, int] | None = None
+) -> FrameDetections | None:
     """Reads one detection frame; None when `frame_name` has no ``_label.json`` in `folder`.
 
     Args:
@@ -190,8 +196,15 @@ def read_frame_detections(folder: str | Path, frame_name: str,
     if image_shape is not None and (height, width) != tuple(image_shape):
         raise DataError(f"{mask_path}: masks are {width}x{height}, the images are {image_shape[1]}x{image_shape[0]}")
     boxes = _clip_boxes(parsed["boxes"], height, width, label_path(folder, frame_name))
-    return FrameDetections(frame_name=frame_name, masks=masks, labels=parsed["labels"], boxes=boxes,
-                           raw_tags=parsed["raw_tags"], tags=parsed["tags"], prompt=parsed["prompt"])
+    return FrameDetections(
+        frame_name=frame_name,
+        masks=masks,
+        labels=parsed["labels"],
+        boxes=boxes,
+        raw_tags=parsed["raw_tags"],
+        tags=parsed["tags"],
+        prompt=parsed["prompt"],
+    )
 
 
 def write_frame_detections(folder: str | Path, detections: FrameDetections, mask_format: str = "png") -> list[Path]:
@@ -223,8 +236,12 @@ def write_frame_detections(folder: str | Path, detections: FrameDetections, mask
     _check_tag_list(document["tagger_tags"], name, "tags", error=ValueError)
 
     if mask_format == "png" and (count > 255 or (count and masks.sum(axis=0).max() > 1)):
-        logger.info("%s: %s; writing %s instead of a png (which holds one detection per pixel)", name,
-                    "more than 255 detections" if count > 255 else "masks overlap", NPY_SUFFIX)
+        logger.info(
+            "%s: %s; writing %s instead of a png (which holds one detection per pixel)",
+            name,
+            "more than 255 detections" if count > 255 else "masks overlap",
+            NPY_SUFFIX,
+        )
         mask_format = "npy"
     if mask_format == "png":
         label_image = np.zeros(masks.shape[1:], np.uint8)
@@ -284,8 +301,11 @@ def _check_labels(labels: Any, where: str, error: type[Exception] = DataError) -
 
 def _check_box(box: Any, where: str, error: type[Exception] = DataError) -> list[float]:
     """A box ``[u0, v0, u1, v1]`` of 4 finite numbers with u0 <= u1, v0 <= v1."""
-    if not (isinstance(box, (list, tuple)) and len(box) == 4
-            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in box)):
+    if not (
+        isinstance(box, (list, tuple))
+        and len(box) == 4
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in box)
+    ):
         raise error(f"{where}: 'box' must be 4 finite numbers [u0, v0, u1, v1], found {box!r}")
     u0, v0, u1, v1 = (float(x) for x in box)
     if u0 > u1 or v0 > v1:
@@ -304,8 +324,10 @@ def _clip_boxes(boxes: np.ndarray, height: int, width: int, path: Path) -> np.nd
     margin_u, margin_v = BOX_MARGIN_FRACTION * width, BOX_MARGIN_FRACTION * height
     for k, (u0, v0, u1, v1) in enumerate(boxes):
         if u0 < -margin_u or v0 < -margin_v or u1 > width + margin_u or v1 > height + margin_v:
-            raise DataError(f"{path}: box {k} [{u0:g}, {v0:g}, {u1:g}, {v1:g}] lies outside the {width}x{height} "
-                            "image (boxes must be in the masks' pixel units)")
+            raise DataError(
+                f"{path}: box {k} [{u0:g}, {v0:g}, {u1:g}, {v1:g}] lies outside the {width}x{height} "
+                "image (boxes must be in the masks' pixel units)"
+            )
     clipped = boxes.copy()
     clipped[:, [0, 2]] = clipped[:, [0, 2]].clip(0, width)
     clipped[:, [1, 3]] = clipped[:, [1, 3]].clip(0, height)

@@ -78,8 +78,10 @@ def load_scannet_ground_truth(scene_dir: str | Path, labels_tsv: str | Path | No
     vertices, faces, colors = read_ply_mesh(scene_dir / f"{name}_vh_clean_2.ply")
     segment_ids = read_segment_ids(scene_dir / f"{name}_vh_clean_2.0.010000.segs.json")
     if segment_ids.shape[0] != vertices.shape[0]:
-        raise DataError(f"{scene_dir / f'{name}_vh_clean_2.0.010000.segs.json'}: {segment_ids.shape[0]} segIndices "
-                        f"but the mesh has {vertices.shape[0]} vertices")
+        raise DataError(
+            f"{scene_dir / f'{name}_vh_clean_2.0.010000.segs.json'}: {segment_ids.shape[0]} segIndices "
+            f"but the mesh has {vertices.shape[0]} vertices"
+        )
     groups = read_aggregation(scene_dir / f"{name}.aggregation.json")
 
     instance_ids = vertex_instance_ids(segment_ids, groups)
@@ -140,8 +142,10 @@ def find_labels_tsv(scene_dir: Path) -> Path:
         for name in LABELS_TSV_NAMES:
             if (folder / name).is_file():
                 return folder / name
-    raise DataError(f"{scene_dir}: no labels tsv ({' or '.join(LABELS_TSV_NAMES)}) in the scene folder or its "
-                    "parent; pass its path explicitly")
+    raise DataError(
+        f"{scene_dir}: no labels tsv ({' or '.join(LABELS_TSV_NAMES)}) in the scene folder or its "
+        "parent; pass its path explicitly"
+    )
 
 
 def read_nyu40_mapping(path: str | Path) -> dict[str, int]:
@@ -157,8 +161,9 @@ def read_nyu40_mapping(path: str | Path) -> dict[str, int]:
             fields = reader.fieldnames or []
             label_column = "raw_category" if "raw_category" in fields else "category"
             if label_column not in fields or "nyu40id" not in fields:
-                raise DataError(f"{path}: a labels tsv needs columns 'category' (or 'raw_category') and 'nyu40id'; "
-                                f"found {fields}")
+                raise DataError(
+                    f"{path}: a labels tsv needs columns 'category' (or 'raw_category') and 'nyu40id'; found {fields}"
+                )
             mapping: dict[str, int] = {}
             for row in reader:
                 label, nyu40 = (row[label_column] or "").strip(), (row["nyu40id"] or "").strip()
@@ -167,8 +172,7 @@ def read_nyu40_mapping(path: str | Path) -> dict[str, int]:
                 try:
                     mapping[label] = int(nyu40) if nyu40 else 0
                 except ValueError:
-                    raise DataError(f"{path}:{reader.line_num}: nyu40id {nyu40!r} of {label!r} is not an integer") \
-                        from None
+                    raise DataError(f"{path}:{reader.line_num}: nyu40id {nyu40!r} of {label!r} is not an integer") from None
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise DataError(f"{path}: cannot read the labels tsv ({error})") from error
     return mapping
@@ -241,9 +245,22 @@ def _parse_int_lines(text: str, path: Path, what: str) -> np.ndarray:
 # A small PLY reader: vertices (+ colours) and triangles, ascii or binary. Enough for ScanNet meshes.
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 
 
@@ -251,8 +268,8 @@ _PLY_TYPES = {
 class _PlyElement:
     name: str
     count: int
-    scalars: list[tuple[str, str]]                     # (property name, numpy type code)
-    lists: list[tuple[str, str, str]]                  # (property name, count type, item type)
+    scalars: list[tuple[str, str]]  # (property name, numpy type code)
+    lists: list[tuple[str, str, str]]  # (property name, count type, item type)
     order: list[str] = dataclasses.field(default_factory=list)  # property names in file order
 
 
@@ -292,8 +309,11 @@ def _read_ply_elements(path: Path, what: str) -> dict:
     except OSError as error:
         raise DataError(f"{path}: cannot read the {what} ({error})") from error
     fmt, elements, body = _parse_ply_header(data, path)
-    arrays = _read_ply_ascii(body, elements, path) if fmt == "ascii" else \
-        _read_ply_binary(body, elements, "<" if fmt == "binary_little_endian" else ">", path)
+    arrays = (
+        _read_ply_ascii(body, elements, path)
+        if fmt == "ascii"
+        else _read_ply_binary(body, elements, "<" if fmt == "binary_little_endian" else ">", path)
+    )
     if "vertex" not in arrays:
         raise DataError(f"{path}: no 'vertex' element")
     return arrays
@@ -332,8 +352,10 @@ def _parse_ply_header(data: bytes, path: Path) -> tuple[str, list[_PlyElement], 
 
 def _triangle_list(element: _PlyElement, path: Path) -> tuple[str, str, str]:
     if element.name != "face" or len(element.lists) != 1 or element.order[-1] != element.lists[0][0]:
-        raise DataError(f"{path}: element {element.name!r} has list properties this reader does not support "
-                        "(only a face element ending with one vertex index list)")
+        raise DataError(
+            f"{path}: element {element.name!r} has list properties this reader does not support "
+            "(only a face element ending with one vertex index list)"
+        )
     return element.lists[0]
 
 
@@ -348,8 +370,9 @@ def _read_ply_binary(body: bytes, elements: list[_PlyElement], endian: str, path
         dtype = np.dtype(fields)
         size = dtype.itemsize * element.count
         if offset + size > len(body):
-            raise DataError(f"{path}: file ends inside the {element.name!r} element (truncated, or faces that "
-                            "are not all triangles)")
+            raise DataError(
+                f"{path}: file ends inside the {element.name!r} element (truncated, or faces that are not all triangles)"
+            )
         records = np.frombuffer(body, dtype, element.count, offset)
         offset += size
         if element.lists and np.any(records["__count__"] != 3):
@@ -363,7 +386,7 @@ def _read_ply_ascii(body: bytes, elements: list[_PlyElement], path: Path) -> dic
     lines = body.decode("ascii", "replace").splitlines()
     arrays, start = {}, 0
     for element in elements:
-        rows = lines[start:start + element.count]
+        rows = lines[start : start + element.count]
         start += element.count
         width = len(element.scalars) + (4 if element.lists else 0)
         if element.lists:
@@ -371,9 +394,10 @@ def _read_ply_ascii(body: bytes, elements: list[_PlyElement], path: Path) -> dic
         try:
             table = np.array(" ".join(rows).split(), np.float64).reshape(element.count, width)
         except ValueError:
-            raise DataError(f"{path}: element {element.name!r} is malformed (expected {element.count} rows of "
-                            f"{width} numbers{'; only triangle faces are supported' if element.lists else ''})") \
-                from None
+            raise DataError(
+                f"{path}: element {element.name!r} is malformed (expected {element.count} rows of "
+                f"{width} numbers{'; only triangle faces are supported' if element.lists else ''})"
+            ) from None
         columns = {name: table[:, i].astype(code) for i, (name, code) in enumerate(element.scalars)}
         if element.lists:
             if np.any(table[:, -4] != 3):

@@ -25,8 +25,9 @@ def instance_colors(num: int, seed: int = 7) -> np.ndarray:
     return (np.clip(rgb, 0, 1) * 200 + 40).astype(np.uint8)
 
 
-def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, label: np.ndarray | None = None,
-                      instance: np.ndarray | None = None) -> None:
+def write_point_cloud(
+    path: Path, points: np.ndarray, colors: np.ndarray, label: np.ndarray | None = None, instance: np.ndarray | None = None
+) -> None:
     """A binary PLY point cloud with RGB colours (opens in MeshLab, CloudCompare, Open3D, trimesh).
 
     Args:
@@ -37,9 +38,11 @@ def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, label:
       instance: optional `(N,)` instance ids, written as an `int instance` vertex property.
     """
     columns: list[tuple[str, str, str, np.ndarray]] = [
-        (axis, "<f4", "float", np.asarray(points, np.float32)[:, i]) for i, axis in enumerate("xyz")]
-    columns += [(channel, "u1", "uchar", np.asarray(colors, np.uint8)[:, i])
-                for i, channel in enumerate(("red", "green", "blue"))]
+        (axis, "<f4", "float", np.asarray(points, np.float32)[:, i]) for i, axis in enumerate("xyz")
+    ]
+    columns += [
+        (channel, "u1", "uchar", np.asarray(colors, np.uint8)[:, i]) for i, channel in enumerate(("red", "green", "blue"))
+    ]
     if label is not None:
         columns.append(("label", "<u2", "ushort", label))
     if instance is not None:
@@ -47,25 +50,40 @@ def write_point_cloud(path: Path, points: np.ndarray, colors: np.ndarray, label:
     vertex = np.empty(len(points), np.dtype([(name, code) for name, code, _, _ in columns]))
     for name, _, _, values in columns:
         vertex[name] = values
-    header = ["ply", "format binary_little_endian 1.0", "comment written by fmfusion-jax",
-              f"element vertex {len(points)}", *(f"property {ply_type} {name}" for name, _, ply_type, _ in columns),
-              "end_header"]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment written by fmfusion-jax",
+        f"element vertex {len(points)}",
+        *(f"property {ply_type} {name}" for name, _, ply_type, _ in columns),
+        "end_header",
+    ]
     path.write_bytes(("\n".join(header) + "\n").encode("ascii") + vertex.tobytes())
 
 
 def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
     """A binary PLY triangle mesh; an empty mesh is written as a valid PLY with no vertex and no face."""
     if len(vertices) == 0 or len(faces) == 0:
-        header = ["ply", "format binary_little_endian 1.0", "comment written by fmfusion-jax (empty mesh)",
-                  "element vertex 0", "property float x", "property float y", "property float z",
-                  "element face 0", "property list uchar int vertex_indices", "end_header"]
+        header = [
+            "ply",
+            "format binary_little_endian 1.0",
+            "comment written by fmfusion-jax (empty mesh)",
+            "element vertex 0",
+            "property float x",
+            "property float y",
+            "property float z",
+            "element face 0",
+            "property list uchar int vertex_indices",
+            "end_header",
+        ]
         path.write_bytes(("\n".join(header) + "\n").encode("ascii"))
         return
     mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces), process=False)
     if colors is not None:
         # a mesh built without texture carries ColorVisuals
         cast(trimesh.visual.ColorVisuals, mesh.visual).vertex_colors = np.concatenate(
-            [colors.astype(np.uint8), np.full((len(colors), 1), 255, np.uint8)], axis=1)
+            [colors.astype(np.uint8), np.full((len(colors), 1), 255, np.uint8)], axis=1
+        )
     mesh.export(str(path))
 
 
@@ -80,24 +98,29 @@ def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_set
     folder.mkdir(exist_ok=True)
     if not instances:
         for name in ("semantic.ply", "instances.ply"):
-            write_point_cloud(out_dir / name, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8),
-                              np.zeros(0, np.uint16), np.zeros(0, np.int32))
+            write_point_cloud(
+                out_dir / name,
+                np.zeros((0, 3), np.float32),
+                np.zeros((0, 3), np.uint8),
+                np.zeros(0, np.uint16),
+                np.zeros(0, np.int32),
+            )
         return
     points = np.concatenate([inst.points for inst in instances])
-    label = np.concatenate([np.full(len(inst.points), label_sets.nyu40_ids[inst.class_index], np.uint16)
-                            for inst in instances])
+    label = np.concatenate([np.full(len(inst.points), label_sets.nyu40_ids[inst.class_index], np.uint16) for inst in instances])
     instance = np.concatenate([np.full(len(inst.points), inst.instance_id, np.int32) for inst in instances])
-    class_colors = np.concatenate([np.repeat(label_sets.class_colors[inst.class_index][None], len(inst.points), 0)
-                                   for inst in instances])
+    class_colors = np.concatenate(
+        [np.repeat(label_sets.class_colors[inst.class_index][None], len(inst.points), 0) for inst in instances]
+    )
     palette = instance_colors(len(instances))
-    per_instance = np.concatenate([np.repeat(palette[i][None], len(inst.points), 0)
-                                   for i, inst in enumerate(instances)])
+    per_instance = np.concatenate([np.repeat(palette[i][None], len(inst.points), 0) for i, inst in enumerate(instances)])
     write_point_cloud(out_dir / "semantic.ply", points, class_colors, label, instance)
     write_point_cloud(out_dir / "instances.ply", points, per_instance, label, instance)
     for i, inst in enumerate(instances):
         name = label_sets.class_names[inst.class_index].replace(" ", "_")
-        write_point_cloud(folder / f"{inst.instance_id:04d}_{name}.ply", inst.points,
-                          np.repeat(palette[i][None], len(inst.points), 0))
+        write_point_cloud(
+            folder / f"{inst.instance_id:04d}_{name}.ply", inst.points, np.repeat(palette[i][None], len(inst.points), 0)
+        )
 
 
 def oriented_box(points: np.ndarray) -> dict:
@@ -113,27 +136,31 @@ def oriented_box(points: np.ndarray) -> dict:
     lo, hi = np.concatenate([local.min(0), points[:, 2:].min(0)]), np.concatenate([local.max(0), points[:, 2:].max(0)])
     centre_local = (lo + hi) / 2
     centre_xy = rotation.T @ centre_local[:2]
-    return {"center": [float(centre_xy[0]), float(centre_xy[1]), float(centre_local[2])],
-            "extent": (hi - lo).astype(float).tolist(), "yaw": yaw}
+    return {
+        "center": [float(centre_xy[0]), float(centre_xy[1]), float(centre_local[2])],
+        "extent": (hi - lo).astype(float).tolist(),
+        "yaw": yaw,
+    }
 
 
 def instances_json(instances: list[MapInstance], label_sets: LabelSets) -> list[dict]:
     """One record per instance: class, confidence, distribution, label histogram, size, box."""
     records = []
     for inst in instances:
-        histogram = {label_sets.open_labels[i]: round(float(v), 4)
-                     for i, v in enumerate(inst.open_label_histogram) if v > 0}
-        records.append({
-            "id": inst.instance_id,
-            "class": label_sets.class_names[inst.class_index],
-            "nyu40_id": int(label_sets.nyu40_ids[inst.class_index]),
-            "confidence": round(inst.confidence, 6),
-            "distribution": {name: round(float(p), 6) for name, p in zip(label_sets.class_names, inst.distribution)},
-            "observations": inst.observations,
-            "open_label_histogram": dict(sorted(histogram.items(), key=lambda kv: -kv[1])),
-            "voxel_count": int(len(inst.points)),
-            "oriented_box": oriented_box(inst.points),
-        })
+        histogram = {label_sets.open_labels[i]: round(float(v), 4) for i, v in enumerate(inst.open_label_histogram) if v > 0}
+        records.append(
+            {
+                "id": inst.instance_id,
+                "class": label_sets.class_names[inst.class_index],
+                "nyu40_id": int(label_sets.nyu40_ids[inst.class_index]),
+                "confidence": round(inst.confidence, 6),
+                "distribution": {name: round(float(p), 6) for name, p in zip(label_sets.class_names, inst.distribution)},
+                "observations": inst.observations,
+                "open_label_histogram": dict(sorted(histogram.items(), key=lambda kv: -kv[1])),
+                "voxel_count": int(len(inst.points)),
+                "oriented_box": oriented_box(inst.points),
+            }
+        )
     return records
 
 
@@ -145,16 +172,23 @@ INSTANCES_SCHEMA_VERSION = 2
 def write_instances_json(path: Path, instances: list[MapInstance], label_sets: LabelSets) -> None:
     """instances.json: a header saying what the numbers mean, then one record per instance."""
     document = {
-        "schema": INSTANCES_SCHEMA, "version": INSTANCES_SCHEMA_VERSION, "units": "metres",
+        "schema": INSTANCES_SCHEMA,
+        "version": INSTANCES_SCHEMA_VERSION,
+        "units": "metres",
         "frame": "world: the frame the camera poses map into (T_world_camera); ScanNet's world is z up",
         "instances": instances_json(instances, label_sets),
     }
     path.write_text(json.dumps(document, indent=1))
 
 
-def benchmark_predictions(instances: list[MapInstance], label_sets: LabelSets, vertices: np.ndarray,
-                          radius: float, structure_claims_vertices: bool = False,
-                          neighbours: int = 1) -> InstancePredictions:
+def benchmark_predictions(
+    instances: list[MapInstance],
+    label_sets: LabelSets,
+    vertices: np.ndarray,
+    radius: float,
+    structure_claims_vertices: bool = False,
+    neighbours: int = 1,
+) -> InstancePredictions:
     """Instances transferred to mesh vertices by radius search, with nyu40 ids and confidences.
 
     Wall and floor are not benchmark classes and are left out of the predictions. With
@@ -170,12 +204,14 @@ def benchmark_predictions(instances: list[MapInstance], label_sets: LabelSets, v
     if not keep:
         return InstancePredictions.empty(len(vertices))
     claimants = keep + (structure if structure_claims_vertices else [])
-    masks = points_to_vertex_masks(vertices, [inst.points for inst in claimants], radius=radius,
-                                   neighbours=neighbours)[:len(keep)]
-    return InstancePredictions(masks=masks,
-                               nyu40_ids=np.array([label_sets.nyu40_ids[i.class_index] for i in keep], np.int32),
-                               confidences=np.array([i.confidence for i in keep], np.float64))
-
+    masks = points_to_vertex_masks(vertices, [inst.points for inst in claimants], radius=radius, neighbours=neighbours)[
+        : len(keep)
+    ]
+    return InstancePredictions(
+        masks=masks,
+        nyu40_ids=np.array([label_sets.nyu40_ids[i.class_index] for i in keep], np.int32),
+        confidences=np.array([i.confidence for i in keep], np.float64),
+    )
 
 
 # ---------------------------------------------------------------------------------------------------

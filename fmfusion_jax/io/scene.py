@@ -64,10 +64,10 @@ class _Layout:
 
 
 _LAYOUTS = {
-    "scannet": _Layout("scannet", "color", (".jpg", ".png"), r"^(?:frame-)?(\d+)$", r"^(?:frame-)?(\d+)$",
-                       ("color", "depth", "intrinsic")),
-    "scenenn": _Layout("scenenn", "image", (".png", ".jpg"), r"^image(\d+)$", r"^depth(\d+)$",
-                       ("image", "depth", "intrinsic")),
+    "scannet": _Layout(
+        "scannet", "color", (".jpg", ".png"), r"^(?:frame-)?(\d+)$", r"^(?:frame-)?(\d+)$", ("color", "depth", "intrinsic")
+    ),
+    "scenenn": _Layout("scenenn", "image", (".png", ".jpg"), r"^image(\d+)$", r"^depth(\d+)$", ("image", "depth", "intrinsic")),
 }
 
 
@@ -79,8 +79,7 @@ def detect_layout(path: str | Path) -> str:
     matches = [name for name, layout in _LAYOUTS.items() if all((root / d).is_dir() for d in layout.required_dirs)]
     if len(matches) == 1:
         return matches[0]
-    expected = "; ".join(f"{name}: {', '.join(d + '/' for d in layout.required_dirs)}"
-                         for name, layout in _LAYOUTS.items())
+    expected = "; ".join(f"{name}: {', '.join(d + '/' for d in layout.required_dirs)}" for name, layout in _LAYOUTS.items())
     if not matches:
         present = sorted(p.name + "/" for p in root.iterdir() if p.is_dir())
         raise UserError(f"{root}: unknown scene layout (sub-folders {present or 'none'}); expected {expected}")
@@ -130,8 +129,7 @@ def read_pose(path: Path) -> np.ndarray | None:
         if error > _ROTATION_TOLERANCE or not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6):
             raise DataError(f"{path}: not a rigid transform (|R^T R - I| = {error:.3g}, last row {pose[3]})")
         if np.linalg.det(rotation) < 0:
-            raise DataError(f"{path}: the rotation is a reflection (det R = {np.linalg.det(rotation):.3g}), "
-                            "not a camera pose")
+            raise DataError(f"{path}: the rotation is a reflection (det R = {np.linalg.det(rotation):.3g}), not a camera pose")
     return pose
 
 
@@ -186,8 +184,9 @@ def backproject(depth: np.ndarray, intrinsics: CameraIntrinsics, pixel_step: int
 def frustum_corners(intrinsics: CameraIntrinsics, depth: float) -> np.ndarray:
     """Camera centre and the 4 image corners at `depth`: `(5, 3)` camera-frame points."""
     corners = [(0.0, 0.0), (intrinsics.width, 0.0), (0.0, intrinsics.height), (intrinsics.width, intrinsics.height)]
-    points = [((u - intrinsics.cx) * depth / intrinsics.fx, (v - intrinsics.cy) * depth / intrinsics.fy, depth)
-              for u, v in corners]
+    points = [
+        ((u - intrinsics.cx) * depth / intrinsics.fx, (v - intrinsics.cy) * depth / intrinsics.fy, depth) for u, v in corners
+    ]
     return np.array([(0.0, 0.0, 0.0), *points])
 
 
@@ -231,9 +230,20 @@ class Scene:
       depth_max, depth_scale, stride: the reading options.
     """
 
-    def __init__(self, path: Path, layout: str, intrinsics: CameraIntrinsics, frame_names: Sequence[str],
-                 frame_indices: Sequence[int], T_world_cameras: np.ndarray, skipped: Sequence[tuple[str, str]],
-                 color_paths: Sequence[Path], depth_scale: float, depth_max: float, stride: int):
+    def __init__(
+        self,
+        path: Path,
+        layout: str,
+        intrinsics: CameraIntrinsics,
+        frame_names: Sequence[str],
+        frame_indices: Sequence[int],
+        T_world_cameras: np.ndarray,
+        skipped: Sequence[tuple[str, str]],
+        color_paths: Sequence[Path],
+        depth_scale: float,
+        depth_max: float,
+        stride: int,
+    ):
         self.path = path
         self.name = path.name
         self.layout = layout
@@ -253,8 +263,10 @@ class Scene:
         return len(self.frame_names)
 
     def __repr__(self) -> str:
-        return (f"Scene({self.name!r}, layout={self.layout!r}, frames={len(self)}, skipped={len(self.skipped)}, "
-                f"image={self.intrinsics.width}x{self.intrinsics.height})")
+        return (
+            f"Scene({self.name!r}, layout={self.layout!r}, frames={len(self)}, skipped={len(self.skipped)}, "
+            f"image={self.intrinsics.width}x{self.intrinsics.height})"
+        )
 
     def poses(self) -> np.ndarray:
         """`(N, 4, 4)` float64 T_world_camera of the usable frames (a copy; no image is read)."""
@@ -272,8 +284,10 @@ class Scene:
         depth = read_depth_image(path, self.depth_scale, self.depth_max)
         expected = (self.intrinsics.height, self.intrinsics.width)
         if depth.shape != expected:
-            raise DataError(f"{path}: depth is {depth.shape[1]}x{depth.shape[0]}, but the intrinsics are for "
-                            f"{expected[1]}x{expected[0]} images")
+            raise DataError(
+                f"{path}: depth is {depth.shape[1]}x{depth.shape[0]}, but the intrinsics are for "
+                f"{expected[1]}x{expected[0]} images"
+            )
         return depth
 
     def read_color(self, i: int) -> np.ndarray:
@@ -285,8 +299,15 @@ class Scene:
             shrinking = color.shape[0] > height
             if not self._resize_noted:
                 self._resize_noted = True
-                logger.info("%s: colour images are %dx%d, resized to the depth size %dx%d (first: %s)",
-                            self.name, color.shape[1], color.shape[0], width, height, path.name)
+                logger.info(
+                    "%s: colour images are %dx%d, resized to the depth size %dx%d (first: %s)",
+                    self.name,
+                    color.shape[1],
+                    color.shape[0],
+                    width,
+                    height,
+                    path.name,
+                )
             color = cv2.resize(color, (width, height), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
         return color
 
@@ -297,8 +318,14 @@ class Scene:
         i %= len(self)
         depth = self.read_depth(i)
         color = self.read_color(i)
-        return RGBDFrame(index=int(self.frame_indices[i]), name=self.frame_names[i], color=color, depth=depth,
-                         T_world_camera=self._T_world_cameras[i].copy(), intrinsics=self.intrinsics)
+        return RGBDFrame(
+            index=int(self.frame_indices[i]),
+            name=self.frame_names[i],
+            color=color,
+            depth=depth,
+            T_world_camera=self._T_world_cameras[i].copy(),
+            intrinsics=self.intrinsics,
+        )
 
     def frames(self) -> Iterator[RGBDFrame]:
         """Reads the usable frames one by one, in order."""
@@ -332,8 +359,10 @@ class Scene:
         valid = np.concatenate(depths)
         world = np.concatenate(points)
         if valid.size == 0:
-            raise DataError(f"{self.path}: no valid depth in the {len(picks)} sampled frames "
-                            f"(depth_scale {self.depth_scale}, depth_max {self.depth_max} m)")
+            raise DataError(
+                f"{self.path}: no valid depth in the {len(picks)} sampled frames "
+                f"(depth_scale {self.depth_scale}, depth_max {self.depth_max} m)"
+            )
         return DepthSample(
             frame_names=tuple(self.frame_names[i] for i in read),
             valid_fraction=float(valid.size / num_pixels),
@@ -342,8 +371,14 @@ class Scene:
             world_max=world.max(axis=0),
         )
 
-    def bounds(self, method: str = "depth", max_frames: int = 60, pixel_step: int = 8, margin: float = 0.25,
-               sample: DepthSample | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def bounds(
+        self,
+        method: str = "depth",
+        max_frames: int = 60,
+        pixel_step: int = 8,
+        margin: float = 0.25,
+        sample: DepthSample | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """An axis-aligned box holding the scene in world coordinates: `(min (3,), max (3,))` float64 metres.
 
         Args:
@@ -389,8 +424,14 @@ class Scene:
         return {role: (self.path / file if (self.path / file).is_file() else None) for role, file in names.items()}
 
 
-def open_scene(path: str | Path, layout: str = "auto", stride: int = 1, depth_max: float = 4.0,
-               depth_scale: float = 1000.0, max_frames: int | None = None) -> Scene:
+def open_scene(
+    path: str | Path,
+    layout: str = "auto",
+    stride: int = 1,
+    depth_max: float = 4.0,
+    depth_scale: float = 1000.0,
+    max_frames: int | None = None,
+) -> Scene:
     """Opens a scene folder: lists its frames, reads the intrinsics and the poses, checks every file exists.
 
     Args:
@@ -452,8 +493,19 @@ def open_scene(path: str | Path, layout: str = "auto", stride: int = 1, depth_ma
         poses.append(pose)
 
     intrinsics = _read_intrinsics(root, spec, all_names[0])
-    return Scene(root, layout, intrinsics, names, indices, np.array(poses).reshape(-1, 4, 4), skipped,
-                 [color_paths[i] for i in indices], depth_scale, depth_max, stride)
+    return Scene(
+        root,
+        layout,
+        intrinsics,
+        names,
+        indices,
+        np.array(poses).reshape(-1, 4, 4),
+        skipped,
+        [color_paths[i] for i in indices],
+        depth_scale,
+        depth_max,
+        stride,
+    )
 
 
 def _list_color_images(folder: Path, spec: _Layout) -> list[Path]:
@@ -465,8 +517,9 @@ def _list_color_images(folder: Path, spec: _Layout) -> list[Path]:
         if match and entry.suffix.lower() in spec.color_suffixes:
             found.append((int(match.group(1)), entry.name, entry))
     if not found:
-        raise DataError(f"{folder}: no colour image named like {spec.stem_pattern!r} with suffix "
-                        f"{' or '.join(spec.color_suffixes)}")
+        raise DataError(
+            f"{folder}: no colour image named like {spec.stem_pattern!r} with suffix {' or '.join(spec.color_suffixes)}"
+        )
     found.sort()
     numbers = [number for number, _, _ in found]
     if len(set(numbers)) != len(numbers):
@@ -479,12 +532,16 @@ def _check_every_depth_has_color(root: Path, spec: _Layout, color_paths: list[Pa
     a missing colour image would otherwise silently shorten the sequence)."""
     pattern = re.compile(spec.depth_stem_pattern)
     color_numbers = {int(re.match(spec.stem_pattern, p.stem).group(1)) for p in color_paths}  # type: ignore[union-attr]
-    orphans = sorted((int(m.group(1)), entry.name) for entry in (root / "depth").iterdir()
-                     if entry.suffix.lower() == ".png" and (m := pattern.match(entry.stem))
-                     and int(m.group(1)) not in color_numbers)
+    orphans = sorted(
+        (int(m.group(1)), entry.name)
+        for entry in (root / "depth").iterdir()
+        if entry.suffix.lower() == ".png" and (m := pattern.match(entry.stem)) and int(m.group(1)) not in color_numbers
+    )
     if orphans:
-        raise DataError(f"{root / 'depth' / orphans[0][1]}: its colour image is missing from {root / spec.color_dir} "
-                        f"({len(orphans)} depth images have none)")
+        raise DataError(
+            f"{root / 'depth' / orphans[0][1]}: its colour image is missing from {root / spec.color_dir} "
+            f"({len(orphans)} depth images have none)"
+        )
 
 
 def _check_files_exist(paths: list[Path]) -> None:
@@ -526,8 +583,10 @@ def _read_intrinsics(root: Path, spec: _Layout, first_name: str) -> CameraIntrin
         first_depth = spec.depth_path(root, first_name)
         height, width = read_image(first_depth, cv2.IMREAD_UNCHANGED).shape[:2]
     if not (0 < K[0, 2] < width and 0 < K[1, 2] < height):
-        raise DataError(f"{matrix_path}: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the "
-                        f"{width}x{height} depth image (intrinsics of another camera or resolution?)")
+        raise DataError(
+            f"{matrix_path}: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the "
+            f"{width}x{height} depth image (intrinsics of another camera or resolution?)"
+        )
     return CameraIntrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
 

@@ -66,8 +66,7 @@ def likelihood_from_logits(logits: jax.Array, parametrization: str = "column") -
     return jax.nn.sigmoid(logits)
 
 
-def logits_from_likelihood(matrix: np.ndarray, parametrization: str = "column",
-                           floor: float = LOGIT_FLOOR) -> np.ndarray:
+def logits_from_likelihood(matrix: np.ndarray, parametrization: str = "column", floor: float = LOGIT_FLOOR) -> np.ndarray:
     """Logits whose likelihood is `matrix` (entries raised to `floor`; for "column", columns summing to
     more than `1 - floor` scaled down to that first). `(O + 1, C)` or `(O, C)` float32."""
     _check(parametrization)
@@ -97,8 +96,9 @@ def class_log_probs(likelihood: jax.Array, histograms: jax.Array) -> jax.Array:
 
 def predicted_classes(likelihood: np.ndarray, histograms: np.ndarray) -> np.ndarray:
     """`(N,)` argmax class of each instance under `likelihood`."""
-    return np.asarray(jnp.argmax(class_log_probs(jnp.asarray(likelihood, jnp.float32),
-                                                 jnp.asarray(histograms, jnp.float32)), axis=1))
+    return np.asarray(
+        jnp.argmax(class_log_probs(jnp.asarray(likelihood, jnp.float32), jnp.asarray(histograms, jnp.float32)), axis=1)
+    )
 
 
 def label_accuracy(likelihood: np.ndarray, histograms: np.ndarray, classes: np.ndarray) -> float:
@@ -109,8 +109,9 @@ def label_accuracy(likelihood: np.ndarray, histograms: np.ndarray, classes: np.n
     return float(np.mean(predicted_classes(likelihood, histograms) == classes))
 
 
-def negative_log_likelihood(likelihood: jax.Array, histograms: jax.Array, classes: jax.Array,
-                            weights: jax.Array | None = None) -> jax.Array:
+def negative_log_likelihood(
+    likelihood: jax.Array, histograms: jax.Array, classes: jax.Array, weights: jax.Array | None = None
+) -> jax.Array:
     """Weighted mean of `-log p(true class)` over the instances (`weights` default: all 1)."""
     log_p = class_log_probs(likelihood, histograms)
     picked = jnp.take_along_axis(log_p, classes[:, None].astype(jnp.int32), axis=1)[:, 0]
@@ -118,8 +119,15 @@ def negative_log_likelihood(likelihood: jax.Array, histograms: jax.Array, classe
     return -jnp.sum(weights * picked) / jnp.maximum(jnp.sum(weights), 1e-12)
 
 
-def calibration_loss(logits: jax.Array, histograms: jax.Array, classes: jax.Array, init_logits: jax.Array,
-                     l2: float = 0.0, parametrization: str = "column", weights: jax.Array | None = None) -> jax.Array:
+def calibration_loss(
+    logits: jax.Array,
+    histograms: jax.Array,
+    classes: jax.Array,
+    init_logits: jax.Array,
+    l2: float = 0.0,
+    parametrization: str = "column",
+    weights: jax.Array | None = None,
+) -> jax.Array:
     """The scalar loss of the module docstring.
 
     Args:
@@ -151,8 +159,7 @@ class FitResult:
         return float(self.losses[-1])
 
 
-def _adam_scan(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2, parametrization,
-               record=None):
+def _adam_scan(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2, parametrization, record=None):
     """Adam from `init_logits`: `(theta, losses (steps + 1,), recorded (steps + 1,) or None)`, `recorded` the
     value of `record(theta)` before each step and after the last (traced; call inside `jit`)."""
     loss_and_grad = jax.value_and_grad(calibration_loss)
@@ -165,27 +172,35 @@ def _adam_scan(init_logits, histograms, classes, weights, trainable, steps, lear
         grad = grad * trainable[None, :]  # frozen columns keep their initial logits
         m = beta1 * m + (1 - beta1) * grad
         v = beta2 * v + (1 - beta2) * grad * grad
-        m_hat = m / (1 - beta1 ** t)
-        v_hat = v / (1 - beta2 ** t)
+        m_hat = m / (1 - beta1**t)
+        v_hat = v / (1 - beta2**t)
         return (theta - learning_rate * m_hat / (jnp.sqrt(v_hat) + eps), m, v), (loss, record(theta))
 
     zeros = jnp.zeros_like(init_logits)
-    (theta, _, _), (losses, recorded) = jax.lax.scan(step, (init_logits, zeros, zeros),
-                                                     jnp.arange(1, steps + 1, dtype=init_logits.dtype))
+    (theta, _, _), (losses, recorded) = jax.lax.scan(
+        step, (init_logits, zeros, zeros), jnp.arange(1, steps + 1, dtype=init_logits.dtype)
+    )
     final = calibration_loss(theta, histograms, classes, init_logits, l2, parametrization, weights)
     return theta, jnp.concatenate([losses, final[None]]), jnp.concatenate([recorded, record(theta)[None]])
 
 
 @functools.partial(jax.jit, static_argnames=("steps", "parametrization"))
 def _adam(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2, parametrization):
-    theta, losses, _ = _adam_scan(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2,
-                                  parametrization)
+    theta, losses, _ = _adam_scan(init_logits, histograms, classes, weights, trainable, steps, learning_rate, l2, parametrization)
     return theta, losses
 
 
-def fit_likelihood(init_logits: np.ndarray, histograms: np.ndarray, classes: np.ndarray, steps: int = 500,
-                   learning_rate: float = 0.05, l2: float = 1e-3, parametrization: str = "column",
-                   weights: np.ndarray | None = None, trainable: np.ndarray | None = None) -> FitResult:
+def fit_likelihood(
+    init_logits: np.ndarray,
+    histograms: np.ndarray,
+    classes: np.ndarray,
+    steps: int = 500,
+    learning_rate: float = 0.05,
+    l2: float = 1e-3,
+    parametrization: str = "column",
+    weights: np.ndarray | None = None,
+    trainable: np.ndarray | None = None,
+) -> FitResult:
     """Adam on `calibration_loss` from `init_logits` (`logits_from_likelihood` of the initial matrix).
 
     Args:
@@ -203,10 +218,10 @@ def fit_likelihood(init_logits: np.ndarray, histograms: np.ndarray, classes: np.
     cls = jnp.asarray(classes, jnp.int32).reshape(-1)
     w = jnp.ones(cls.shape, jnp.float32) if weights is None else jnp.asarray(weights, jnp.float32)
     mask = jnp.ones(init.shape[1], jnp.float32) if trainable is None else jnp.asarray(trainable, jnp.float32)
-    theta, losses = _adam(init, hist, cls, w, mask, int(steps), jnp.float32(learning_rate), jnp.float32(l2),
-                          parametrization)
-    return FitResult(np.asarray(theta), np.asarray(likelihood_from_logits(theta, parametrization), np.float64),
-                     np.asarray(losses, np.float64))
+    theta, losses = _adam(init, hist, cls, w, mask, int(steps), jnp.float32(learning_rate), jnp.float32(l2), parametrization)
+    return FitResult(
+        np.asarray(theta), np.asarray(likelihood_from_logits(theta, parametrization), np.float64), np.asarray(losses, np.float64)
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -221,8 +236,7 @@ def scene_folds(scenes: list[str], folds: int) -> list[list[str]]:
     """The distinct scenes, in order of first appearance, dealt round-robin into `min(folds, #scenes)` folds."""
     distinct = list(dict.fromkeys(scenes))
     if folds < 2 or len(distinct) < 2:
-        raise ValueError(f"cross-validation needs at least 2 folds and 2 scenes (folds {folds}, "
-                         f"scenes {len(distinct)})")
+        raise ValueError(f"cross-validation needs at least 2 folds and 2 scenes (folds {folds}, scenes {len(distinct)})")
     k = min(folds, len(distinct))
     return [distinct[i::k] for i in range(k)]
 
@@ -237,12 +251,12 @@ class CrossValidation:
     then the fewer steps).
     """
 
-    l2_grid: np.ndarray          # (G,)
-    folds: list[list[str]]       # scenes of each fold
-    fold_sizes: np.ndarray       # (K,) instances per fold
-    losses: np.ndarray           # (G, steps + 1)
-    fold_losses: np.ndarray      # (K, G, steps + 1)
-    l2: float                    # the choice
+    l2_grid: np.ndarray  # (G,)
+    folds: list[list[str]]  # scenes of each fold
+    fold_sizes: np.ndarray  # (K,) instances per fold
+    losses: np.ndarray  # (G, steps + 1)
+    fold_losses: np.ndarray  # (K, G, steps + 1)
+    l2: float  # the choice
     steps: int
     early_stopping: bool
 
@@ -256,14 +270,22 @@ class CrossValidation:
         rows = []
         for i, l2 in enumerate(self.l2_grid):
             t = int(np.argmin(self.losses[i])) if self.early_stopping else self.losses.shape[1] - 1
-            rows.append({"l2": float(l2), "best_steps": t, "loss_best": float(self.losses[i, t]),
-                         "loss_last": float(self.losses[i, -1]), "loss_initial": float(self.losses[i, 0])})
+            rows.append(
+                {
+                    "l2": float(l2),
+                    "best_steps": t,
+                    "loss_best": float(self.losses[i, t]),
+                    "loss_last": float(self.losses[i, -1]),
+                    "loss_initial": float(self.losses[i, 0]),
+                }
+            )
         return rows
 
 
 @functools.partial(jax.jit, static_argnames=("steps", "parametrization"))
-def _validation_paths(init_logits, histograms, classes, train_weights, val_weights, trainable, steps,
-                      learning_rate, l2_grid, parametrization):
+def _validation_paths(
+    init_logits, histograms, classes, train_weights, val_weights, trainable, steps, learning_rate, l2_grid, parametrization
+):
     """`(K, G, steps + 1)` validation loss along Adam for each fold (train/val weights, trainable: (K, ...))
     and each l2 of the grid."""
 
@@ -271,17 +293,27 @@ def _validation_paths(init_logits, histograms, classes, train_weights, val_weigh
         def validation(theta):
             return negative_log_likelihood(likelihood_from_logits(theta, parametrization), histograms, classes, val_w)
 
-        return _adam_scan(init_logits, histograms, classes, train_w, mask, steps, learning_rate, l2,
-                          parametrization, validation)[2]
+        return _adam_scan(init_logits, histograms, classes, train_w, mask, steps, learning_rate, l2, parametrization, validation)[
+            2
+        ]
 
     over_l2 = jax.vmap(path, in_axes=(None, None, None, 0))
     return jax.vmap(over_l2, in_axes=(0, 0, 0, None))(train_weights, val_weights, trainable, l2_grid)
 
 
-def cross_validate(init_logits: np.ndarray, histograms: np.ndarray, classes: np.ndarray, scenes: list[str],
-                   l2_grid=DEFAULT_L2_GRID, steps: int = 500, folds: int = 4, learning_rate: float = 0.05,
-                   parametrization: str = "column", min_class_instances: int = 0,
-                   early_stopping: bool = True) -> CrossValidation:
+def cross_validate(
+    init_logits: np.ndarray,
+    histograms: np.ndarray,
+    classes: np.ndarray,
+    scenes: list[str],
+    l2_grid=DEFAULT_L2_GRID,
+    steps: int = 500,
+    folds: int = 4,
+    learning_rate: float = 0.05,
+    parametrization: str = "column",
+    min_class_instances: int = 0,
+    early_stopping: bool = True,
+) -> CrossValidation:
     """Chooses `l2` (and, with `early_stopping`, the number of Adam steps) by K-fold cross-validation over scenes.
 
     The scenes are dealt into folds (`scene_folds`: no scene on both sides); for each fold and each `l2` of
@@ -306,15 +338,23 @@ def cross_validate(init_logits: np.ndarray, histograms: np.ndarray, classes: np.
         raise ValueError(f"{len(scenes)} scene names for {classes.size} instances")
     fold_scenes = scene_folds(list(scenes), folds)
     scene_array = np.asarray(scenes, dtype=object)
-    held = np.stack([np.isin(scene_array, f) for f in fold_scenes])            # (K, N)
+    held = np.stack([np.isin(scene_array, f) for f in fold_scenes])  # (K, N)
     num_classes = np.asarray(init_logits).shape[1]
     counts = np.stack([np.bincount(classes[~h], minlength=num_classes) for h in held])
     trainable = counts >= min_class_instances
-    paths = _validation_paths(jnp.asarray(init_logits, jnp.float32), jnp.asarray(histograms, jnp.float32),
-                              jnp.asarray(classes, jnp.int32), jnp.asarray(~held, jnp.float32),
-                              jnp.asarray(held, jnp.float32), jnp.asarray(trainable, jnp.float32), int(steps),
-                              jnp.float32(learning_rate), jnp.asarray(grid, jnp.float32), parametrization)
-    fold_losses = np.asarray(paths, np.float64)                                  # (K, G, steps + 1)
+    paths = _validation_paths(
+        jnp.asarray(init_logits, jnp.float32),
+        jnp.asarray(histograms, jnp.float32),
+        jnp.asarray(classes, jnp.int32),
+        jnp.asarray(~held, jnp.float32),
+        jnp.asarray(held, jnp.float32),
+        jnp.asarray(trainable, jnp.float32),
+        int(steps),
+        jnp.float32(learning_rate),
+        jnp.asarray(grid, jnp.float32),
+        parametrization,
+    )
+    fold_losses = np.asarray(paths, np.float64)  # (K, G, steps + 1)
     sizes = held.sum(axis=1)
     pooled = np.einsum("k,kgt->gt", sizes / sizes.sum(), fold_losses)
     candidates = pooled if early_stopping else pooled[:, -1:]

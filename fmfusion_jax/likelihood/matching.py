@@ -45,17 +45,21 @@ class MatchedInstances:
 
     @staticmethod
     def empty(num_open: int) -> "MatchedInstances":
-        return MatchedInstances(np.zeros((0, num_open), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                                np.zeros(0), [])
+        return MatchedInstances(
+            np.zeros((0, num_open), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), []
+        )
 
     @staticmethod
     def concatenate(parts: Sequence["MatchedInstances"], num_open: int) -> "MatchedInstances":
         if not parts:
             return MatchedInstances.empty(num_open)
-        return MatchedInstances(np.concatenate([p.histograms for p in parts]),
-                                np.concatenate([p.classes for p in parts]),
-                                np.concatenate([p.predicted for p in parts]), np.concatenate([p.iou for p in parts]),
-                                [name for p in parts for name in p.scenes])
+        return MatchedInstances(
+            np.concatenate([p.histograms for p in parts]),
+            np.concatenate([p.classes for p in parts]),
+            np.concatenate([p.predicted for p in parts]),
+            np.concatenate([p.iou for p in parts]),
+            [name for p in parts for name in p.scenes],
+        )
 
 
 def vertex_iou(pred_masks: np.ndarray, gt_instance_ids: np.ndarray, candidate_ids: np.ndarray) -> np.ndarray:
@@ -65,8 +69,14 @@ def vertex_iou(pred_masks: np.ndarray, gt_instance_ids: np.ndarray, candidate_id
     return mask_iou(gt_instance_ids, candidate_ids, pred_masks).T
 
 
-def match_instances(instances: Sequence[MapInstance], gt, scene_name: str, label_sets: LabelSets | None = None,
-                    radius: float = 0.08, min_iou: float = MATCH_IOU) -> MatchedInstances:
+def match_instances(
+    instances: Sequence[MapInstance],
+    gt,
+    scene_name: str,
+    label_sets: LabelSets | None = None,
+    radius: float = 0.08,
+    min_iou: float = MATCH_IOU,
+) -> MatchedInstances:
     """The instances of one map matched to the scene's ground truth (see the module docstring).
 
     Args:

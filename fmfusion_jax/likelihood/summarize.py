@@ -83,16 +83,22 @@ class LikelihoodCounts:
 
     @staticmethod
     def zeros(num_open: int, num_classes: int) -> "LikelihoodCounts":
-        return LikelihoodCounts(np.zeros(num_classes, np.int64), np.zeros((num_open, num_classes), np.int64),
-                                np.zeros((num_open, num_classes), np.int64), np.zeros((num_open, num_classes)))
+        return LikelihoodCounts(
+            np.zeros(num_classes, np.int64),
+            np.zeros((num_open, num_classes), np.int64),
+            np.zeros((num_open, num_classes), np.int64),
+            np.zeros((num_open, num_classes)),
+        )
 
     def __add__(self, other: "LikelihoodCounts") -> "LikelihoodCounts":
         return LikelihoodCounts(*(getattr(self, f.name) + getattr(other, f.name) for f in dataclasses.fields(self)))
 
     def to_dict(self, label_sets: LabelSets | None = None) -> dict:
         """JSON-ready: arrays as nested lists, with the label names of rows and columns."""
-        out = {f.name: (getattr(self, f.name).tolist() if isinstance(getattr(self, f.name), np.ndarray)
-                        else getattr(self, f.name)) for f in dataclasses.fields(self)}
+        out = {
+            f.name: (getattr(self, f.name).tolist() if isinstance(getattr(self, f.name), np.ndarray) else getattr(self, f.name))
+            for f in dataclasses.fields(self)
+        }
         if label_sets is not None:
             out["open_labels"], out["class_names"] = list(label_sets.open_labels), list(label_sets.class_names)
         return out
@@ -100,13 +106,17 @@ class LikelihoodCounts:
     @staticmethod
     def from_dict(data: Mapping) -> "LikelihoodCounts":
         return LikelihoodCounts(
-            np.asarray(data["frames_observing"], np.int64), np.asarray(data["frames_prompting"], np.int64),
-            np.asarray(data["instances_prompted"], np.int64), np.asarray(data["instances_detected_as"], np.float64),
-            int(data["frames"]), int(data["instances"]), int(data["matched"]))
+            np.asarray(data["frames_observing"], np.int64),
+            np.asarray(data["frames_prompting"], np.int64),
+            np.asarray(data["instances_prompted"], np.int64),
+            np.asarray(data["instances_detected_as"], np.float64),
+            int(data["frames"]),
+            int(data["instances"]),
+            int(data["matched"]),
+        )
 
 
-def frame_counts(classes: np.ndarray, label_weights: np.ndarray, prompt: np.ndarray,
-                 num_classes: int) -> LikelihoodCounts:
+def frame_counts(classes: np.ndarray, label_weights: np.ndarray, prompt: np.ndarray, num_classes: int) -> LikelihoodCounts:
     """The counts of one frame.
 
     Args:
@@ -121,13 +131,20 @@ def frame_counts(classes: np.ndarray, label_weights: np.ndarray, prompt: np.ndar
     weights = np.asarray(label_weights, np.float64).reshape(classes.size, prompt.size)
     onehot = np.zeros((classes.size, num_classes), np.int64)
     onehot[np.arange(classes.size), classes] = 1
-    per_class = onehot.sum(axis=0)                        # (C,) instances of each class in the frame
+    per_class = onehot.sum(axis=0)  # (C,) instances of each class in the frame
     observing = (per_class > 0).astype(np.int64)
-    in_prompt = prompt.astype(np.int64)[:, None]          # (O, 1)
+    in_prompt = prompt.astype(np.int64)[:, None]  # (O, 1)
     # A label outside the prompt cannot be a detection of it (O^_c is a subset of O_c).
-    detected = (weights * prompt[None, :]).T @ onehot     # (O, C)
-    return LikelihoodCounts(observing, in_prompt * observing[None, :], in_prompt * per_class[None, :], detected,
-                            frames=1, instances=int(classes.size), matched=int(np.count_nonzero(weights.sum(1))))
+    detected = (weights * prompt[None, :]).T @ onehot  # (O, C)
+    return LikelihoodCounts(
+        observing,
+        in_prompt * observing[None, :],
+        in_prompt * per_class[None, :],
+        detected,
+        frames=1,
+        instances=int(classes.size),
+        matched=int(np.count_nonzero(weights.sum(1))),
+    )
 
 
 def _ratio(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
@@ -148,8 +165,9 @@ def estimate(counts: LikelihoodCounts) -> tuple[np.ndarray, np.ndarray, np.ndarr
 # One frame: ground-truth instances, detections, matches
 
 
-def observed_instances(gt_image: np.ndarray, instance_classes: Mapping[int, int],
-                       min_pixels: int) -> tuple[np.ndarray, np.ndarray]:
+def observed_instances(
+    gt_image: np.ndarray, instance_classes: Mapping[int, int], min_pixels: int
+) -> tuple[np.ndarray, np.ndarray]:
     """`(ids (M,), classes (M,))` of the closed-class instances covering at least `min_pixels` pixels.
 
     Args:
@@ -157,8 +175,9 @@ def observed_instances(gt_image: np.ndarray, instance_classes: Mapping[int, int]
       instance_classes: class index of each instance of a closed class (others are ignored).
     """
     ids, areas = np.unique(np.asarray(gt_image).ravel(), return_counts=True)
-    keep = [(int(i), instance_classes[int(i)]) for i, a in zip(ids, areas)
-            if i > 0 and a >= min_pixels and int(i) in instance_classes]
+    keep = [
+        (int(i), instance_classes[int(i)]) for i, a in zip(ids, areas) if i > 0 and a >= min_pixels and int(i) in instance_classes
+    ]
     if not keep:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.array([i for i, _ in keep], np.int64), np.array([c for _, c in keep], np.int64)
@@ -199,8 +218,7 @@ def match_one_to_one(iou: np.ndarray, min_iou: float = MATCH_IOU) -> np.ndarray:
     return match
 
 
-def detection_label_weights(labels: Sequence[Mapping[str, float]], open_labels: Sequence[str],
-                            rule: str = "main") -> np.ndarray:
+def detection_label_weights(labels: Sequence[Mapping[str, float]], open_labels: Sequence[str], rule: str = "main") -> np.ndarray:
     """`(K, O)` the labels each detection counts as: one-hot on its main (highest-score) label of interest
     (ties: the first of `open_labels`), or its scores normalized to sum 1 (`rule="weighted"`)."""
     if rule not in LABEL_RULES:
@@ -219,9 +237,15 @@ def detection_label_weights(labels: Sequence[Mapping[str, float]], open_labels: 
     return _ratio(weights, weights.sum(axis=1, keepdims=True))
 
 
-def frame_record(gt_image: np.ndarray, instance_classes: Mapping[int, int], detections: FrameDetections,
-                 label_sets: LabelSets, min_pixels: int, min_iou: float = MATCH_IOU,
-                 label_rule: str = "main") -> LikelihoodCounts:
+def frame_record(
+    gt_image: np.ndarray,
+    instance_classes: Mapping[int, int],
+    detections: FrameDetections,
+    label_sets: LabelSets,
+    min_pixels: int,
+    min_iou: float = MATCH_IOU,
+    label_rule: str = "main",
+) -> LikelihoodCounts:
     """The counts of one frame from its ground-truth instance image and its detections."""
     ids, classes = observed_instances(gt_image, instance_classes, min_pixels)
     match = match_one_to_one(mask_iou(gt_image, ids, detections.masks), min_iou)
@@ -237,9 +261,16 @@ def frame_record(gt_image: np.ndarray, instance_classes: Mapping[int, int], dete
 # Scenes
 
 
-def summarize_scene(scene_dir: str | Path, detections_dir: str | Path, label_sets: LabelSets | None = None,
-                    min_pixels: int | None = None, min_iou: float = MATCH_IOU, label_rule: str = "main",
-                    depth_max: float = 4.0, progress: bool = False) -> LikelihoodCounts:
+def summarize_scene(
+    scene_dir: str | Path,
+    detections_dir: str | Path,
+    label_sets: LabelSets | None = None,
+    min_pixels: int | None = None,
+    min_iou: float = MATCH_IOU,
+    label_rule: str = "main",
+    depth_max: float = 4.0,
+    progress: bool = False,
+) -> LikelihoodCounts:
     """The counts over every frame of a scene that has a detection file.
 
     Args:
@@ -277,13 +308,23 @@ def summarize_scene(scene_dir: str | Path, detections_dir: str | Path, label_set
         detections = folder.get(scene.frame_names[i])
         assert detections is not None  # `frames` holds only frames with a detection file
         total = total + frame_record(gt_image, classes, detections, label_sets, min_pixels, min_iou, label_rule)
-    log.info("%s: %d frames, %d observed instances, %d matched to a detection", scene.name, total.frames,
-             total.instances, total.matched)
+    log.info(
+        "%s: %d frames, %d observed instances, %d matched to a detection",
+        scene.name,
+        total.frames,
+        total.instances,
+        total.matched,
+    )
     return total
 
 
-def write_summary(out_dir: str | Path, counts: LikelihoodCounts, label_sets: LabelSets | None = None,
-                  sources: Sequence[str] = (), settings: Mapping | None = None) -> dict[str, Path]:
+def write_summary(
+    out_dir: str | Path,
+    counts: LikelihoodCounts,
+    label_sets: LabelSets | None = None,
+    sources: Sequence[str] = (),
+    settings: Mapping | None = None,
+) -> dict[str, Path]:
     """Writes the summarized matrices (CSV), their heat maps (PNG) and the counts (JSON) into `out_dir`.
 
     Files: likelihood.csv (the 38 x 20 matrix, the format of configs/labels/likelihood_statistical.csv),
@@ -295,9 +336,11 @@ def write_summary(out_dir: str | Path, counts: LikelihoodCounts, label_sets: Lab
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     tagging, detection, likelihood = estimate(counts)
-    header = (f"Summarized with fmfusion likelihood summarize (paper, Appendix B) over {counts.frames} frames, "
-              f"{counts.instances} observed instances ({counts.matched} matched to a detection).\n"
-              + "".join(f"source: {s}\n" for s in sources))
+    header = (
+        f"Summarized with fmfusion likelihood summarize (paper, Appendix B) over {counts.frames} frames, "
+        f"{counts.instances} observed instances ({counts.matched} matched to a detection).\n"
+        + "".join(f"source: {s}\n" for s in sources)
+    )
     matrices = {
         "likelihood": (likelihood, "label likelihood p(y=o, o in prompt | c) = detection x tagging"),
         "tagging": (tagging, "tagging likelihood p(o in prompt | c)"),
@@ -305,10 +348,16 @@ def write_summary(out_dir: str | Path, counts: LikelihoodCounts, label_sets: Lab
     }
     paths: dict[str, Path] = {}
     for name, (matrix, what) in matrices.items():
-        paths[f"{name}.csv"] = write_likelihood_csv(out_dir / f"{name}.csv", matrix, label_sets,
-                                                    comment=f"{what}\n{header}".rstrip("\n"))
-        write_heatmap(out_dir / f"{name}.png", matrix, label_sets.open_labels, label_sets.class_names,
-                      title=f"{what}  ({counts.frames} frames)")
+        paths[f"{name}.csv"] = write_likelihood_csv(
+            out_dir / f"{name}.csv", matrix, label_sets, comment=f"{what}\n{header}".rstrip("\n")
+        )
+        write_heatmap(
+            out_dir / f"{name}.png",
+            matrix,
+            label_sets.open_labels,
+            label_sets.class_names,
+            title=f"{what}  ({counts.frames} frames)",
+        )
         paths[f"{name}.png"] = out_dir / f"{name}.png"
     record = {"sources": list(sources), "settings": dict(settings or {}), "counts": counts.to_dict(label_sets)}
     paths["counts.json"] = out_dir / "counts.json"

@@ -77,8 +77,9 @@ class GeneratedSize:
     height: int = 240
 
 
-def generated_cases(seeds: Sequence[int], root: str | Path = DEFAULT_CACHE, size: GeneratedSize = GeneratedSize(),
-                    progress: bool = False) -> list[Case]:
+def generated_cases(
+    seeds: Sequence[int], root: str | Path = DEFAULT_CACHE, size: GeneratedSize = GeneratedSize(), progress: bool = False
+) -> list[Case]:
     """Generated scenes (seeds) with simulated detections (the demo's noise model, seeded like the scene),
     cached under `root`; each fused with the demo config scaled to its size."""
     from fmfusion_jax.demo import demo_config, demo_noise
@@ -91,14 +92,18 @@ def generated_cases(seeds: Sequence[int], root: str | Path = DEFAULT_CACHE, size
         room = generate_scene(spec.seed, num_objects=spec.num_objects).room_size
         config = demo_config(spec.num_frames, spec.width, spec.height, room_size=room)
         every = detection_frame_stride(config) * config.dataset.frame_stride
-        prepared = prepare_generated(spec, root, demo_noise(spec.seed, spec.width, spec.height), every=every,
-                                     progress=progress)
+        prepared = prepare_generated(spec, root, demo_noise(spec.seed, spec.width, spec.height), every=every, progress=progress)
         cases.append(Case(prepared.name, prepared.scene_dir, prepared.detections_dir, config, True))
     return cases
 
 
-def real_case(scene_dir: str | Path, detections_dir: str | Path | None = None, root: str | Path = DEFAULT_CACHE,
-              config: str = DEFAULT_REAL_CONFIG, progress: bool = False) -> Case:
+def real_case(
+    scene_dir: str | Path,
+    detections_dir: str | Path | None = None,
+    root: str | Path = DEFAULT_CACHE,
+    config: str = DEFAULT_REAL_CONFIG,
+    progress: bool = False,
+) -> Case:
     """A real scene with the given detections, or with simulated ones (default noise, seed 0) cached under
     `root` when `detections_dir` is None."""
     from fmfusion_jax.simulation.noise import NoiseModel
@@ -108,8 +113,9 @@ def real_case(scene_dir: str | Path, detections_dir: str | Path | None = None, r
     pipeline_config = load_config(config)
     if detections_dir is None:
         every = detection_frame_stride(pipeline_config) * pipeline_config.dataset.frame_stride
-        detections_dir = prepare_real(scene_dir, root, NoiseModel.preset("default", seed=0), every=every,
-                                      progress=progress).detections_dir
+        detections_dir = prepare_real(
+            scene_dir, root, NoiseModel.preset("default", seed=0), every=every, progress=progress
+        ).detections_dir
     elif not Path(detections_dir).is_dir():
         raise UserError(f"detections folder {detections_dir} does not exist")
     return Case(scene_dir.name, scene_dir, Path(detections_dir), pipeline_config, False)
@@ -125,17 +131,28 @@ def with_likelihood(config: PipelineConfig, likelihood: str | Path) -> PipelineC
 # Summarization
 
 
-def summarize_cases(cases: Sequence[Case], label_sets: LabelSets | None = None, min_pixels: int | None = None,
-                    label_rule: str = "main", progress: bool = False):
+def summarize_cases(
+    cases: Sequence[Case],
+    label_sets: LabelSets | None = None,
+    min_pixels: int | None = None,
+    label_rule: str = "main",
+    progress: bool = False,
+):
     """`LikelihoodCounts` summed over the cases (each rendered at its config's depth truncation)."""
     from fmfusion_jax.likelihood.summarize import LikelihoodCounts, summarize_scene
 
     label_sets = label_sets or load_label_sets()
     total = LikelihoodCounts.zeros(label_sets.num_open, label_sets.num_classes)
     for case in cases:
-        total = total + summarize_scene(case.scene_dir, case.detections_dir, label_sets, min_pixels,
-                                        label_rule=label_rule, depth_max=case.config.dataset.depth_max,
-                                        progress=progress)
+        total = total + summarize_scene(
+            case.scene_dir,
+            case.detections_dir,
+            label_sets,
+            min_pixels,
+            label_rule=label_rule,
+            depth_max=case.config.dataset.depth_max,
+            progress=progress,
+        )
     return total
 
 
@@ -152,12 +169,11 @@ class RunOutcome:
     matched: MatchedInstances
     predictions: InstancePredictions  # over the GT mesh vertices
     gt_benchmark_ids: np.ndarray
-    scores: dict[str, float]   # mAP, mAP50, mAP25 of this scene alone
+    scores: dict[str, float]  # mAP, mAP50, mAP25 of this scene alone
     seconds: float
 
 
-def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None = None,
-              progress: bool = False) -> RunOutcome:
+def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None = None, progress: bool = False) -> RunOutcome:
     """Fuses `case` with `likelihood` (packaged name or CSV), matches its instances to ground truth and
     scores its benchmark export."""
     from fmfusion_jax.instances import drop_small_instances, postprocess_instances
@@ -172,8 +188,14 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     start = time.perf_counter()
     config = with_likelihood(case.config, likelihood)
     dataset = config.dataset
-    scene = open_scene(case.scene_dir, layout=dataset.layout, stride=dataset.frame_stride,
-                       depth_max=dataset.depth_max, depth_scale=dataset.depth_scale, max_frames=dataset.max_frames)
+    scene = open_scene(
+        case.scene_dir,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=dataset.max_frames,
+    )
     folder = DetectionFolder(case.detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
     result = fuse_scene(scene, lambda frame: folder.get(frame.name), config, progress=progress)
     gt = load_scannet_ground_truth(case.scene_dir)
@@ -186,8 +208,15 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     exported = postprocess_instances(unprocessed, label_sets, config.export)
     gt_ids = gt.benchmark_ids()
     predictions, score = score_instances(exported, gt, case.name, config, label_sets, gt_ids=gt_ids)
-    return RunOutcome(case.name, str(likelihood), matched, predictions, gt_ids,
-                      {"mAP": score.mAP, "mAP50": score.mAP50, "mAP25": score.mAP25}, time.perf_counter() - start)
+    return RunOutcome(
+        case.name,
+        str(likelihood),
+        matched,
+        predictions,
+        gt_ids,
+        {"mAP": score.mAP, "mAP50": score.mAP50, "mAP25": score.mAP25},
+        time.perf_counter() - start,
+    )
 
 
 def pooled_scores(outcomes: Sequence[RunOutcome]) -> dict[str, float]:
@@ -196,8 +225,7 @@ def pooled_scores(outcomes: Sequence[RunOutcome]) -> dict[str, float]:
 
     if not outcomes:
         return {}
-    score = evaluate_scenes([(o.gt_benchmark_ids, o.predictions) for o in outcomes],
-                            scene_names=[o.case for o in outcomes])
+    score = evaluate_scenes([(o.gt_benchmark_ids, o.predictions) for o in outcomes], scene_names=[o.case for o in outcomes])
     return {"mAP": score.mAP, "mAP50": score.mAP50, "mAP25": score.mAP25}
 
 
@@ -207,26 +235,31 @@ def pooled_scores(outcomes: Sequence[RunOutcome]) -> dict[str, float]:
 
 @dataclasses.dataclass
 class CalibrationSettings:
-    init: str = "statistical"          # matrix the fit starts from (and the training runs are fused with)
+    init: str = "statistical"  # matrix the fit starts from (and the training runs are fused with)
     parametrization: str = "column"
-    steps: int | None = None           # Adam steps; None: chosen by cross-validation (early stopping)
+    steps: int | None = None  # Adam steps; None: chosen by cross-validation (early stopping)
     learning_rate: float = 0.05
-    l2: float | None = None            # pull toward the initial logits; None: chosen by cross-validation
-    folds: int = 4                     # of the cross-validation, by training scene
+    l2: float | None = None  # pull toward the initial logits; None: chosen by cross-validation
+    folds: int = 4  # of the cross-validation, by training scene
     l2_grid: tuple[float, ...] = (0.0, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)  # candidates when l2 is None
-    max_steps: int = 500               # the most steps the cross-validation considers when steps is None
-    min_class_instances: int = 3       # classes with fewer training instances keep their initial column
-    label_rule: str = "main"           # of the summarization
-    min_pixels: int | None = None      # of the summarization (default: scaled from 400 at 640x480)
+    max_steps: int = 500  # the most steps the cross-validation considers when steps is None
+    min_class_instances: int = 3  # classes with fewer training instances keep their initial column
+    label_rule: str = "main"  # of the summarization
+    min_pixels: int | None = None  # of the summarization (default: scaled from 400 at 640x480)
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
 
-def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: str | Path,
-                          settings: CalibrationSettings | None = None, progress: bool = False,
-                          say: Callable[[str], None] = print) -> dict:
+def calibrate_and_compare(
+    train: Sequence[Case],
+    test: Sequence[Case],
+    out_dir: str | Path,
+    settings: CalibrationSettings | None = None,
+    progress: bool = False,
+    say: Callable[[str], None] = print,
+) -> dict:
     """The experiment of the module docstring; writes into `out_dir` and returns the report (report.json).
     `settings`: default `CalibrationSettings()`.
 
@@ -258,8 +291,13 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
     # 1. Summarized matrix of the training cases.
     say(f"summarizing the likelihood over {len(train)} training scenes ...")
     counts = summarize_cases(train, label_sets, settings.min_pixels, settings.label_rule, progress)
-    write_summary(out_dir / "summarized", counts, label_sets, sources=[f"{c.name}: {c.detections_dir}" for c in train],
-                  settings={"label_rule": settings.label_rule, "min_pixels": settings.min_pixels})
+    write_summary(
+        out_dir / "summarized",
+        counts,
+        label_sets,
+        sources=[f"{c.name}: {c.detections_dir}" for c in train],
+        settings={"label_rule": settings.label_rule, "min_pixels": settings.min_pixels},
+    )
     summarized_path = out_dir / "summarized" / "likelihood.csv"
     lap("summarize")
 
@@ -285,59 +323,115 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
         grid = settings.l2_grid if l2 is None else (l2,)
         horizon = settings.max_steps if steps is None else steps
         folds = cal.scene_folds(train_set.scenes, settings.folds)
-        say(f"cross-validating l2 in {list(grid)}" + (f" and 0-{horizon} Adam steps" if steps is None else "")
-            + f" over {len(folds)} folds of training scenes ...")
-        cv = cal.cross_validate(init_logits, train_set.histograms, train_set.classes, train_set.scenes, grid,
-                                horizon, settings.folds, settings.learning_rate, settings.parametrization,
-                                settings.min_class_instances, early_stopping=steps is None)
+        say(
+            f"cross-validating l2 in {list(grid)}"
+            + (f" and 0-{horizon} Adam steps" if steps is None else "")
+            + f" over {len(folds)} folds of training scenes ..."
+        )
+        cv = cal.cross_validate(
+            init_logits,
+            train_set.histograms,
+            train_set.classes,
+            train_set.scenes,
+            grid,
+            horizon,
+            settings.folds,
+            settings.learning_rate,
+            settings.parametrization,
+            settings.min_class_instances,
+            early_stopping=steps is None,
+        )
         l2, steps = cv.l2, cv.steps
-        validation = {"folds": cv.folds, "fold_instances": cv.fold_sizes.tolist(), "l2_grid": cv.l2_grid.tolist(),
-                      "early_stopping": cv.early_stopping, "table": cv.table(), "l2": cv.l2, "steps": cv.steps,
-                      "loss": cv.loss}
+        validation = {
+            "folds": cv.folds,
+            "fold_instances": cv.fold_sizes.tolist(),
+            "l2_grid": cv.l2_grid.tolist(),
+            "early_stopping": cv.early_stopping,
+            "table": cv.table(),
+            "l2": cv.l2,
+            "steps": cv.steps,
+            "loss": cv.loss,
+        }
         (out_dir / "validation.csv").write_text(
-            "step," + ",".join(f"l2={v:g}" for v in cv.l2_grid) + "\n"
-            + "".join(f"{t}," + ",".join(f"{v:.6f}" for v in cv.losses[:, t]) + "\n"
-                      for t in range(cv.losses.shape[1])))
-        say(f"  chosen: l2 {l2:g}, {steps} steps (validation loss {cv.loss:.4f}; "
-            f"{cv.losses[0, 0]:.4f} with the initial matrix)")
+            "step,"
+            + ",".join(f"l2={v:g}" for v in cv.l2_grid)
+            + "\n"
+            + "".join(f"{t}," + ",".join(f"{v:.6f}" for v in cv.losses[:, t]) + "\n" for t in range(cv.losses.shape[1]))
+        )
+        say(f"  chosen: l2 {l2:g}, {steps} steps (validation loss {cv.loss:.4f}; {cv.losses[0, 0]:.4f} with the initial matrix)")
         lap("cross_validation")
-    say(f"fitting the likelihood on {len(train_set)} instances ({settings.parametrization} parametrization, "
-        f"{steps} Adam steps, l2 {l2:g}) ...")
+    say(
+        f"fitting the likelihood on {len(train_set)} instances ({settings.parametrization} parametrization, "
+        f"{steps} Adam steps, l2 {l2:g}) ..."
+    )
     say(f"  trained columns: {', '.join(n for n, t in zip(label_sets.class_names, trainable) if t) or 'none'}")
-    fit = cal.fit_likelihood(init_logits, train_set.histograms, train_set.classes, steps,
-                             settings.learning_rate, l2, settings.parametrization, trainable=trainable)
+    fit = cal.fit_likelihood(
+        init_logits,
+        train_set.histograms,
+        train_set.classes,
+        steps,
+        settings.learning_rate,
+        l2,
+        settings.parametrization,
+        trainable=trainable,
+    )
     calibrated = fit.likelihood
     calibrated_path = write_likelihood_csv(
-        out_dir / "calibrated.csv", calibrated, label_sets,
-        comment=(f"Calibrated with fmfusion likelihood calibrate from the {init_name} likelihood on "
-                 f"{len(train_set)} instances of {', '.join(c.name for c in train)}\n"
-                 f"parametrization {settings.parametrization}, {steps} Adam steps, learning rate "
-                 f"{settings.learning_rate}, l2 {l2:g}"
-                 + (" (cross-validated)" if validation else "")
-                 + f"; loss {fit.initial_loss:.4f} -> {fit.final_loss:.4f}"))
-    write_heatmap(out_dir / "calibrated.png", calibrated, label_sets.open_labels, label_sets.class_names,
-                  title=f"calibrated likelihood (from {init_name}, {len(train_set)} training instances)")
-    write_heatmap(out_dir / "difference.png", np.abs(calibrated - init_matrix), label_sets.open_labels,
-                  label_sets.class_names, title=f"|calibrated - {init_name}|")
+        out_dir / "calibrated.csv",
+        calibrated,
+        label_sets,
+        comment=(
+            f"Calibrated with fmfusion likelihood calibrate from the {init_name} likelihood on "
+            f"{len(train_set)} instances of {', '.join(c.name for c in train)}\n"
+            f"parametrization {settings.parametrization}, {steps} Adam steps, learning rate "
+            f"{settings.learning_rate}, l2 {l2:g}"
+            + (" (cross-validated)" if validation else "")
+            + f"; loss {fit.initial_loss:.4f} -> {fit.final_loss:.4f}"
+        ),
+    )
+    write_heatmap(
+        out_dir / "calibrated.png",
+        calibrated,
+        label_sets.open_labels,
+        label_sets.class_names,
+        title=f"calibrated likelihood (from {init_name}, {len(train_set)} training instances)",
+    )
+    write_heatmap(
+        out_dir / "difference.png",
+        np.abs(calibrated - init_matrix),
+        label_sets.open_labels,
+        label_sets.class_names,
+        title=f"|calibrated - {init_name}|",
+    )
     (out_dir / "loss.csv").write_text("step,loss\n" + "".join(f"{i},{v:.6f}\n" for i, v in enumerate(fit.losses)))
     lap("fit")
 
-    matrices = {"manual": load_likelihood("manual"), "statistical": load_likelihood("statistical"),
-                "summarized": estimate(counts)[2], "calibrated": calibrated}
-    sources = {"manual": "manual", "statistical": "statistical", "summarized": str(summarized_path),
-               "calibrated": str(calibrated_path)}
+    matrices = {
+        "manual": load_likelihood("manual"),
+        "statistical": load_likelihood("statistical"),
+        "summarized": estimate(counts)[2],
+        "calibrated": calibrated,
+    }
+    sources = {
+        "manual": "manual",
+        "statistical": "statistical",
+        "summarized": str(summarized_path),
+        "calibrated": str(calibrated_path),
+    }
     if init_name not in sources:
         matrices[init_name], sources[init_name] = init_matrix, init_name
 
     def nll(matrix: np.ndarray, data: MatchedInstances) -> float:
         if len(data) == 0:
             return float("nan")
-        return float(cal.negative_log_likelihood(jnp.asarray(matrix, jnp.float32), jnp.asarray(data.histograms),
-                                                 jnp.asarray(data.classes)))
+        return float(
+            cal.negative_log_likelihood(jnp.asarray(matrix, jnp.float32), jnp.asarray(data.histograms), jnp.asarray(data.classes))
+        )
 
-    train_figures = {name: {"loss": nll(m, train_set), "accuracy": cal.label_accuracy(m, train_set.histograms,
-                                                                                          train_set.classes)}
-                     for name, m in matrices.items()}
+    train_figures = {
+        name: {"loss": nll(m, train_set), "accuracy": cal.label_accuracy(m, train_set.histograms, train_set.classes)}
+        for name, m in matrices.items()
+    }
 
     # 4. Held-out runs, one per matrix.
     test_runs: dict[str, dict[str, RunOutcome]] = {}
@@ -350,8 +444,7 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
             say(f"[test {done}/{total}] fusing {case.name} with the {name} likelihood ...")
             outcome = fuse_case(case, source, label_sets, progress)
             test_runs[case.name][name] = outcome
-            say(f"  mAP50 {_fmt(outcome.scores['mAP50'])}, {len(outcome.matched)} matched instances "
-                f"({outcome.seconds:.0f} s)")
+            say(f"  mAP50 {_fmt(outcome.scores['mAP50'])}, {len(outcome.matched)} matched instances ({outcome.seconds:.0f} s)")
     lap("test_runs")
 
     groups = {"generated": [c.name for c in test if c.generated], "real": [c.name for c in test if not c.generated]}
@@ -374,7 +467,8 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
 
     report = {
         "settings": dataclasses.asdict(settings),
-        "train_scenes": [c.name for c in train], "test_scenes": [c.name for c in test],
+        "train_scenes": [c.name for c in train],
+        "test_scenes": [c.name for c in test],
         "train_instances": len(train_set),
         "train_instances_per_class": {n: int(k) for n, k in zip(label_sets.class_names, class_instances)},
         "trained_columns": [n for n, t in zip(label_sets.class_names, trainable) if t],
@@ -383,10 +477,18 @@ def calibrate_and_compare(train: Sequence[Case], test: Sequence[Case], out_dir: 
         "loss": {"initial_raw": train_figures[init_name]["loss"], "initial": fit.initial_loss, "final": fit.final_loss},
         "train": train_figures,
         "held_out": held_out,
-        "per_scene": {case: {name: {**o.scores, "matched": len(o.matched),
-                                    "accuracy_own_run": float(np.mean(o.matched.predicted == o.matched.classes))
-                                    if len(o.matched) else None, "seconds": round(o.seconds, 1)}
-                             for name, o in per.items()} for case, per in test_runs.items()},
+        "per_scene": {
+            case: {
+                name: {
+                    **o.scores,
+                    "matched": len(o.matched),
+                    "accuracy_own_run": float(np.mean(o.matched.predicted == o.matched.classes)) if len(o.matched) else None,
+                    "seconds": round(o.seconds, 1),
+                }
+                for name, o in per.items()
+            }
+            for case, per in test_runs.items()
+        },
         "seconds": seconds,
         "summary_counts": {"frames": counts.frames, "instances": counts.instances, "matched": counts.matched},
     }
@@ -430,17 +532,22 @@ def report_markdown(report: dict) -> str:
             "## Cross-validation (training scenes only)",
             "",
             f"{len(cv['folds'])} folds by scene ({', '.join(str(n) for n in cv['fold_instances'])} instances): "
-            + "; ".join(", ".join(f) for f in cv["folds"]) + ". Mean -log p(true class) of the left-out "
+            + "; ".join(", ".join(f) for f in cv["folds"])
+            + ". Mean -log p(true class) of the left-out "
             "instances (pooled over folds), fitting on the other folds"
             + (" (best step: early stopping)." if cv["early_stopping"] else f" for {fit['steps']} steps."),
             "",
             "| l2 | best steps | validation loss at best | after the last step |",
             "|---|---:|---:|---:|",
         ]
-        lines += [f"| {r['l2']:g} | {r['best_steps']} | {_fmt(r['loss_best'], 4)} | {_fmt(r['loss_last'], 4)} |"
-                  for r in cv["table"]]
-        lines += ["", f"Chosen: l2 {cv['l2']:g}, {cv['steps']} steps (validation loss {_fmt(cv['loss'], 4)}; "
-                  f"{_fmt(cv['table'][0]['loss_initial'], 4)} with the initial matrix)."]
+        lines += [
+            f"| {r['l2']:g} | {r['best_steps']} | {_fmt(r['loss_best'], 4)} | {_fmt(r['loss_last'], 4)} |" for r in cv["table"]
+        ]
+        lines += [
+            "",
+            f"Chosen: l2 {cv['l2']:g}, {cv['steps']} steps (validation loss {_fmt(cv['loss'], 4)}; "
+            f"{_fmt(cv['table'][0]['loss_initial'], 4)} with the initial matrix).",
+        ]
     for group, block in report["held_out"].items():
         lines += [
             "",
@@ -454,8 +561,10 @@ def report_markdown(report: dict) -> str:
             "|---|---|---|---|---|---|---|---|",
         ]
         for name, f in block["matrices"].items():
-            lines.append(f"| {name} | {_fmt(f['loss'], 4)} | {_fmt(f['accuracy_fixed_histograms'])} | "
-                         f"{_fmt(f['accuracy_own_run'])} | {f['matched_own_run']} | {_fmt(f.get('mAP'))} | "
-                         f"{_fmt(f.get('mAP50'))} | {_fmt(f.get('mAP25'))} |")
+            lines.append(
+                f"| {name} | {_fmt(f['loss'], 4)} | {_fmt(f['accuracy_fixed_histograms'])} | "
+                f"{_fmt(f['accuracy_own_run'])} | {f['matched_own_run']} | {_fmt(f.get('mAP'))} | "
+                f"{_fmt(f.get('mAP50'))} | {_fmt(f.get('mAP25'))} |"
+            )
     lines += ["", "Wall time (s): " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in report["seconds"].items()), ""]
     return "\n".join(lines)

@@ -29,14 +29,34 @@ from fmfusion_jax.errors import UserError
 FAMILY_PRESETS = ("label_model", "partial", "merged", "border", "confusers")
 PRESETS = ("clean", "default", "hard", *FAMILY_PRESETS)
 #: Parameters that must lie in [0, 1].
-PROBABILITIES = ("label_confusion", "label_persistence", "extra_label_prob", "missed_tag_prob", "relabel_prob",
-                 "extra_confusion_prob", "consistent_mislabel_prob",
-                 "score_miscalibration", "partial_prob", "split_prob", "merge_prob", "partial_large_prob",
-                 "partial_straight_share", "partial_occluder_share", "merge_neighbor_prob", "bleed_prob",
-                 "erode_prob", "miss_prob", "small_object_miss_prob", "confuser_prob")
+PROBABILITIES = (
+    "label_confusion",
+    "label_persistence",
+    "extra_label_prob",
+    "missed_tag_prob",
+    "relabel_prob",
+    "extra_confusion_prob",
+    "consistent_mislabel_prob",
+    "score_miscalibration",
+    "partial_prob",
+    "split_prob",
+    "merge_prob",
+    "partial_large_prob",
+    "partial_straight_share",
+    "partial_occluder_share",
+    "merge_neighbor_prob",
+    "bleed_prob",
+    "erode_prob",
+    "miss_prob",
+    "small_object_miss_prob",
+    "confuser_prob",
+)
 #: Groups of probabilities of mutually exclusive outcomes: each group must sum to at most 1.
-EXCLUSIVE_GROUPS = (("partial_prob", "split_prob"), ("partial_straight_share", "partial_occluder_share"),
-                    ("bleed_prob", "erode_prob"))
+EXCLUSIVE_GROUPS = (
+    ("partial_prob", "split_prob"),
+    ("partial_straight_share", "partial_occluder_share"),
+    ("bleed_prob", "erode_prob"),
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,8 +197,16 @@ class NoiseModel:
             total = sum(getattr(self, name) for name in group)
             if total > 1.0:
                 raise UserError(f"{' + '.join(group)} = {total:g} must be <= 1")
-        for name in ("score_std", "border_offset_px", "border_jitter_px", "false_positive_rate",
-                     "likelihood_perturbation", "bleed_px", "erode_px", "blob_rate"):
+        for name in (
+            "score_std",
+            "border_offset_px",
+            "border_jitter_px",
+            "false_positive_rate",
+            "likelihood_perturbation",
+            "bleed_px",
+            "erode_px",
+            "blob_rate",
+        ):
             if getattr(self, name) < 0:
                 raise UserError(f"noise parameter {name}={getattr(self, name)} must be >= 0")
         # A probability without a size would silently do nothing.
@@ -194,8 +222,7 @@ class NoiseModel:
         if self.augmentation_window < 0 or self.raw_extra_tags < 0:
             raise UserError("augmentation_window and raw_extra_tags must be >= 0")
         if not 0.0 < self.text_threshold <= self.box_threshold < 1.0:
-            raise UserError(f"need 0 < text_threshold ({self.text_threshold}) <= box_threshold "
-                            f"({self.box_threshold}) < 1")
+            raise UserError(f"need 0 < text_threshold ({self.text_threshold}) <= box_threshold ({self.box_threshold}) < 1")
 
     def frame_rng(self, frame_index: int) -> np.random.Generator:
         """The generator of frame `frame_index`: reproducible on its own, whatever frames came before."""
@@ -225,17 +252,42 @@ class NoiseModel:
             base = NoiseModel()
         elif name == "clean":
             base = NoiseModel(
-                label_confusion=0.0, label_persistence=0.0, extra_label_prob=0.0, score_std=0.0,
-                missed_tag_prob=0.0, relabel_prob=0.0, raw_extra_tags=0, partial_prob=0.0, split_prob=0.0,
-                merge_prob=0.0, border_offset_px=0.0, border_jitter_px=0.0, miss_prob=0.0,
-                small_object_miss_prob=0.0, min_mask_pixels=100, false_positive_rate=0.0,
-                max_box_fraction=1.0)
+                label_confusion=0.0,
+                label_persistence=0.0,
+                extra_label_prob=0.0,
+                score_std=0.0,
+                missed_tag_prob=0.0,
+                relabel_prob=0.0,
+                raw_extra_tags=0,
+                partial_prob=0.0,
+                split_prob=0.0,
+                merge_prob=0.0,
+                border_offset_px=0.0,
+                border_jitter_px=0.0,
+                miss_prob=0.0,
+                small_object_miss_prob=0.0,
+                min_mask_pixels=100,
+                false_positive_rate=0.0,
+                max_box_fraction=1.0,
+            )
         elif name == "hard":
             base = NoiseModel(
-                label_persistence=0.5, extra_label_prob=0.6, score_std=0.09, missed_tag_prob=0.35,
-                relabel_prob=0.6, partial_prob=0.2, split_prob=0.15, merge_prob=0.1, border_offset_px=3.0,
-                border_jitter_px=4.0, miss_prob=0.1, small_object_miss_prob=0.5, small_object_pixels=6000,
-                min_mask_pixels=600, false_positive_rate=0.8)
+                label_persistence=0.5,
+                extra_label_prob=0.6,
+                score_std=0.09,
+                missed_tag_prob=0.35,
+                relabel_prob=0.6,
+                partial_prob=0.2,
+                split_prob=0.15,
+                merge_prob=0.1,
+                border_offset_px=3.0,
+                border_jitter_px=4.0,
+                miss_prob=0.1,
+                small_object_miss_prob=0.5,
+                small_object_pixels=6000,
+                min_mask_pixels=600,
+                false_positive_rate=0.8,
+            )
         else:
             raise UserError(f"unknown noise preset {name!r}; choose one of {', '.join(PRESETS)}")
         return base.replace(**changes) if changes else base
@@ -250,7 +302,7 @@ def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
     rows = np.flatnonzero(mask.any(axis=1))
     if rows.size == 0:
         return None
-    cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
+    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
@@ -277,8 +329,9 @@ def smooth_field(shape: tuple[int, int], rng: np.random.Generator, cell: float =
     return 1.4 * cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
-def perturb_border(mask: np.ndarray, rng: np.random.Generator, offset_std: float, jitter_px: float,
-                   cell: float = 16.0) -> np.ndarray:
+def perturb_border(
+    mask: np.ndarray, rng: np.random.Generator, offset_std: float, jitter_px: float, cell: float = 16.0
+) -> np.ndarray:
     """The mask with its border moved: a global offset ~ N(0, offset_std) px plus a smooth wobble.
 
     The border is moved by thresholding the signed distance to it, so the result stays one smooth
@@ -295,7 +348,7 @@ def perturb_border(mask: np.ndarray, rng: np.random.Generator, offset_std: float
     crop = mask[rows, cols].astype(np.uint8)
     inside = cv2.distanceTransform(crop, cv2.DIST_L2, 3)
     outside = cv2.distanceTransform(1 - crop, cv2.DIST_L2, 3)
-    signed = inside - outside          # >= 1 inside, <= -1 outside
+    signed = inside - outside  # >= 1 inside, <= -1 outside
     level = signed + offset
     if jitter_px > 0:
         level += jitter_px * smooth_field(crop.shape, rng, cell)
@@ -304,8 +357,9 @@ def perturb_border(mask: np.ndarray, rng: np.random.Generator, offset_std: float
     return out
 
 
-def cut_mask(mask: np.ndarray, rng: np.random.Generator, fraction: float,
-             waviness: float = 0.08, theta: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def cut_mask(
+    mask: np.ndarray, rng: np.random.Generator, fraction: float, waviness: float = 0.08, theta: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Cuts the mask along a random wavy line into a part holding `fraction` of its pixels and the rest.
 
     The line has a uniformly random direction (so either side can be the kept part) and a sinusoidal
@@ -357,9 +411,9 @@ def occlude_mask(mask: np.ndarray, rng: np.random.Generator, fraction: float) ->
     along = dx * math.cos(theta) + dy * math.sin(theta)
     across = (-dx * math.sin(theta) + dy * math.cos(theta)) / aspect
     if rng.random() < 0.5:
-        reach = np.maximum(np.abs(along), np.abs(across))      # rectangle
+        reach = np.maximum(np.abs(along), np.abs(across))  # rectangle
     else:
-        reach = np.hypot(along, across)                          # ellipse
+        reach = np.hypot(along, across)  # ellipse
     removed = reach < np.quantile(reach, 1.0 - fraction) if fraction < 1.0 else np.zeros(v.size, bool)
     out = mask.copy()
     out[v[removed], u[removed]] = False
@@ -374,7 +428,7 @@ def bleed_kernel(px: float, down: float = 2.0, up: float = 0.5) -> tuple[np.ndar
     """
     rx, rd, ru = max(px, 1.0), max(down * px, 1.0), max(up * px, 1.0)
     nx, nd, nu = int(math.ceil(rx)), int(math.ceil(rd)), int(math.ceil(ru))
-    dy, dx = np.mgrid[-nd:nu + 1, -nx:nx + 1]      # offsets source - target: dy < 0 spreads downwards
+    dy, dx = np.mgrid[-nd : nu + 1, -nx : nx + 1]  # offsets source - target: dy < 0 spreads downwards
     ry = np.where(dy < 0, rd, ru)
     kernel = ((dx / rx) ** 2 + (dy / ry) ** 2 <= 1.0).astype(np.uint8)
     return kernel, (nx, nd)
@@ -412,8 +466,9 @@ def erode_mask(mask: np.ndarray, rng: np.random.Generator, px: float) -> np.ndar
     return out
 
 
-def random_blob(shape: tuple[int, int], center: tuple[int, int], rng: np.random.Generator,
-                min_radius: float = 15.0, max_radius: float = 70.0) -> np.ndarray:
+def random_blob(
+    shape: tuple[int, int], center: tuple[int, int], rng: np.random.Generator, min_radius: float = 15.0, max_radius: float = 70.0
+) -> np.ndarray:
     """An ellipse of random size and orientation centred at pixel `(u, v)`, clipped to the image."""
     a = rng.uniform(min_radius, max_radius)
     b = a * rng.uniform(0.4, 1.0)

@@ -29,28 +29,104 @@ from fmfusion_jax.simulation import raycast
 CEILING_CLASS, CEILING_NYU40 = "ceiling", 22
 
 #: Object kinds `generate_scene` knows (each is also the name of its closed class).
-OBJECT_KINDS = ("door", "window", "bed", "chair", "sofa", "table", "desk", "cabinet", "bookshelf", "counter",
-                "refrigerator", "toilet", "sink", "bathtub", "curtain", "picture", "otherfurniture")
+OBJECT_KINDS = (
+    "door",
+    "window",
+    "bed",
+    "chair",
+    "sofa",
+    "table",
+    "desk",
+    "cabinet",
+    "bookshelf",
+    "counter",
+    "refrigerator",
+    "toilet",
+    "sink",
+    "bathtub",
+    "curtain",
+    "picture",
+    "otherfurniture",
+)
 
 #: Every raw label the generator uses -> its class (the labels tsv lists them all).
 RAW_LABELS = {
-    "wall": "wall", "floor": "floor", "ceiling": CEILING_CLASS, "door": "door", "window": "window", "bed": "bed",
-    "chair": "chair", "office chair": "chair", "armchair": "chair", "couch": "sofa", "table": "table",
-    "dining table": "table", "kitchen table": "table", "side table": "table", "end table": "table", "desk": "desk",
-    "cabinet": "cabinet", "kitchen cabinet": "cabinet", "file cabinet": "cabinet", "bookshelf": "bookshelf",
-    "counter": "counter", "kitchen counter": "counter", "refrigerator": "refrigerator", "mini fridge": "refrigerator",
-    "toilet": "toilet", "sink": "sink", "bathroom sink": "sink", "bathtub": "bathtub", "curtain": "curtain",
-    "picture": "picture", "trash can": "otherfurniture", "ottoman": "otherfurniture", "bench": "otherfurniture",
+    "wall": "wall",
+    "floor": "floor",
+    "ceiling": CEILING_CLASS,
+    "door": "door",
+    "window": "window",
+    "bed": "bed",
+    "chair": "chair",
+    "office chair": "chair",
+    "armchair": "chair",
+    "couch": "sofa",
+    "table": "table",
+    "dining table": "table",
+    "kitchen table": "table",
+    "side table": "table",
+    "end table": "table",
+    "desk": "desk",
+    "cabinet": "cabinet",
+    "kitchen cabinet": "cabinet",
+    "file cabinet": "cabinet",
+    "bookshelf": "bookshelf",
+    "counter": "counter",
+    "kitchen counter": "counter",
+    "refrigerator": "refrigerator",
+    "mini fridge": "refrigerator",
+    "toilet": "toilet",
+    "sink": "sink",
+    "bathroom sink": "sink",
+    "bathtub": "bathtub",
+    "curtain": "curtain",
+    "picture": "picture",
+    "trash can": "otherfurniture",
+    "ottoman": "otherfurniture",
+    "bench": "otherfurniture",
 }
 
 #: Relative frequency of a kind once every allowed kind has been placed once.
-_KIND_WEIGHTS = {"chair": 6.0, "table": 2.0, "desk": 1.5, "cabinet": 2.0, "bookshelf": 1.2, "sofa": 1.0,
-                 "bed": 0.6, "counter": 0.6, "refrigerator": 0.4, "toilet": 0.4, "sink": 0.5, "bathtub": 0.3,
-                 "curtain": 1.0, "picture": 2.0, "otherfurniture": 1.5, "window": 0.8, "door": 0.3}
+_KIND_WEIGHTS = {
+    "chair": 6.0,
+    "table": 2.0,
+    "desk": 1.5,
+    "cabinet": 2.0,
+    "bookshelf": 1.2,
+    "sofa": 1.0,
+    "bed": 0.6,
+    "counter": 0.6,
+    "refrigerator": 0.4,
+    "toilet": 0.4,
+    "sink": 0.5,
+    "bathtub": 0.3,
+    "curtain": 1.0,
+    "picture": 2.0,
+    "otherfurniture": 1.5,
+    "window": 0.8,
+    "door": 0.3,
+}
 
 #: Placement order (big and anchoring things first; chairs after tables; curtains after windows).
-_PLACEMENT_ORDER = ("door", "window", "bed", "bathtub", "counter", "sofa", "bookshelf", "refrigerator", "cabinet",
-                    "desk", "table", "toilet", "sink", "chair", "otherfurniture", "curtain", "picture")
+_PLACEMENT_ORDER = (
+    "door",
+    "window",
+    "bed",
+    "bathtub",
+    "counter",
+    "sofa",
+    "bookshelf",
+    "refrigerator",
+    "cabinet",
+    "desk",
+    "table",
+    "toilet",
+    "sink",
+    "chair",
+    "otherfurniture",
+    "curtain",
+    "picture",
+)
 
 #: Default room for up to `_BASE_OBJECTS` objects; more objects grow its floor area proportionally.
 DEFAULT_ROOM = (5.0, 4.0, 2.6)
@@ -155,8 +231,7 @@ class ProceduralScene:
 
     def enclosure(self) -> raycast.Enclosure:
         """The room interior with its wall/floor/ceiling boxes, for `raycast.raycast_boxes`."""
-        return raycast.Enclosure(np.zeros(3), np.asarray(self.room_size, np.float64),
-                                 np.asarray(self.enclosure_boxes, np.int64))
+        return raycast.Enclosure(np.zeros(3), np.asarray(self.room_size, np.float64), np.asarray(self.enclosure_boxes, np.int64))
 
     @property
     def object_ids(self) -> list[int]:
@@ -259,8 +334,7 @@ def _hsv(h, s, v) -> np.ndarray:
 def _legs(width, depth, height, leg, color, material, inset=0.0) -> list[_Part]:
     x = width / 2 - leg / 2 - inset
     y = depth / 2 - leg / 2 - inset
-    return [_Part((sx * x, sy * y, height / 2), (leg, leg, height), color, material, "leg")
-            for sx in (-1, 1) for sy in (-1, 1)]
+    return [_Part((sx * x, sy * y, height / 2), (leg, leg, height), color, material, "leg") for sx in (-1, 1) for sy in (-1, 1)]
 
 
 def _chair(rng, label=None) -> _Spec:
@@ -270,24 +344,27 @@ def _chair(rng, label=None) -> _Spec:
     back_h = rng.uniform(0.35, 0.5)
     frame = _wood(rng) if rng.random() < 0.6 else _jitter(rng, (0.2, 0.2, 0.22))
     seat = _fabric(rng) if rng.random() < 0.5 else frame
-    parts = [_Part((0, 0, seat_h - seat_t / 2), (w, d, seat_t), seat, "fabric", "seat"),
-             _Part((0, d / 2 - 0.02, seat_h + back_h / 2), (w, 0.04, back_h), seat, "fabric", "back")]
+    parts = [
+        _Part((0, 0, seat_h - seat_t / 2), (w, d, seat_t), seat, "fabric", "seat"),
+        _Part((0, d / 2 - 0.02, seat_h + back_h / 2), (w, 0.04, back_h), seat, "fabric", "back"),
+    ]
     if label == "office chair":
         metal = _jitter(rng, (0.25, 0.25, 0.27))
-        parts += [_Part((0, 0, (seat_h - seat_t) / 2 + 0.05), (0.06, 0.06, seat_h - seat_t - 0.1), metal, "metal",
-                        "column"),
-                  _Part((0, 0, 0.025), (0.55, 0.06, 0.05), metal, "metal", "base"),
-                  _Part((0, 0, 0.025), (0.06, 0.55, 0.05), metal, "metal", "base")]
+        parts += [
+            _Part((0, 0, (seat_h - seat_t) / 2 + 0.05), (0.06, 0.06, seat_h - seat_t - 0.1), metal, "metal", "column"),
+            _Part((0, 0, 0.025), (0.55, 0.06, 0.05), metal, "metal", "base"),
+            _Part((0, 0, 0.025), (0.06, 0.55, 0.05), metal, "metal", "base"),
+        ]
     elif label == "armchair":
         w += 0.2
         parts[0].size = (w - 0.2, d, seat_t + 0.1)
         parts[0].center = (0, 0, seat_h - (seat_t + 0.1) / 2)
         parts[1].size = (w, 0.08, back_h)
         parts[1].center = (0, d / 2 - 0.04, seat_h + back_h / 2)
-        parts += [_Part((sx * (w / 2 - 0.05), 0, (seat_h + 0.2) / 2), (0.1, d, seat_h + 0.2), seat, "fabric", "arm")
-                  for sx in (-1, 1)]
-        parts += [_Part((0, 0, (seat_h - seat_t - 0.1) / 2), (w - 0.2, d, seat_h - seat_t - 0.1), seat, "fabric",
-                        "base")]
+        parts += [
+            _Part((sx * (w / 2 - 0.05), 0, (seat_h + 0.2) / 2), (0.1, d, seat_h + 0.2), seat, "fabric", "arm") for sx in (-1, 1)
+        ]
+        parts += [_Part((0, 0, (seat_h - seat_t - 0.1) / 2), (w - 0.2, d, seat_h - seat_t - 0.1), seat, "fabric", "base")]
     else:
         parts += _legs(w, d, seat_h - seat_t, 0.04, frame, "wood")
     return _Spec("chair", label, parts, "free").recentred()
@@ -310,14 +387,18 @@ def _desk(rng) -> _Spec:
     w, d, h = rng.uniform(1.1, 1.6), rng.uniform(0.6, 0.75), rng.uniform(0.73, 0.76)
     color = _wood(rng) if rng.random() < 0.6 else _jitter(rng, (0.85, 0.85, 0.83))
     top_t, side_t = 0.03, 0.025
-    parts = [_Part((0, 0, h - top_t / 2), (w, d, top_t), color, "wood", "top"),
-             _Part((-(w / 2 - side_t / 2), 0, (h - top_t) / 2), (side_t, d, h - top_t), color, "wood", "side"),
-             _Part((0, d / 2 - 0.01, h - top_t - 0.2), (w - 2 * side_t, 0.02, 0.4), color, "wood", "modesty")]
+    parts = [
+        _Part((0, 0, h - top_t / 2), (w, d, top_t), color, "wood", "top"),
+        _Part((-(w / 2 - side_t / 2), 0, (h - top_t) / 2), (side_t, d, h - top_t), color, "wood", "side"),
+        _Part((0, d / 2 - 0.01, h - top_t - 0.2), (w - 2 * side_t, 0.02, 0.4), color, "wood", "modesty"),
+    ]
     if rng.random() < 0.6:  # a drawer unit on the right
         dw = 0.4
         parts.append(_Part((w / 2 - dw / 2, 0.0, (h - top_t) / 2), (dw, d, h - top_t), color, "wood", "drawers"))
-        parts += [_Part((w / 2 - dw / 2, -d / 2 - 0.01, z), (0.12, 0.02, 0.02), _jitter(rng, (0.3, 0.3, 0.3)),
-                        "metal", "handle") for z in (0.2, 0.45, 0.65)]
+        parts += [
+            _Part((w / 2 - dw / 2, -d / 2 - 0.01, z), (0.12, 0.02, 0.02), _jitter(rng, (0.3, 0.3, 0.3)), "metal", "handle")
+            for z in (0.2, 0.45, 0.65)
+        ]
     else:
         parts.append(_Part((w / 2 - side_t / 2, 0, (h - top_t) / 2), (side_t, d, h - top_t), color, "wood", "side"))
     return _Spec("desk", "desk", parts, "wall").recentred()
@@ -329,14 +410,23 @@ def _bed(rng) -> _Spec:
     sheet = _jitter(rng, _WHITE) if rng.random() < 0.5 else _fabric(rng)
     base_h, mat_h = rng.uniform(0.25, 0.32), rng.uniform(0.18, 0.24)
     head_h = rng.uniform(0.9, 1.05)
-    parts = [_Part((0, 0, base_h / 2), (w, length, base_h), frame, "wood", "frame"),
-             _Part((0, -0.02, base_h + mat_h / 2), (w - 0.06, length - 0.12, mat_h), sheet, "fabric", "mattress"),
-             _Part((0, length / 2 + 0.03, head_h / 2), (w + 0.04, 0.06, head_h), frame, "wood", "headboard")]
+    parts = [
+        _Part((0, 0, base_h / 2), (w, length, base_h), frame, "wood", "frame"),
+        _Part((0, -0.02, base_h + mat_h / 2), (w - 0.06, length - 0.12, mat_h), sheet, "fabric", "mattress"),
+        _Part((0, length / 2 + 0.03, head_h / 2), (w + 0.04, 0.06, head_h), frame, "wood", "headboard"),
+    ]
     pillows = 1 if w < 1.2 else 2
     for k in range(pillows):
         x = 0 if pillows == 1 else (k - 0.5) * w / 2
-        parts.append(_Part((x, length / 2 - 0.3, base_h + mat_h + 0.06), (min(0.6, w / pillows - 0.1), 0.38, 0.12),
-                           _jitter(rng, _WHITE), "fabric", "pillow"))
+        parts.append(
+            _Part(
+                (x, length / 2 - 0.3, base_h + mat_h + 0.06),
+                (min(0.6, w / pillows - 0.1), 0.38, 0.12),
+                _jitter(rng, _WHITE),
+                "fabric",
+                "pillow",
+            )
+        )
     return _Spec("bed", "bed", parts, "wall").recentred()
 
 
@@ -344,10 +434,12 @@ def _sofa(rng) -> _Spec:
     w, d = rng.uniform(1.6, 2.2), rng.uniform(0.85, 0.95)
     color = _fabric(rng)
     seat_h, back_h, arm_w, arm_h, back_t = 0.42, rng.uniform(0.78, 0.88), 0.16, 0.6, 0.2
-    parts = [_Part((0, -back_t / 2, seat_h / 2), (w - 2 * arm_w, d - back_t, seat_h), color, "fabric", "seat"),
-             _Part((0, d / 2 - back_t / 2, back_h / 2), (w, back_t, back_h), color, "fabric", "back"),
-             _Part((-(w / 2 - arm_w / 2), -back_t / 2, arm_h / 2), (arm_w, d - back_t, arm_h), color, "fabric", "arm"),
-             _Part((w / 2 - arm_w / 2, -back_t / 2, arm_h / 2), (arm_w, d - back_t, arm_h), color, "fabric", "arm")]
+    parts = [
+        _Part((0, -back_t / 2, seat_h / 2), (w - 2 * arm_w, d - back_t, seat_h), color, "fabric", "seat"),
+        _Part((0, d / 2 - back_t / 2, back_h / 2), (w, back_t, back_h), color, "fabric", "back"),
+        _Part((-(w / 2 - arm_w / 2), -back_t / 2, arm_h / 2), (arm_w, d - back_t, arm_h), color, "fabric", "arm"),
+        _Part((w / 2 - arm_w / 2, -back_t / 2, arm_h / 2), (arm_w, d - back_t, arm_h), color, "fabric", "arm"),
+    ]
     return _Spec("sofa", "couch", parts, "wall")
 
 
@@ -376,8 +468,9 @@ def _cabinet(rng) -> _Spec:
             x = -w / 2 + (k + 0.5) * dw
             parts.append(_Part((x, -d / 2 + 0.008, h / 2), (dw - 0.02, 0.016, h - 0.04), body, "wood", "door"))
             hx = x + (dw / 2 - 0.06) * (1 if k == 0 and n == 2 else -1 if n == 2 else 1)
-            parts.append(_Part((hx, -d / 2 - 0.01, h * 0.55 if h > 1.2 else h * 0.75), (0.02, 0.02, 0.14), handle,
-                               "metal", "handle"))
+            parts.append(
+                _Part((hx, -d / 2 - 0.01, h * 0.55 if h > 1.2 else h * 0.75), (0.02, 0.02, 0.14), handle, "metal", "handle")
+            )
     return _Spec("cabinet", label, parts, "wall").recentred()
 
 
@@ -385,11 +478,13 @@ def _bookshelf(rng) -> _Spec:
     w, d, h = rng.uniform(0.6, 1.2), rng.uniform(0.28, 0.4), rng.uniform(1.4, 2.0)
     color = _wood(rng) if rng.random() < 0.7 else _jitter(rng, _WHITE)
     t = 0.02
-    parts = [_Part((-(w / 2 - t / 2), 0, h / 2), (t, d, h), color, "wood", "side"),
-             _Part((w / 2 - t / 2, 0, h / 2), (t, d, h), color, "wood", "side"),
-             _Part((0, d / 2 - 0.005, h / 2), (w - 2 * t, 0.01, h), color, "wood", "back"),
-             _Part((0, 0, h - t / 2), (w - 2 * t, d - 0.01, t), color, "wood", "top"),
-             _Part((0, 0, 0.04), (w - 2 * t, d - 0.01, 0.08), color, "wood", "bottom")]
+    parts = [
+        _Part((-(w / 2 - t / 2), 0, h / 2), (t, d, h), color, "wood", "side"),
+        _Part((w / 2 - t / 2, 0, h / 2), (t, d, h), color, "wood", "side"),
+        _Part((0, d / 2 - 0.005, h / 2), (w - 2 * t, 0.01, h), color, "wood", "back"),
+        _Part((0, 0, h - t / 2), (w - 2 * t, d - 0.01, t), color, "wood", "top"),
+        _Part((0, 0, 0.04), (w - 2 * t, d - 0.01, 0.08), color, "wood", "bottom"),
+    ]
     shelves = int(rng.integers(3, 6))
     gap = (h - 0.08 - t) / shelves
     for k in range(1, shelves):
@@ -409,9 +504,11 @@ def _counter(rng) -> _Spec:
     label = rng.choice(["counter", "kitchen counter"])
     w, d, h = rng.uniform(1.2, 2.4), rng.uniform(0.58, 0.65), rng.uniform(0.88, 0.93)
     body, top = _paint(rng), _jitter(rng, rng.choice([(0.3, 0.3, 0.32), (0.85, 0.84, 0.8), (0.5, 0.45, 0.4)]))
-    parts = [_Part((0, 0.02, (h - 0.04) / 2), (w, d - 0.04, h - 0.04), body, "paint", "body"),
-             _Part((0, 0, h - 0.02), (w + 0.02, d, 0.04), top, "plain", "top"),
-             _Part((0, -d / 2 + 0.035, 0.05), (w, 0.03, 0.1), _jitter(rng, (0.2, 0.2, 0.2)), "plain", "kick")]
+    parts = [
+        _Part((0, 0.02, (h - 0.04) / 2), (w, d - 0.04, h - 0.04), body, "paint", "body"),
+        _Part((0, 0, h - 0.02), (w + 0.02, d, 0.04), top, "plain", "top"),
+        _Part((0, -d / 2 + 0.035, 0.05), (w, 0.03, 0.1), _jitter(rng, (0.2, 0.2, 0.2)), "plain", "kick"),
+    ]
     return _Spec("counter", label, parts, "wall").recentred()
 
 
@@ -426,31 +523,35 @@ def _refrigerator(rng) -> _Spec:
     split = h * 0.65 if h > 1.2 else h
     parts.append(_Part((0, -d / 2 + 0.02, split / 2), (w - 0.01, 0.04, split - 0.01), color, "metal", "door"))
     if split < h:
-        parts.append(_Part((0, -d / 2 + 0.02, (split + h) / 2), (w - 0.01, 0.04, h - split - 0.01), color, "metal",
-                           "door"))
+        parts.append(_Part((0, -d / 2 + 0.02, (split + h) / 2), (w - 0.01, 0.04, h - split - 0.01), color, "metal", "door"))
     handle = _jitter(rng, (0.6, 0.6, 0.62))
-    parts.append(_Part((w / 2 - 0.06, -d / 2 - 0.02, split * 0.7), (0.025, 0.04, min(0.4, split * 0.5)), handle,
-                       "metal", "handle"))
+    parts.append(
+        _Part((w / 2 - 0.06, -d / 2 - 0.02, split * 0.7), (0.025, 0.04, min(0.4, split * 0.5)), handle, "metal", "handle")
+    )
     return _Spec("refrigerator", label, parts, "wall").recentred()
 
 
 def _toilet(rng) -> _Spec:
     white = _jitter(rng, (0.94, 0.94, 0.93), 0.02)
-    parts = [_Part((0, -0.05, 0.16), (0.24, 0.36, 0.32), white, "plain", "pedestal"),
-             _Part((0, -0.1, 0.355), (0.38, 0.5, 0.07), white, "plain", "bowl"),
-             _Part((0, -0.1, 0.4), (0.4, 0.46, 0.02), white, "plain", "seat"),
-             _Part((0, 0.19, 0.6), (0.44, 0.18, 0.4), white, "plain", "tank"),
-             _Part((0, 0.19, 0.81), (0.46, 0.2, 0.02), white, "plain", "lid")]
+    parts = [
+        _Part((0, -0.05, 0.16), (0.24, 0.36, 0.32), white, "plain", "pedestal"),
+        _Part((0, -0.1, 0.355), (0.38, 0.5, 0.07), white, "plain", "bowl"),
+        _Part((0, -0.1, 0.4), (0.4, 0.46, 0.02), white, "plain", "seat"),
+        _Part((0, 0.19, 0.6), (0.44, 0.18, 0.4), white, "plain", "tank"),
+        _Part((0, 0.19, 0.81), (0.46, 0.2, 0.02), white, "plain", "lid"),
+    ]
     return _Spec("toilet", "toilet", parts, "wall").recentred()
 
 
 def _hollow(cx, cy, z0, w, d, h, t, color, material, name) -> list[_Part]:
     """An open-top box: bottom and four sides of thickness `t`."""
-    return [_Part((cx, cy, z0 + t / 2), (w, d, t), color, material, name + " bottom"),
-            _Part((cx - w / 2 + t / 2, cy, z0 + h / 2), (t, d, h), color, material, name + " side"),
-            _Part((cx + w / 2 - t / 2, cy, z0 + h / 2), (t, d, h), color, material, name + " side"),
-            _Part((cx, cy - d / 2 + t / 2, z0 + h / 2), (w - 2 * t, t, h), color, material, name + " side"),
-            _Part((cx, cy + d / 2 - t / 2, z0 + h / 2), (w - 2 * t, t, h), color, material, name + " side")]
+    return [
+        _Part((cx, cy, z0 + t / 2), (w, d, t), color, material, name + " bottom"),
+        _Part((cx - w / 2 + t / 2, cy, z0 + h / 2), (t, d, h), color, material, name + " side"),
+        _Part((cx + w / 2 - t / 2, cy, z0 + h / 2), (t, d, h), color, material, name + " side"),
+        _Part((cx, cy - d / 2 + t / 2, z0 + h / 2), (w - 2 * t, t, h), color, material, name + " side"),
+        _Part((cx, cy + d / 2 - t / 2, z0 + h / 2), (w - 2 * t, t, h), color, material, name + " side"),
+    ]
 
 
 def _sink(rng) -> _Spec:
@@ -460,8 +561,7 @@ def _sink(rng) -> _Spec:
     basin_h = 0.16
     parts = [_Part((0, 0.05, (top - basin_h) / 2), (0.18, 0.16, top - basin_h), white, "plain", "pedestal")]
     parts += _hollow(0, 0, top - basin_h, w, d, basin_h, 0.035, white, "plain", "basin")
-    parts.append(_Part((0, d / 2 - 0.05, top + 0.08), (0.04, 0.04, 0.16), _jitter(rng, (0.7, 0.7, 0.72)), "metal",
-                       "faucet"))
+    parts.append(_Part((0, d / 2 - 0.05, top + 0.08), (0.04, 0.04, 0.16), _jitter(rng, (0.7, 0.7, 0.72)), "metal", "faucet"))
     return _Spec("sink", label, parts, "wall").recentred()
 
 
@@ -476,17 +576,19 @@ def _otherfurniture(rng) -> _Spec:
     if label == "trash can":
         w = rng.uniform(0.25, 0.35)
         color = _jitter(rng, rng.choice([(0.3, 0.3, 0.32), (0.2, 0.4, 0.7), (0.8, 0.8, 0.8)]))
-        return _Spec("otherfurniture", label, _hollow(0, 0, 0, w, w, rng.uniform(0.35, 0.5), 0.012, color,
-                                                      "plain", "bin"), "free")
+        return _Spec(
+            "otherfurniture", label, _hollow(0, 0, 0, w, w, rng.uniform(0.35, 0.5), 0.012, color, "plain", "bin"), "free"
+        )
     if label == "ottoman":
         w = rng.uniform(0.45, 0.6)
-        return _Spec("otherfurniture", label, [_Part((0, 0, 0.21), (w, w, 0.42), _fabric(rng), "fabric", "body")],
-                     "free")
+        return _Spec("otherfurniture", label, [_Part((0, 0, 0.21), (w, w, 0.42), _fabric(rng), "fabric", "body")], "free")
     w, d, h = rng.uniform(1.0, 1.5), rng.uniform(0.35, 0.45), rng.uniform(0.42, 0.47)
     color = _wood(rng)
-    parts = [_Part((0, 0, h - 0.02), (w, d, 0.04), color, "wood", "seat"),
-             _Part((-(w / 2 - 0.04), 0, (h - 0.04) / 2), (0.04, d, h - 0.04), color, "wood", "leg"),
-             _Part((w / 2 - 0.04, 0, (h - 0.04) / 2), (0.04, d, h - 0.04), color, "wood", "leg")]
+    parts = [
+        _Part((0, 0, h - 0.02), (w, d, 0.04), color, "wood", "seat"),
+        _Part((-(w / 2 - 0.04), 0, (h - 0.04) / 2), (0.04, d, h - 0.04), color, "wood", "leg"),
+        _Part((w / 2 - 0.04, 0, (h - 0.04) / 2), (0.04, d, h - 0.04), color, "wood", "leg"),
+    ]
     return _Spec("otherfurniture", label, parts, "free")
 
 
@@ -497,8 +599,10 @@ def _curtain(rng, height) -> _Spec:
     color = _fabric(rng)
     pleats = max(3, int(round(w / 0.18)))
     pw = w / pleats
-    parts = [_Part((-w / 2 + (k + 0.5) * pw, 0.015 * (k % 2), (top + bottom) / 2), (pw, 0.03, top - bottom), color,
-                   "fabric", "pleat") for k in range(pleats)]
+    parts = [
+        _Part((-w / 2 + (k + 0.5) * pw, 0.015 * (k % 2), (top + bottom) / 2), (pw, 0.03, top - bottom), color, "fabric", "pleat")
+        for k in range(pleats)
+    ]
     return _Spec("curtain", "curtain", parts, "mounted", wall_gap=rng.uniform(0.07, 0.1)).recentred()
 
 
@@ -507,12 +611,19 @@ def _picture(rng, height) -> _Spec:
     zc = min(rng.uniform(1.3, 1.75), height - 0.2 - h / 2)
     frame = _jitter(rng, rng.choice([(0.1, 0.1, 0.1), (0.85, 0.85, 0.82), _WOODS[1]]))
     b, t = 0.04, 0.03
-    parts = [_Part((0, 0, zc + h / 2 - b / 2), (w, t, b), frame, "wood", "frame"),
-             _Part((0, 0, zc - h / 2 + b / 2), (w, t, b), frame, "wood", "frame"),
-             _Part((-w / 2 + b / 2, 0, zc), (b, t, h - 2 * b), frame, "wood", "frame"),
-             _Part((w / 2 - b / 2, 0, zc), (b, t, h - 2 * b), frame, "wood", "frame"),
-             _Part((0, 0.005, zc), (w - 2 * b, t - 0.01, h - 2 * b), _hsv(rng.uniform(), rng.uniform(0.3, 0.8),
-                                                                        rng.uniform(0.4, 0.9)), "fabric", "canvas")]
+    parts = [
+        _Part((0, 0, zc + h / 2 - b / 2), (w, t, b), frame, "wood", "frame"),
+        _Part((0, 0, zc - h / 2 + b / 2), (w, t, b), frame, "wood", "frame"),
+        _Part((-w / 2 + b / 2, 0, zc), (b, t, h - 2 * b), frame, "wood", "frame"),
+        _Part((w / 2 - b / 2, 0, zc), (b, t, h - 2 * b), frame, "wood", "frame"),
+        _Part(
+            (0, 0.005, zc),
+            (w - 2 * b, t - 0.01, h - 2 * b),
+            _hsv(rng.uniform(), rng.uniform(0.3, 0.8), rng.uniform(0.4, 0.9)),
+            "fabric",
+            "canvas",
+        ),
+    ]
     return _Spec("picture", "picture", parts, "mounted", wall_gap=0.0)
 
 
@@ -521,12 +632,13 @@ def _door(rng, height) -> _Spec:
     leaf = _wood(rng) if rng.random() < 0.6 else _jitter(rng, _WHITE)
     frame = _jitter(rng, _WHITE) if rng.random() < 0.6 else leaf
     # The leaf's back is 3.5 cm inside the wall, its front 1.5 cm in front of it; the trim stands out 2.5 cm.
-    parts = [_Part((0, 0.005, h / 2), (w, 0.05, h), leaf, "wood", "leaf"),
-             _Part((-(w / 2 + 0.035), -0.005, (h + 0.07) / 2), (0.07, 0.05, h + 0.07), frame, "paint", "trim"),
-             _Part((w / 2 + 0.035, -0.005, (h + 0.07) / 2), (0.07, 0.05, h + 0.07), frame, "paint", "trim"),
-             _Part((0, -0.005, h + 0.035), (w + 0.14, 0.05, 0.07), frame, "paint", "trim"),
-             _Part((w / 2 - 0.08, -0.045, h * 0.48), (0.12, 0.05, 0.025), _jitter(rng, (0.7, 0.7, 0.7)), "metal",
-                   "handle")]
+    parts = [
+        _Part((0, 0.005, h / 2), (w, 0.05, h), leaf, "wood", "leaf"),
+        _Part((-(w / 2 + 0.035), -0.005, (h + 0.07) / 2), (0.07, 0.05, h + 0.07), frame, "paint", "trim"),
+        _Part((w / 2 + 0.035, -0.005, (h + 0.07) / 2), (0.07, 0.05, h + 0.07), frame, "paint", "trim"),
+        _Part((0, -0.005, h + 0.035), (w + 0.14, 0.05, 0.07), frame, "paint", "trim"),
+        _Part((w / 2 - 0.08, -0.045, h * 0.48), (0.12, 0.05, 0.025), _jitter(rng, (0.7, 0.7, 0.7)), "metal", "handle"),
+    ]
     return _Spec("door", "door", parts, "mounted", wall_gap=-0.03 - 0.005)
 
 
@@ -538,11 +650,13 @@ def _window(rng, height) -> _Spec:
     frame = _jitter(rng, _WHITE, 0.02)
     glass = _jitter(rng, (0.62, 0.74, 0.85), 0.05)
     b = 0.06
-    parts = [_Part((0, -0.01, (sill + top) / 2), (w - 2 * b, 0.04, h - 2 * b), glass, "glass", "pane"),
-             _Part((0, -0.01, sill + b / 2), (w + 0.06, 0.06, b), frame, "paint", "frame"),
-             _Part((0, -0.01, top - b / 2), (w, 0.06, b), frame, "paint", "frame"),
-             _Part((-(w / 2 - b / 2), -0.01, (sill + top) / 2), (b, 0.06, h - 2 * b), frame, "paint", "frame"),
-             _Part((w / 2 - b / 2, -0.01, (sill + top) / 2), (b, 0.06, h - 2 * b), frame, "paint", "frame")]
+    parts = [
+        _Part((0, -0.01, (sill + top) / 2), (w - 2 * b, 0.04, h - 2 * b), glass, "glass", "pane"),
+        _Part((0, -0.01, sill + b / 2), (w + 0.06, 0.06, b), frame, "paint", "frame"),
+        _Part((0, -0.01, top - b / 2), (w, 0.06, b), frame, "paint", "frame"),
+        _Part((-(w / 2 - b / 2), -0.01, (sill + top) / 2), (b, 0.06, h - 2 * b), frame, "paint", "frame"),
+        _Part((w / 2 - b / 2, -0.01, (sill + top) / 2), (b, 0.06, h - 2 * b), frame, "paint", "frame"),
+    ]
     if w > 1.1:
         parts.append(_Part((0, -0.01, (sill + top) / 2), (0.04, 0.06, h - 2 * b), frame, "paint", "mullion"))
     # Back of the frame 4 cm inside the wall, its front 2 cm in front of it, the glass 1 cm.
@@ -550,9 +664,19 @@ def _window(rng, height) -> _Spec:
 
 
 _GENERATORS: dict[str, Callable] = {
-    "chair": _chair, "table": _table, "desk": _desk, "bed": _bed, "sofa": _sofa, "cabinet": _cabinet,
-    "bookshelf": _bookshelf, "counter": _counter, "refrigerator": _refrigerator, "toilet": _toilet, "sink": _sink,
-    "bathtub": _bathtub, "otherfurniture": _otherfurniture,
+    "chair": _chair,
+    "table": _table,
+    "desk": _desk,
+    "bed": _bed,
+    "sofa": _sofa,
+    "cabinet": _cabinet,
+    "bookshelf": _bookshelf,
+    "counter": _counter,
+    "refrigerator": _refrigerator,
+    "toilet": _toilet,
+    "sink": _sink,
+    "bathtub": _bathtub,
+    "otherfurniture": _otherfurniture,
 }
 _WALL_GENERATORS: dict[str, Callable] = {"curtain": _curtain, "picture": _picture, "door": _door, "window": _window}
 
@@ -678,8 +802,9 @@ class _Layout:
                 return _Placed(spec.kind, center, yaw, half, z, -1, 0.0, spec)
             w, d, _ = self.room_size
             margin = 0.15 + half.max()
-            center = np.array([rng.uniform(min(margin, w / 2), max(w - margin, w / 2)),
-                               rng.uniform(min(margin, d / 2), max(d - margin, d / 2))])
+            center = np.array(
+                [rng.uniform(min(margin, w / 2), max(w - margin, w / 2)), rng.uniform(min(margin, d / 2), max(d - margin, d / 2))]
+            )
             if spec.kind == "chair":
                 yaw = rng.uniform(-math.pi, math.pi)
             else:
@@ -702,8 +827,9 @@ class _Layout:
         if placed.kind == "door":  # keep the way through the door clear
             zone_half = np.array([placed.half[0] + 0.1, 0.45])
             center, yaw = self.wall_pose(placed.wall, placed.along, 0.45)
-            self.placed.append(_Placed("door zone", center, yaw, zone_half, (0.0, self.room_size[2]), -1,
-                                       placed.along, None, reserved=True))
+            self.placed.append(
+                _Placed("door zone", center, yaw, zone_half, (0.0, self.room_size[2]), -1, placed.along, None, reserved=True)
+            )
 
 
 def _draw_kinds(rng, num_objects: int, kinds: Sequence[str] | None) -> list[str]:
@@ -726,8 +852,7 @@ def _make_spec(kind: str, rng, height: float) -> _Spec:
     return _GENERATORS[kind](rng)
 
 
-def _place_objects(room_size, kinds: list[str], rng, allowed: Sequence[str] | None = None,
-                   max_tries: int = 60) -> list[_Placed]:
+def _place_objects(room_size, kinds: list[str], rng, allowed: Sequence[str] | None = None, max_tries: int = 60) -> list[_Placed]:
     layout = _Layout(room_size, rng)
     # First one of each kind (so that every kind gets its chance), then the repeats; in placement order.
     occurrence = [kinds[:i].count(kind) for i, kind in enumerate(kinds)]
@@ -783,8 +908,9 @@ def default_room_size(num_objects: int) -> tuple[float, float, float]:
     return (round(w * scale, 2), round(d * scale, 2), 2.8 if num_objects > 30 else h)
 
 
-def generate_scene(seed: int, room_size: Sequence[float] | None = None, num_objects: int = 12,
-                   kinds: Sequence[str] | None = None) -> ProceduralScene:
+def generate_scene(
+    seed: int, room_size: Sequence[float] | None = None, num_objects: int = 12, kinds: Sequence[str] | None = None
+) -> ProceduralScene:
     """A random room with `num_objects` objects, deterministic per `seed`.
 
     Args:
@@ -821,8 +947,10 @@ def generate_scene(seed: int, room_size: Sequence[float] | None = None, num_obje
         except _NoRoom as error:
             if not auto:
                 w, d, h = size
-                raise ValueError(f"could place only {error.placed} of {num_objects} objects in a {w:g} x {d:g} m room; "
-                                 "use a bigger room or fewer objects") from None
+                raise ValueError(
+                    f"could place only {error.placed} of {num_objects} objects in a {w:g} x {d:g} m room; "
+                    "use a bigger room or fewer objects"
+                ) from None
             size = (round(size[0] * 1.12, 2), round(size[1] * 1.12, 2), size[2])
     else:  # pragma: no cover - the room grows by 2.5x in area over the attempts
         raise ValueError(f"could not place {num_objects} objects")
@@ -844,24 +972,37 @@ def _assemble(seed: int, size, placed: list[_Placed], rng) -> ProceduralScene:
         instances[instance_id] = InstanceInfo(instance_id, kind, class_name, nyu, raw_label)
         return instance_id
 
-    wall_color = _jitter(rng, rng.choice([(0.88, 0.86, 0.8), (0.85, 0.87, 0.88), (0.9, 0.88, 0.84),
-                                          (0.8, 0.84, 0.78)]), 0.02)
+    wall_color = _jitter(rng, rng.choice([(0.88, 0.86, 0.8), (0.85, 0.87, 0.88), (0.9, 0.88, 0.84), (0.8, 0.84, 0.78)]), 0.02)
     # x-, x+, y-, y+ walls (inner faces on the room's faces), floor, ceiling.
-    structure = [((-t / 2, d / 2, h / 2), (t, d, h)), ((w + t / 2, d / 2, h / 2), (t, d, h)),
-                 ((w / 2, -t / 2, h / 2), (w, t, h)), ((w / 2, d + t / 2, h / 2), (w, t, h))]
+    structure = [
+        ((-t / 2, d / 2, h / 2), (t, d, h)),
+        ((w + t / 2, d / 2, h / 2), (t, d, h)),
+        ((w / 2, -t / 2, h / 2), (w, t, h)),
+        ((w / 2, d + t / 2, h / 2), (w, t, h)),
+    ]
     for center, full in structure:
         instance_id = add_instance("wall", "wall", "wall", nyu40["wall"])
-        boxes.append(Box(np.array(center), np.array(full) / 2, 0.0, instance_id, _jitter(rng, wall_color, 0.015),
-                         "paint", "wall"))
+        boxes.append(
+            Box(np.array(center), np.array(full) / 2, 0.0, instance_id, _jitter(rng, wall_color, 0.015), "paint", "wall")
+        )
     floor_material = str(rng.choice(["wood", "tiles", "carpet"]))
-    floor_color = {"wood": _wood(rng), "tiles": _jitter(rng, (0.75, 0.73, 0.7)),
-                   "carpet": _fabric(rng) * 0.8}[floor_material]
+    floor_color = {"wood": _wood(rng), "tiles": _jitter(rng, (0.75, 0.73, 0.7)), "carpet": _fabric(rng) * 0.8}[floor_material]
     instance_id = add_instance("floor", "floor", "floor", nyu40["floor"])
-    boxes.append(Box(np.array([w / 2, d / 2, -t / 2]), np.array([w, d, t]) / 2, 0.0, instance_id, floor_color,
-                     floor_material, "floor"))
+    boxes.append(
+        Box(np.array([w / 2, d / 2, -t / 2]), np.array([w, d, t]) / 2, 0.0, instance_id, floor_color, floor_material, "floor")
+    )
     instance_id = add_instance("ceiling", CEILING_CLASS, "ceiling", CEILING_NYU40)
-    boxes.append(Box(np.array([w / 2, d / 2, h + t / 2]), np.array([w, d, t]) / 2, 0.0, instance_id,
-                     _jitter(rng, (0.93, 0.93, 0.92), 0.01), "paint", "ceiling"))
+    boxes.append(
+        Box(
+            np.array([w / 2, d / 2, h + t / 2]),
+            np.array([w, d, t]) / 2,
+            0.0,
+            instance_id,
+            _jitter(rng, (0.93, 0.93, 0.92), 0.01),
+            "paint",
+            "ceiling",
+        )
+    )
 
     for p in placed:
         spec = p.spec
@@ -871,8 +1012,17 @@ def _assemble(seed: int, size, placed: list[_Placed], rng) -> ProceduralScene:
         origin = np.array([p.center[0], p.center[1], 0.0])
         for part in spec.parts:
             center = origin + R @ np.asarray(part.center, np.float64)
-            boxes.append(Box(center, np.asarray(part.size, np.float64) / 2, float(p.yaw), instance_id,
-                             np.asarray(part.color, np.float64), part.material, part.name))
+            boxes.append(
+                Box(
+                    center,
+                    np.asarray(part.size, np.float64) / 2,
+                    float(p.yaw),
+                    instance_id,
+                    np.asarray(part.color, np.float64),
+                    part.material,
+                    part.name,
+                )
+            )
     light = np.array([w / 2, d / 2, h - 0.35])
     return ProceduralScene(seed, (float(w), float(d), float(h)), tuple(boxes), instances, light, (0, 1, 2, 3, 4, 5))
 
@@ -886,8 +1036,14 @@ def empty_room(room_size: Sequence[float] = DEFAULT_ROOM, seed: int = 0) -> Proc
     return _assemble(int(seed), size, [], np.random.default_rng([int(seed) & 0xFFFFFFFF, 99]))
 
 
-def add_object(scene: ProceduralScene, kind: str, boxes: Sequence[tuple], raw_label: str | None = None,
-               color: Sequence[float] = (0.6, 0.4, 0.3), material: str = "plain") -> ProceduralScene:
+def add_object(
+    scene: ProceduralScene,
+    kind: str,
+    boxes: Sequence[tuple],
+    raw_label: str | None = None,
+    color: Sequence[float] = (0.6, 0.4, 0.3),
+    material: str = "plain",
+) -> ProceduralScene:
     """A copy of `scene` with one more instance made of `boxes`, each `(center (3,), size (3,), yaw)` in world
     metres/radians. `kind` is one of the closed classes (`OBJECT_KINDS`, or ``"wall"``/``"floor"``); the new
     instance id is one more than the largest. Overlaps are not checked."""
@@ -901,8 +1057,18 @@ def add_object(scene: ProceduralScene, kind: str, boxes: Sequence[tuple], raw_la
     raw_label = raw_label or kind
     instances = dict(scene.instances)
     instances[instance_id] = InstanceInfo(instance_id, kind, kind, nyu40[kind], raw_label)
-    new_boxes = [Box(np.asarray(center, np.float64), np.asarray(size, np.float64) / 2, float(yaw), instance_id,
-                     np.asarray(color, np.float64), material, kind) for center, size, yaw in boxes]
+    new_boxes = [
+        Box(
+            np.asarray(center, np.float64),
+            np.asarray(size, np.float64) / 2,
+            float(yaw),
+            instance_id,
+            np.asarray(color, np.float64),
+            material,
+            kind,
+        )
+        for center, size, yaw in boxes
+    ]
     return dataclasses.replace(scene, boxes=scene.boxes + tuple(new_boxes), instances=instances)
 
 
@@ -926,8 +1092,9 @@ def camera_trajectory(scene: ProceduralScene, num_frames: int, seed: int | None 
     direction = rng.choice([-1.0, 1.0])
     s = np.arange(num_frames) / num_frames
     theta = phase[0] + direction * 2 * np.pi * s
-    position = np.stack([w / 2 + a * np.cos(theta), d / 2 + b * np.sin(theta),
-                         1.45 + 0.12 * np.sin(2 * np.pi * 3 * s + phase[1])], axis=1)
+    position = np.stack(
+        [w / 2 + a * np.cos(theta), d / 2 + b * np.sin(theta), 1.45 + 0.12 * np.sin(2 * np.pi * 3 * s + phase[1])], axis=1
+    )
     tangent = np.stack([-a * np.sin(theta), b * np.cos(theta)], axis=1) * direction
     heading = np.arctan2(tangent[:, 1], tangent[:, 0])
     yaw = heading + np.radians(95) * np.sin(2 * np.pi * 5 * s + phase[2])
@@ -980,8 +1147,13 @@ class SceneMesh:
     spacing: float
 
 
-def build_mesh(scene: ProceduralScene, spacing: float = 0.03, max_vertices: int = 300_000,
-               patch_size: float = 0.4, include_ceiling: bool = True) -> SceneMesh:
+def build_mesh(
+    scene: ProceduralScene,
+    spacing: float = 0.03,
+    max_vertices: int = 300_000,
+    patch_size: float = 0.4,
+    include_ceiling: bool = True,
+) -> SceneMesh:
     """Meshes the visible surfaces of the boxes on a regular grid.
 
     Every box face is a grid of about `spacing` metres (coarser when the mesh would exceed `max_vertices`).
@@ -1066,7 +1238,7 @@ def build_mesh(scene: ProceduralScene, spacing: float = 0.03, max_vertices: int 
     for j in range(len(boxes)):
         lower = boxes.centers[j] - np.abs(boxes.rotations[j]) @ boxes.half_extents[j]
         upper = boxes.centers[j] + np.abs(boxes.rotations[j]) @ boxes.half_extents[j]
-        candidates = by_x[np.searchsorted(sorted_x, lower[0], "left"):np.searchsorted(sorted_x, upper[0], "right")]
+        candidates = by_x[np.searchsorted(sorted_x, lower[0], "left") : np.searchsorted(sorted_x, upper[0], "right")]
         q = probe[candidates]
         near = keep[candidates] & np.all((q >= lower) & (q <= upper), axis=1) & (cell_owner[candidates] != j)
         if not near.any():
@@ -1089,6 +1261,11 @@ def build_mesh(scene: ProceduralScene, spacing: float = 0.03, max_vertices: int 
     shade = raycast.lambert((n32[:, 0], n32[:, 1], n32[:, 2]), point, scene.light_position)
     shade *= raycast.texture(boxes.materials[owners], owners, boxes, point)
     colors = np.clip(boxes.colors[owners] * (shade + 0.06)[:, None] * 255 + 0.5, 0, 255).astype(np.uint8)
-    return SceneMesh(vertices=vertices.astype(np.float32), faces=faces, colors=colors,
-                     instance_ids=boxes.instance_ids[owners].astype(np.int32),
-                     segment_ids=segments.astype(np.int32), spacing=float(spacing))
+    return SceneMesh(
+        vertices=vertices.astype(np.float32),
+        faces=faces,
+        colors=colors,
+        instance_ids=boxes.instance_ids[owners].astype(np.int32),
+        segment_ids=segments.astype(np.int32),
+        spacing=float(spacing),
+    )

@@ -24,8 +24,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from fmfusion_jax.simulation.procedural import ProceduralScene
 
 #: ScanNet's depth camera at 640x480 (scene0000_00 `intrinsic_depth.txt`); scale it for other sizes.
-SCANNET_INTRINSICS = CameraIntrinsics(fx=577.590698, fy=578.729797, cx=318.905426, cy=242.683609,
-                                      width=640, height=480)
+SCANNET_INTRINSICS = CameraIntrinsics(fx=577.590698, fy=578.729797, cx=318.905426, cy=242.683609, width=640, height=480)
 
 #: Rays hitting nothing within this z-depth (metres) start at the near plane: closer surfaces are skipped.
 NEAR = 0.02
@@ -154,8 +153,14 @@ def _screen_rect(corners_camera: np.ndarray, intrinsics: CameraIntrinsics, near:
 _EDGES = np.array([(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1])
 
 
-def raycast_boxes(boxes: BoxArrays, T_world_camera: np.ndarray, intrinsics: CameraIntrinsics,
-                  enclosure: Enclosure | None = None, near: float = NEAR, max_pixels: int = 1 << 16) -> RayHits:
+def raycast_boxes(
+    boxes: BoxArrays,
+    T_world_camera: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    enclosure: Enclosure | None = None,
+    near: float = NEAR,
+    max_pixels: int = 1 << 16,
+) -> RayHits:
     """Nearest box hit of every pixel of a pinhole camera.
 
     Args:
@@ -185,8 +190,18 @@ def raycast_boxes(boxes: BoxArrays, T_world_camera: np.ndarray, intrinsics: Came
         upper = np.asarray(enclosure.upper, np.float64)
         for v0 in range(0, height, block_rows):
             v1 = min(v0 + block_rows, height)
-            _enclosure_exit(R_wc, origin, xs, ys[v0:v1], lower, upper, np.asarray(enclosure.face_boxes),
-                            depth[v0:v1], box_index[v0:v1], face[v0:v1])
+            _enclosure_exit(
+                R_wc,
+                origin,
+                xs,
+                ys[v0:v1],
+                lower,
+                upper,
+                np.asarray(enclosure.face_boxes),
+                depth[v0:v1],
+                box_index[v0:v1],
+                face[v0:v1],
+            )
 
     # Camera-frame corners of every box, for the screen rectangles.
     corners_camera = (boxes.corners() - origin) @ R_wc
@@ -204,8 +219,7 @@ def raycast_boxes(boxes: BoxArrays, T_world_camera: np.ndarray, intrinsics: Came
         rows = max(1, max_pixels // (u1 - u0))
         for r0 in range(v0, v1, rows):
             r1 = min(r0 + rows, v1)
-            _box_block(M, o, h, xs[u0:u1], ys[r0:r1], near, b,
-                       depth[r0:r1, u0:u1], box_index[r0:r1, u0:u1], face[r0:r1, u0:u1])
+            _box_block(M, o, h, xs[u0:u1], ys[r0:r1], near, b, depth[r0:r1, u0:u1], box_index[r0:r1, u0:u1], face[r0:r1, u0:u1])
     return RayHits(depth, box_index, face)
 
 
@@ -242,7 +256,7 @@ def _box_block(M, o, h, xs, ys, near, b, depth, box_index, face) -> None:
     # Entry face: on axis k the ray enters through the -h side when its direction is positive.
     k = axis_near[hit]
     rows, cols = np.nonzero(hit)
-    d_k = (M[k, 2] + M[k, 1] * ys[rows] + M[k, 0] * xs[cols])
+    d_k = M[k, 2] + M[k, 1] * ys[rows] + M[k, 0] * xs[cols]
     face[hit] = (2 * k + (d_k < 0)).astype(np.int8)
 
 
@@ -282,8 +296,10 @@ def _face_normal_table(boxes: BoxArrays) -> np.ndarray:
 def _world_points(T: np.ndarray, xs: np.ndarray, ys: np.ndarray, z: np.ndarray):
     """World points `(px, py, pz)` and unit ray directions `(vx, vy, vz)`, each `(H, W)` float32."""
     R, t = T[:3, :3], T[:3, 3]
-    ray = [(np.float32(R[c, 2]) + (R[c, 1] * ys).astype(np.float32)[:, None])
-           + (R[c, 0] * xs).astype(np.float32)[None, :] for c in range(3)]
+    ray = [
+        (np.float32(R[c, 2]) + (R[c, 1] * ys).astype(np.float32)[:, None]) + (R[c, 0] * xs).astype(np.float32)[None, :]
+        for c in range(3)
+    ]
     inv = np.float32(1.0) / np.sqrt(ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2])
     points = tuple(ray[c] * z + np.float32(t[c]) for c in range(3))
     view = tuple(ray[c] * inv for c in range(3))
@@ -333,8 +349,7 @@ def texture(materials: np.ndarray, box_index: np.ndarray, boxes: BoxArrays, worl
         fx, fy = px - cx, py - cy
         checker = (cx + cy) % 2 == 0
         grout = (np.minimum(fx, 1 - fx) < 0.012) | (np.minimum(fy, 1 - fy) < 0.012)
-        factor[tiles] *= np.where(checker, np.float32(1.0), np.float32(0.93)) * np.where(grout, np.float32(0.65),
-                                                                                         np.float32(1.0))
+        factor[tiles] *= np.where(checker, np.float32(1.0), np.float32(0.93)) * np.where(grout, np.float32(0.65), np.float32(1.0))
 
     fabric = m == _MATERIAL_CODES["fabric"]
     if fabric.any():
@@ -366,8 +381,7 @@ def lambert(normal, point, light_position: np.ndarray, view=None) -> np.ndarray:
     """
     light = np.asarray(light_position, np.float32)
     lx, ly, lz = (light[c] - point[c] for c in range(3))
-    diffuse = (normal[0] * lx + normal[1] * ly + normal[2] * lz) / (np.sqrt(lx * lx + ly * ly + lz * lz)
-                                                                     + np.float32(1e-6))
+    diffuse = (normal[0] * lx + normal[1] * ly + normal[2] * lz) / (np.sqrt(lx * lx + ly * ly + lz * lz) + np.float32(1e-6))
     np.clip(diffuse, 0.0, 1.0, out=diffuse)
     intensity = np.float32(0.38) + np.float32(0.55) * diffuse
     if view is not None:
@@ -392,10 +406,19 @@ class RenderedFrame:
     instance: np.ndarray
 
 
-def render_frame(scene: "ProceduralScene", T_world_camera: np.ndarray, intrinsics: CameraIntrinsics,
-                 rng: np.random.Generator | None = None, depth_noise: bool = True, color_noise: bool = True,
-                 max_range: float = 6.0, min_range: float = 0.3, grazing_cos: float = 0.1,
-                 dropout: float = 0.001, boxes: BoxArrays | None = None) -> RenderedFrame:
+def render_frame(
+    scene: "ProceduralScene",
+    T_world_camera: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    rng: np.random.Generator | None = None,
+    depth_noise: bool = True,
+    color_noise: bool = True,
+    max_range: float = 6.0,
+    min_range: float = 0.3,
+    grazing_cos: float = 0.1,
+    dropout: float = 0.001,
+    boxes: BoxArrays | None = None,
+) -> RenderedFrame:
     """Renders colour, depth and the instance image of a procedural scene.
 
     Depth model when `depth_noise`: Gaussian axial noise of std `0.0012 + 0.0019 (z - 0.4)^2` m (Kinect-like,
@@ -436,7 +459,7 @@ def render_frame(scene: "ProceduralScene", T_world_camera: np.ndarray, intrinsic
         shade *= np.float32(1.0 + rng.uniform(-0.04, 0.04))
     color = boxes.colors[b] * (shade * np.float32(255.0))[:, None]
     if color_noise:  # uniform noise of std 2 (out of 255) per channel
-        color += rng.random(color.shape, dtype=np.float32) * np.float32(2 * 3 ** 0.5 * 2) - np.float32(2 * 3 ** 0.5)
+        color += rng.random(color.shape, dtype=np.float32) * np.float32(2 * 3**0.5 * 2) - np.float32(2 * 3**0.5)
     color_u8 = np.clip(color + np.float32(0.5), 0, 255).astype(np.uint8).reshape(shape + (3,))
 
     # Depth.
@@ -454,12 +477,14 @@ def render_frame(scene: "ProceduralScene", T_world_camera: np.ndarray, intrinsic
         depth[invalid] = 0.0
     ids = boxes.instance_ids.astype(np.uint16)[b].reshape(shape)
     ids[(depth <= 0) | ~hit] = 0
-    return RenderedFrame(color=color_u8, depth=depth.astype(np.float32, copy=False),
-                         depth_exact=exact.astype(np.float32, copy=False), instance=ids)
+    return RenderedFrame(
+        color=color_u8, depth=depth.astype(np.float32, copy=False), depth_exact=exact.astype(np.float32, copy=False), instance=ids
+    )
 
 
-def raycast_rays(boxes: BoxArrays, origins: np.ndarray, directions: np.ndarray,
-                 skip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def raycast_rays(
+    boxes: BoxArrays, origins: np.ndarray, directions: np.ndarray, skip: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hit of arbitrary rays (a small-batch helper, e.g. for camera checks).
 
     Args:

@@ -47,10 +47,18 @@ class GroundTruthRenderer:
       workers: threads of the KD-tree query.
     """
 
-    def __init__(self, vertices: np.ndarray, instance_ids: np.ndarray, faces: np.ndarray | None = None,
-                 max_distance: float = 0.05,
-                 stride: int = 2, fill_radius_px: float = 8.0, max_hole_px: int = 400, smooth: bool = True,
-                 workers: int = 1):
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        instance_ids: np.ndarray,
+        faces: np.ndarray | None = None,
+        max_distance: float = 0.05,
+        stride: int = 2,
+        fill_radius_px: float = 8.0,
+        max_hole_px: int = 400,
+        smooth: bool = True,
+        workers: int = 1,
+    ):
         vertices = np.asarray(vertices, np.float64)
         instance_ids = np.asarray(instance_ids)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or instance_ids.shape != (vertices.shape[0],):
@@ -154,8 +162,9 @@ def instance_classes(gt: "SceneGroundTruth", label_sets: LabelSets | None = None
     return instance_classes_from_arrays(gt.instance_ids, gt.nyu40_ids, label_sets)
 
 
-def instance_classes_from_arrays(instance_ids: np.ndarray, nyu40_ids: np.ndarray,
-                                 label_sets: LabelSets | None = None) -> dict[int, int]:
+def instance_classes_from_arrays(
+    instance_ids: np.ndarray, nyu40_ids: np.ndarray, label_sets: LabelSets | None = None
+) -> dict[int, int]:
     """`instance_classes` from per-vertex `(V,)` instance ids and nyu40 ids."""
     label_sets = label_sets or load_label_sets()
     to_class = label_sets.nyu40_to_class_index()

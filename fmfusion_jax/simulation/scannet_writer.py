@@ -38,10 +38,29 @@ from fmfusion_jax.simulation.procedural import CEILING_CLASS, CEILING_NYU40, RAW
 logger = logging.getLogger(__name__)
 
 #: NYU40 class names as the ScanNet tsv spells them ("refridgerator" included).
-NYU40_CLASS_NAMES = {1: "wall", 2: "floor", 3: "cabinet", 4: "bed", 5: "chair", 6: "sofa", 7: "table", 8: "door",
-                     9: "window", 10: "bookshelf", 11: "picture", 12: "counter", 14: "desk", 16: "curtain",
-                     22: "ceiling", 24: "refridgerator", 28: "shower curtain", 33: "toilet", 34: "sink",
-                     36: "bathtub", 39: "otherfurniture"}
+NYU40_CLASS_NAMES = {
+    1: "wall",
+    2: "floor",
+    3: "cabinet",
+    4: "bed",
+    5: "chair",
+    6: "sofa",
+    7: "table",
+    8: "door",
+    9: "window",
+    10: "bookshelf",
+    11: "picture",
+    12: "counter",
+    14: "desk",
+    16: "curtain",
+    22: "ceiling",
+    24: "refridgerator",
+    28: "shower curtain",
+    33: "toilet",
+    34: "sink",
+    36: "bathtub",
+    39: "otherfurniture",
+}
 
 LABELS_TSV = "scannetv2-labels.combined.tsv"
 _FRAME_DIRS = {"color": ".jpg", "depth": ".png", "pose": ".txt", "gt_instances": ".png"}
@@ -52,10 +71,20 @@ def scene_intrinsics(width: int = 640, height: int = 480):
     return raycast.SCANNET_INTRINSICS.scaled(width, height)
 
 
-def write_scannet_scene(scene: ProceduralScene, out_dir: str | Path, num_frames: int = 300, width: int = 640,
-                        height: int = 480, seed: int | None = None, depth_noise: bool = True, progress: bool = True,
-                        overwrite: bool = False, mesh_spacing: float = 0.03, max_vertices: int = 300_000,
-                        jpeg_quality: int = 90) -> Path:
+def write_scannet_scene(
+    scene: ProceduralScene,
+    out_dir: str | Path,
+    num_frames: int = 300,
+    width: int = 640,
+    height: int = 480,
+    seed: int | None = None,
+    depth_noise: bool = True,
+    progress: bool = True,
+    overwrite: bool = False,
+    mesh_spacing: float = 0.03,
+    max_vertices: int = 300_000,
+    jpeg_quality: int = 90,
+) -> Path:
     """Renders `num_frames` frames along `scene.trajectory` and writes them with the mesh ground truth.
 
     Args:
@@ -101,8 +130,14 @@ def write_scannet_scene(scene: ProceduralScene, out_dir: str | Path, num_frames:
     pending: list[concurrent.futures.Future] = []
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as writer:
         for k, pose in enumerate(poses):
-            frame = raycast.render_frame(scene, pose, intrinsics, rng=np.random.default_rng([seed & 0xFFFFFFFF, 1, k]),
-                                         depth_noise=depth_noise, boxes=boxes)
+            frame = raycast.render_frame(
+                scene,
+                pose,
+                intrinsics,
+                rng=np.random.default_rng([seed & 0xFFFFFFFF, 1, k]),
+                depth_noise=depth_noise,
+                boxes=boxes,
+            )
             pending.append(writer.submit(_write_frame, out, f"frame-{k:06d}", frame, pose, jpeg_quality))
             while len(pending) > 3:
                 pending.pop(0).result()
@@ -115,30 +150,56 @@ def write_scannet_scene(scene: ProceduralScene, out_dir: str | Path, num_frames:
 
     mesh = build_mesh(scene, spacing=mesh_spacing, max_vertices=max_vertices)
     write_ply(out / f"{name}_vh_clean_2.ply", mesh.vertices, mesh.faces, mesh.colors)
-    segs = {"params": {"synthetic": "one segment per patch (<= 0.4 m) of a box face"}, "sceneId": name,
-            "segIndices": mesh.segment_ids.tolist()}
+    segs = {
+        "params": {"synthetic": "one segment per patch (<= 0.4 m) of a box face"},
+        "sceneId": name,
+        "segIndices": mesh.segment_ids.tolist(),
+    }
     (out / f"{name}_vh_clean_2.0.010000.segs.json").write_text(json.dumps(segs))
     groups = []
     for instance_id, info in sorted(scene.instances.items()):
         segments = np.unique(mesh.segment_ids[mesh.instance_ids == instance_id])
         if segments.size == 0:
             continue
-        groups.append({"id": instance_id - 1, "objectId": instance_id - 1, "segments": segments.tolist(),
-                       "label": info.raw_label})
-    aggregation = {"sceneId": name, "appId": "fmfusion-jax.synth", "segGroups": groups,
-                   "segmentsFile": f"scannet.{name}_vh_clean_2.0.010000.segs.json"}
+        groups.append(
+            {"id": instance_id - 1, "objectId": instance_id - 1, "segments": segments.tolist(), "label": info.raw_label}
+        )
+    aggregation = {
+        "sceneId": name,
+        "appId": "fmfusion-jax.synth",
+        "segGroups": groups,
+        "segmentsFile": f"scannet.{name}_vh_clean_2.0.010000.segs.json",
+    }
     (out / f"{name}.aggregation.json").write_text(json.dumps(aggregation, indent=1))
     write_labels_tsv(out / LABELS_TSV, scene)
-    instances = [{"instance_id": i, "objectId": i - 1, "label": info.raw_label, "class": info.class_name,
-                  "nyu40_id": info.nyu40_id, "kind": info.kind} for i, info in sorted(scene.instances.items())]
+    instances = [
+        {
+            "instance_id": i,
+            "objectId": i - 1,
+            "label": info.raw_label,
+            "class": info.class_name,
+            "nyu40_id": info.nyu40_id,
+            "kind": info.kind,
+        }
+        for i, info in sorted(scene.instances.items())
+    ]
     (out / "gt_instances" / "instances.json").write_text(json.dumps(instances, indent=1))
     _write_metadata(out / f"{name}.txt", intrinsics, int(num_frames))
     w, d, h = scene.room_size
-    params = {"generator": "fmfusion_jax.simulation.procedural", "seed": scene.seed, "noise_seed": seed,
-              "room_size": [w, d, h], "num_objects": len(scene.object_ids), "num_boxes": len(scene.boxes),
-              "num_frames": int(num_frames), "image_size": [int(width), int(height)], "depth_noise": bool(depth_noise),
-              "mesh_vertices": int(mesh.vertices.shape[0]), "mesh_spacing": mesh.spacing,
-              "seconds": round(time.perf_counter() - started, 2)}
+    params = {
+        "generator": "fmfusion_jax.simulation.procedural",
+        "seed": scene.seed,
+        "noise_seed": seed,
+        "room_size": [w, d, h],
+        "num_objects": len(scene.object_ids),
+        "num_boxes": len(scene.boxes),
+        "num_frames": int(num_frames),
+        "image_size": [int(width), int(height)],
+        "depth_noise": bool(depth_noise),
+        "mesh_vertices": int(mesh.vertices.shape[0]),
+        "mesh_spacing": mesh.spacing,
+        "seconds": round(time.perf_counter() - started, 2),
+    }
     (out / "synthesis.json").write_text(json.dumps(params, indent=1))
     return out
 
@@ -165,8 +226,9 @@ def _progress(total: int, enabled: bool, name: str):
 def _write_frame(out: Path, stem: str, frame: raycast.RenderedFrame, pose: np.ndarray, jpeg_quality: int) -> None:
     import cv2
 
-    _imwrite(out / "color" / f"{stem}.jpg", cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR),
-             [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    _imwrite(
+        out / "color" / f"{stem}.jpg", cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
+    )
     depth_mm = np.clip(np.round(frame.depth * 1000.0), 0, 65535).astype(np.uint16)
     _imwrite(out / "depth" / f"{stem}.png", depth_mm, [cv2.IMWRITE_PNG_COMPRESSION, 3])
     _imwrite(out / "gt_instances" / f"{stem}.png", frame.instance.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 3])
@@ -188,17 +250,29 @@ def _write_intrinsics(folder: Path, intrinsics) -> None:
     for name in ("intrinsic_depth.txt", "intrinsic_color.txt"):
         np.savetxt(folder / name, matrix, fmt="%f")
     w, h = intrinsics.width, intrinsics.height
-    (folder / "sensor_shapes.txt").write_text(
-        f"color_width:{w}\ncolor_height:{h}\ndepth_width:{w}\ndepth_height:{h}\n")
+    (folder / "sensor_shapes.txt").write_text(f"color_width:{w}\ncolor_height:{h}\ndepth_width:{w}\ndepth_height:{h}\n")
 
 
 def _write_metadata(path: Path, intrinsics, num_frames: int) -> None:
     k = intrinsics
-    lines = [f"colorHeight = {k.height}", f"colorWidth = {k.width}", f"depthHeight = {k.height}",
-             f"depthWidth = {k.width}", f"fx_color = {k.fx:f}", f"fx_depth = {k.fx:f}", f"fy_color = {k.fy:f}",
-             f"fy_depth = {k.fy:f}", f"mx_color = {k.cx:f}", f"mx_depth = {k.cx:f}", f"my_color = {k.cy:f}",
-             f"my_depth = {k.cy:f}", f"numColorFrames = {num_frames}", f"numDepthFrames = {num_frames}",
-             "axisAlignment = 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1", "sceneType = Synthetic (fmfusion synth)"]
+    lines = [
+        f"colorHeight = {k.height}",
+        f"colorWidth = {k.width}",
+        f"depthHeight = {k.height}",
+        f"depthWidth = {k.width}",
+        f"fx_color = {k.fx:f}",
+        f"fx_depth = {k.fx:f}",
+        f"fy_color = {k.fy:f}",
+        f"fy_depth = {k.fy:f}",
+        f"mx_color = {k.cx:f}",
+        f"mx_depth = {k.cx:f}",
+        f"my_color = {k.cy:f}",
+        f"my_depth = {k.cy:f}",
+        f"numColorFrames = {num_frames}",
+        f"numDepthFrames = {num_frames}",
+        "axisAlignment = 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1",
+        "sceneType = Synthetic (fmfusion synth)",
+    ]
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -225,10 +299,12 @@ def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors:
     vertices = np.asarray(vertices, np.float32).reshape(-1, 3)
     faces = np.asarray(faces, np.int32).reshape(-1, 3)
     colors = np.asarray(colors, np.uint8).reshape(-1, 3)
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment fmfusion-jax synth\nelement vertex {len(vertices)}\n"
-              "property float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
-              f"property uchar blue\nproperty uchar alpha\nelement face {len(faces)}\n"
-              "property list uchar int vertex_indices\nend_header\n")
+    header = (
+        f"ply\nformat binary_little_endian 1.0\ncomment fmfusion-jax synth\nelement vertex {len(vertices)}\n"
+        "property float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+        f"property uchar blue\nproperty uchar alpha\nelement face {len(faces)}\n"
+        "property list uchar int vertex_indices\nend_header\n"
+    )
     vertex_type = np.dtype([("xyz", "<f4", 3), ("rgba", "u1", 4)])
     vertex_data = np.empty(len(vertices), vertex_type)
     vertex_data["xyz"] = vertices

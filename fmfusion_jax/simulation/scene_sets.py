@@ -69,14 +69,16 @@ def generated_scene(spec: GeneratedSceneSpec, root: str | Path, progress: bool =
     except ValueError as error:
         raise UserError(f"cannot generate {spec.name}: {error}") from None
     log.info("rendering %s: %s", spec.name, scene.summary())
-    write_scannet_scene(scene, scene_dir, num_frames=spec.num_frames, width=spec.width, height=spec.height,
-                        seed=spec.seed, progress=progress)
+    write_scannet_scene(
+        scene, scene_dir, num_frames=spec.num_frames, width=spec.width, height=spec.height, seed=spec.seed, progress=progress
+    )
     (scene_dir / _SCENE_RECORD).write_text(json.dumps(record, indent=1) + "\n")
     return scene_dir
 
 
-def simulated_detections(scene_dir: str | Path, out_dir: str | Path, noise: NoiseModel, every: int = 1,
-                         progress: bool = False, likelihood=None) -> Path:
+def simulated_detections(
+    scene_dir: str | Path, out_dir: str | Path, noise: NoiseModel, every: int = 1, progress: bool = False, likelihood=None
+) -> Path:
     """Detections simulated for the scene in `out_dir` with `noise`, unless the folder already holds them.
 
     Args:
@@ -95,16 +97,23 @@ def simulated_detections(scene_dir: str | Path, out_dir: str | Path, noise: Nois
     scene = open_scene(scene_dir)
     expected = int(np.count_nonzero(np.asarray(scene.frame_indices) % every == 0))
     done = _read_record(out_dir / "simulation.json")
-    if (likelihood is None and done and done.get("noise") == noise.to_dict() and done.get("every") == every
-            and done.get("likelihood") == "statistical" and len(done.get("frames", ())) == expected):
+    if (
+        likelihood is None
+        and done
+        and done.get("noise") == noise.to_dict()
+        and done.get("every") == every
+        and done.get("likelihood") == "statistical"
+        and len(done.get("frames", ())) == expected
+    ):
         return out_dir
     gt = load_scannet_ground_truth(scene.path)
     simulate_scene(scene, gt, out_dir, noise, every=every, progress=progress, likelihood=likelihood)
     return out_dir
 
 
-def prepare_generated(spec: GeneratedSceneSpec, root: str | Path, noise: NoiseModel, every: int = 1,
-                      tag: str = "default", progress: bool = False) -> PreparedScene:
+def prepare_generated(
+    spec: GeneratedSceneSpec, root: str | Path, noise: NoiseModel, every: int = 1, tag: str = "default", progress: bool = False
+) -> PreparedScene:
     """A generated scene and its simulated detections (`tag` names the detection variant in the folder)."""
     scene_dir = generated_scene(spec, root, progress)
     detections_dir = Path(root) / "detections" / f"{spec.name}-{tag}-s{noise.seed}"
@@ -112,8 +121,9 @@ def prepare_generated(spec: GeneratedSceneSpec, root: str | Path, noise: NoiseMo
     return PreparedScene(spec.name, scene_dir, detections_dir)
 
 
-def prepare_real(scene_dir: str | Path, root: str | Path, noise: NoiseModel, every: int = 1,
-                 tag: str = "default", progress: bool = False) -> PreparedScene:
+def prepare_real(
+    scene_dir: str | Path, root: str | Path, noise: NoiseModel, every: int = 1, tag: str = "default", progress: bool = False
+) -> PreparedScene:
     """A real scene (read in place, never copied) and its simulated detections under `root`."""
     scene_dir = Path(scene_dir)
     if not scene_dir.is_dir():

@@ -61,9 +61,30 @@ if TYPE_CHECKING:  # pragma: no cover
 log = logging.getLogger(__name__)
 
 #: Tags the image tagger produces that are not labels of interest (they end up in `raw_tags` only).
-GENERIC_TAGS = ("room", "indoor", "home", "interior", "furniture", "lamp", "pillow", "box", "book",
-                "computer", "monitor", "white", "wood", "living room", "bedroom", "office", "kitchen",
-                "bag", "plant", "light", "ceiling", "shoe")
+GENERIC_TAGS = (
+    "room",
+    "indoor",
+    "home",
+    "interior",
+    "furniture",
+    "lamp",
+    "pillow",
+    "box",
+    "book",
+    "computer",
+    "monitor",
+    "white",
+    "wood",
+    "living room",
+    "bedroom",
+    "office",
+    "kitchen",
+    "bag",
+    "plant",
+    "light",
+    "ceiling",
+    "shoe",
+)
 
 #: Least length (pixel pairs 3 px apart) of the shared border of two objects that may merge.
 MERGE_MIN_BORDER = 10
@@ -113,8 +134,7 @@ PERTURBATION_NEW_LABELS = 3
 #: Classes a confuser (a non-target object: a box, a lamp, a bag) is taken for.
 CONFUSER_CLASSES = ("cabinet", "chair", "table", "bookshelf", "picture", "desk", "otherfurniture")
 #: Labels a false blob on a wall or the floor comes with: what GroundingDINO hallucinates on flat surfaces.
-BLOB_LABELS = {"wall": ("picture", "window", "door", "shelf", "cabinet", "curtain"),
-               "floor": ("carpet", "table", "bin", "chair")}
+BLOB_LABELS = {"wall": ("picture", "window", "door", "shelf", "cabinet", "curtain"), "floor": ("carpet", "table", "bin", "chair")}
 #: A neighbour absorbed under `merge_neighbor_prob` is at most this many times the object's size.
 NEIGHBOR_MAX_AREA_RATIO = 3.0
 #: Upper end of the uniform score that `score_miscalibration` mixes in.
@@ -125,11 +145,11 @@ _PERTURBATION_STREAM, _MISLABEL_STREAM, _CONFUSER_STREAM = 6101, 6113, 6121
 
 @dataclasses.dataclass
 class _Object:
-    instances: tuple[int, ...]   # ground-truth instances making up the object (2 when merged)
-    key: int                     # the largest one (or the absorbing one): its class and persistent label are used
+    instances: tuple[int, ...]  # ground-truth instances making up the object (2 when merged)
+    key: int  # the largest one (or the absorbing one): its class and persistent label are used
     class_index: int
     area: int
-    fixed_labels: dict[str, float] | None = None   # a confuser's labels (the same object in every view)
+    fixed_labels: dict[str, float] | None = None  # a confuser's labels (the same object in every view)
 
 
 def _instance_areas(image: np.ndarray) -> dict[int, int]:
@@ -184,8 +204,7 @@ def wrong_labels(columns: np.ndarray) -> np.ndarray:
     return columns.argmax(axis=1)[:, None] != np.arange(columns.shape[1])[None, :]
 
 
-def consistent_mislabels(columns: np.ndarray, prob: float, seed: int,
-                         lookalikes: Mapping[int, list[int]]) -> dict[int, int]:
+def consistent_mislabels(columns: np.ndarray, prob: float, seed: int, lookalikes: Mapping[int, list[int]]) -> dict[int, int]:
     """Class -> the one wrong open label it is always named by, for the classes (per seed) drawn with `prob`.
 
     Wrong labels are weighted by their published probability, look-alikes (`EXTRA_CONFUSIONS`) get
@@ -212,24 +231,31 @@ class _LabelModel:
     def __init__(self, noise: NoiseModel, label_sets: LabelSets, likelihood: np.ndarray):
         likelihood = np.asarray(likelihood, np.float64)
         if likelihood.shape != (label_sets.num_open, label_sets.num_classes):
-            raise ValueError(f"likelihood shape {likelihood.shape}, expected "
-                             f"({label_sets.num_open}, {label_sets.num_classes})")
+            raise ValueError(f"likelihood shape {likelihood.shape}, expected ({label_sets.num_open}, {label_sets.num_classes})")
         sums = likelihood.sum(axis=0, keepdims=True)
         if np.any(sums <= 0):
             raise ValueError("every likelihood column needs a positive entry")
-        self.published = likelihood / sums          # p(open label | class), each column sums to 1
+        self.published = likelihood / sums  # p(open label | class), each column sums to 1
         # The detector's own distributions: the published ones unless the label model is misspecified.
-        self.columns = (perturb_likelihood(self.published, noise.likelihood_perturbation, noise.seed)
-                        if noise.likelihood_perturbation > 0 else self.published)
-        self.best = self.columns.argmax(axis=0)     # most likely open label of each class
+        self.columns = (
+            perturb_likelihood(self.published, noise.likelihood_perturbation, noise.seed)
+            if noise.likelihood_perturbation > 0
+            else self.published
+        )
+        self.best = self.columns.argmax(axis=0)  # most likely open label of each class
         self.noise = noise
         self.names = label_sets.open_labels
         index = {name: i for i, name in enumerate(self.names)}
-        self.lookalikes = {label_sets.class_names.index(c): [index[name] for name in names if name in index]
-                           for c, names in EXTRA_CONFUSIONS.items() if c in label_sets.class_names}
-        self.mislabels = (consistent_mislabels(self.published, noise.consistent_mislabel_prob, noise.seed,
-                                               self.lookalikes)
-                          if noise.consistent_mislabel_prob > 0 else {})
+        self.lookalikes = {
+            label_sets.class_names.index(c): [index[name] for name in names if name in index]
+            for c, names in EXTRA_CONFUSIONS.items()
+            if c in label_sets.class_names
+        }
+        self.mislabels = (
+            consistent_mislabels(self.published, noise.consistent_mislabel_prob, noise.seed, self.lookalikes)
+            if noise.consistent_mislabel_prob > 0
+            else {}
+        )
 
     def persistent_label(self, class_index: int, instance: int) -> int:
         """The object's own label draw: fixed for a seed and instance, the same in every frame."""
@@ -247,8 +273,7 @@ class _LabelModel:
         else:
             main = fresh
         main = self.mislabels.get(class_index, main)
-        score = float(np.clip(noise.score_mean + noise.score_std * rng.standard_normal(),
-                              noise.box_threshold, 0.95))
+        score = float(np.clip(noise.score_mean + noise.score_std * rng.standard_normal(), noise.box_threshold, 0.95))
         labels = {self.names[main]: score}
         extra = 0
         while extra < noise.max_labels - 1 and rng.random() < noise.extra_label_prob:
@@ -278,8 +303,9 @@ class _LabelModel:
 
     def score(self, rng: np.random.Generator) -> float:
         """A normal main-label score, as a detection of a real object gets."""
-        return float(np.clip(self.noise.score_mean + self.noise.score_std * rng.standard_normal(),
-                             self.noise.box_threshold, 0.95))
+        return float(
+            np.clip(self.noise.score_mean + self.noise.score_std * rng.standard_normal(), self.noise.box_threshold, 0.95)
+        )
 
     def confuser(self, instance: int, class_names: list[str]) -> tuple[bool, int, str]:
         """Whether non-target object `instance` is a confuser (per seed and object), the class it is taken
@@ -321,9 +347,15 @@ def _round_labels(labels: Mapping[str, float]) -> dict[str, float]:
     return {name: round(float(score), 4) for name, score in ordered}
 
 
-def _absorb_neighbours(objects: list[_Object], areas: Mapping[int, int], pairs: Mapping[tuple[int, int], int],
-                       instance_classes: Mapping[int, int], no_merge: set[int], rng: np.random.Generator,
-                       prob: float) -> list[_Object]:
+def _absorb_neighbours(
+    objects: list[_Object],
+    areas: Mapping[int, int],
+    pairs: Mapping[tuple[int, int], int],
+    instance_classes: Mapping[int, int],
+    no_merge: set[int],
+    rng: np.random.Generator,
+    prob: float,
+) -> list[_Object]:
     """`merge_neighbor_prob`: each single object, with `prob`, absorbs one touching neighbour of any kind.
 
     The neighbour (a target or a non-target object, never a wall or floor, at most
@@ -337,15 +369,17 @@ def _absorb_neighbours(objects: list[_Object], areas: Mapping[int, int], pairs: 
             neighbours[a].append((b, border))
             neighbours[b].append((a, border))
     used = {m for o in objects if len(o.instances) > 1 for m in o.instances}
-    absorbed: dict[int, int] = {}          # object key -> the neighbour it absorbs
+    absorbed: dict[int, int] = {}  # object key -> the neighbour it absorbs
     for obj in objects:
         draw = rng.random()
         own = obj.instances[0]
         if draw >= prob or len(obj.instances) > 1 or own in used or obj.class_index in no_merge:
             continue
-        candidates = [(n, border) for n, border in neighbours.get(own, ())
-                      if n not in used and instance_classes.get(n) not in no_merge
-                      and areas[n] <= NEIGHBOR_MAX_AREA_RATIO * areas[own]]
+        candidates = [
+            (n, border)
+            for n, border in neighbours.get(own, ())
+            if n not in used and instance_classes.get(n) not in no_merge and areas[n] <= NEIGHBOR_MAX_AREA_RATIO * areas[own]
+        ]
         if not candidates:
             continue
         weights = np.array([border for _, border in candidates], np.float64)
@@ -364,9 +398,15 @@ def _absorb_neighbours(objects: list[_Object], areas: Mapping[int, int], pairs: 
     return out
 
 
-def _confuser_objects(model: _LabelModel, areas: Mapping[int, int], instance_classes: Mapping[int, int],
-                      objects: list[_Object], noise: NoiseModel, class_names: list[str],
-                      rng: np.random.Generator) -> list[_Object]:
+def _confuser_objects(
+    model: _LabelModel,
+    areas: Mapping[int, int],
+    instance_classes: Mapping[int, int],
+    objects: list[_Object],
+    noise: NoiseModel,
+    class_names: list[str],
+    rng: np.random.Generator,
+) -> list[_Object]:
     """The visible non-target objects that are confusers (per seed and object), as objects of the class
     they are taken for, each with its fixed label at a normal score."""
     taken = {m for o in objects for m in o.instances}
@@ -380,14 +420,16 @@ def _confuser_objects(model: _LabelModel, areas: Mapping[int, int], instance_cla
     return out
 
 
-def _blobs(image: np.ndarray, instance_classes: Mapping[int, int], class_names: list[str], model: _LabelModel,
-           rng: np.random.Generator) -> list[tuple[np.ndarray, dict[str, float]]]:
+def _blobs(
+    image: np.ndarray, instance_classes: Mapping[int, int], class_names: list[str], model: _LabelModel, rng: np.random.Generator
+) -> list[tuple[np.ndarray, dict[str, float]]]:
     """`blob_rate`: false blobs on a wall or the floor, each with a label such a surface is mistaken for
     (`BLOB_LABELS`) at a normal score, clipped to the surface they lie on."""
     count = int(rng.poisson(model.noise.blob_rate))
     known = set(model.names)
-    surfaces = {i: class_names[c] for i, c in instance_classes.items()
-                if 0 <= c < len(class_names) and class_names[c] in BLOB_LABELS}
+    surfaces = {
+        i: class_names[c] for i, c in instance_classes.items() if 0 <= c < len(class_names) and class_names[c] in BLOB_LABELS
+    }
     if not count or not surfaces:
         return []
     pixels = np.flatnonzero(np.isin(image, list(surfaces)).ravel())
@@ -412,8 +454,9 @@ def _passive_pixels(image: np.ndarray, instance_classes: Mapping[int, int], no_m
     return ~np.isin(image, active)
 
 
-def _partial_cut(mask: np.ndarray, fraction: float, cut_rng: np.random.Generator, style_rng: np.random.Generator,
-                 noise: NoiseModel) -> np.ndarray:
+def _partial_cut(
+    mask: np.ndarray, fraction: float, cut_rng: np.random.Generator, style_rng: np.random.Generator, noise: NoiseModel
+) -> np.ndarray:
     """The part of the mask a partial segmentation keeps: a wavy cut (drawn from `cut_rng`, as the original
     simulator), or with `partial_straight_share` / `partial_occluder_share` a straight part cut or an
     occluder removed (drawn from `style_rng`)."""
@@ -426,8 +469,9 @@ def _partial_cut(mask: np.ndarray, fraction: float, cut_rng: np.random.Generator
     return cut_mask(mask, cut_rng, fraction)[0]
 
 
-def _bleed_or_erode(mask: np.ndarray, passive: np.ndarray | None, rng: np.random.Generator, noise: NoiseModel,
-                    is_surface: bool) -> np.ndarray:
+def _bleed_or_erode(
+    mask: np.ndarray, passive: np.ndarray | None, rng: np.random.Generator, noise: NoiseModel, is_surface: bool
+) -> np.ndarray:
     """With `bleed_prob` the mask bleeds onto the passive pixels (not for walls and floors, which are the
     background themselves), else with `erode_prob` it shrinks."""
     draw = rng.random()
@@ -446,10 +490,17 @@ def _miscalibrate(labels: Mapping[str, float], rng: np.random.Generator, noise: 
     return {name: (1.0 - m) * score + m * float(rng.uniform(low, high)) for name, score in labels.items()}
 
 
-def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int, int], frame_name: str,
-                   frame_index: int, noise: NoiseModel | None = None, label_sets: LabelSets | None = None,
-                   likelihood: np.ndarray | None = None, recent_labels: Iterable[str] = (),
-                   rng: np.random.Generator | None = None) -> FrameDetections:
+def simulate_frame(
+    gt_instance_image: np.ndarray,
+    instance_classes: Mapping[int, int],
+    frame_name: str,
+    frame_index: int,
+    noise: NoiseModel | None = None,
+    label_sets: LabelSets | None = None,
+    likelihood: np.ndarray | None = None,
+    recent_labels: Iterable[str] = (),
+    rng: np.random.Generator | None = None,
+) -> FrameDetections:
     """Simulated detections of one frame.
 
     Args:
@@ -499,8 +550,12 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
                 continue
             draw = r_mask.random()
             small, large = sorted((visible[a], visible[b]))
-            if (draw < noise.merge_prob and a not in merged_into and b not in merged_into
-                    and small >= MERGE_MIN_AREA_RATIO * large):
+            if (
+                draw < noise.merge_prob
+                and a not in merged_into
+                and b not in merged_into
+                and small >= MERGE_MIN_AREA_RATIO * large
+            ):
                 merged_into[a], merged_into[b] = b, a
     objects: list[_Object] = []
     for i in sorted(visible):
@@ -511,8 +566,7 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
         key = max(members, key=lambda m: (visible[m], -m))
         objects.append(_Object(members, key, int(instance_classes[key]), sum(visible[m] for m in members)))
     if noise.merge_neighbor_prob > 0:
-        objects = _absorb_neighbours(objects, areas, pairs, instance_classes, no_merge, r_neighbor,
-                                     noise.merge_neighbor_prob)
+        objects = _absorb_neighbours(objects, areas, pairs, instance_classes, no_merge, r_neighbor, noise.merge_neighbor_prob)
     # Confusers come last, so that the draws of the target objects do not depend on them.
     real = len(objects)
     if noise.confuser_prob > 0:
@@ -592,8 +646,7 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
         for part, part_labels in parts:
             if noise.bleed_prob > 0 or noise.erode_prob > 0:
                 part = _bleed_or_erode(part, passive, r_edge, noise, obj.class_index in no_merge)
-            detections.append((perturb_border(part, r_mask, noise.border_offset_px, noise.border_jitter_px),
-                               part_labels))
+            detections.append((perturb_border(part, r_mask, noise.border_offset_px, noise.border_jitter_px), part_labels))
 
     # 6. False detections.
     count = int(r_false.poisson(noise.false_positive_rate)) if noise.false_positive_rate > 0 else 0
@@ -609,8 +662,7 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
             else:
                 pixel = int(free[r_false.integers(free.size)]) if free.size else int(r_false.integers(image.size))
                 mask = random_blob(image.shape, (pixel % width, pixel // width), r_false)
-            detections.append((perturb_border(mask, r_false, noise.border_offset_px, noise.border_jitter_px),
-                               {label: score}))
+            detections.append((perturb_border(mask, r_false, noise.border_offset_px, noise.border_jitter_px), {label: score}))
     for mask, labels in blobs:
         labels = _prompt_filter(labels, prompt_set)
         if labels:
@@ -622,8 +674,15 @@ def simulate_frame(gt_instance_image: np.ndarray, instance_classes: Mapping[int,
     return _assemble(frame_name, detections, (height, width), noise, raw_tags, tags, prompt)
 
 
-def _assemble(frame_name: str, detections: list[tuple[np.ndarray, dict[str, float]]], shape: tuple[int, int],
-              noise: NoiseModel, raw_tags: list[str], tags: list[str], prompt: list[str]) -> FrameDetections:
+def _assemble(
+    frame_name: str,
+    detections: list[tuple[np.ndarray, dict[str, float]]],
+    shape: tuple[int, int],
+    noise: NoiseModel,
+    raw_tags: list[str],
+    tags: list[str],
+    prompt: list[str],
+) -> FrameDetections:
     height, width = shape
     if not detections:
         result = FrameDetections.empty(frame_name, height, width)
@@ -663,7 +722,7 @@ class SimulationSummary:
     out_dir: Path
     frame_names: list[str]
     detections_per_frame: list[int]
-    label_counts: dict[str, int]       # main (highest-score) label of each detection
+    label_counts: dict[str, int]  # main (highest-score) label of each detection
     seconds: float
 
     @property
@@ -705,10 +764,20 @@ def _depth_frames(scene: Any, every: int) -> Iterator[tuple[int, str, np.ndarray
             yield frame.index, frame.name, frame.depth, frame.T_world_camera, frame.intrinsics
 
 
-def simulate_scene(scene: Any, gt: "SceneGroundTruth", out_dir: str | Path, noise: NoiseModel | None = None,
-                   render_stride: int = 2, every: int = 1, max_frames: int | None = None,
-                   mask_format: str = "png", max_distance: float = 0.05, progress: bool = True,
-                   label_sets: LabelSets | None = None, likelihood: np.ndarray | None = None) -> SimulationSummary:
+def simulate_scene(
+    scene: Any,
+    gt: "SceneGroundTruth",
+    out_dir: str | Path,
+    noise: NoiseModel | None = None,
+    render_stride: int = 2,
+    every: int = 1,
+    max_frames: int | None = None,
+    mask_format: str = "png",
+    max_distance: float = 0.05,
+    progress: bool = True,
+    label_sets: LabelSets | None = None,
+    likelihood: np.ndarray | None = None,
+) -> SimulationSummary:
     """Simulates detections for the frames of `scene` and writes them to `out_dir` in the authors' format.
 
     Args:
@@ -760,8 +829,7 @@ def simulate_scene(scene: Any, gt: "SceneGroundTruth", out_dir: str | Path, nois
             if max_frames is not None and len(names) >= max_frames:
                 break
             gt_image = renderer.render(depth, T_world_camera, intrinsics)
-            detections = simulate_frame(gt_image, classes, name, index, noise, label_sets, likelihood,
-                                        augmenter.candidates())
+            detections = simulate_frame(gt_image, classes, name, index, noise, label_sets, likelihood, augmenter.candidates())
             write_frame_detections(out_dir, detections, mask_format=mask_format)
             augmenter.observe(label for labels in detections.labels for label in labels)
             names.append(name)

@@ -34,15 +34,29 @@ FAMILIES = ("default", *FAMILY_PRESETS)
 #: The parameters of each family at severity 1, on top of `default`: a clear, realistic dose of its failure mode.
 FAMILY_DOSES: dict[str, dict[str, float]] = {
     "default": {},
-    "label_model": {"likelihood_perturbation": 0.7, "extra_confusion_prob": 0.25,
-                    "consistent_mislabel_prob": 0.3, "label_persistence": 0.5},
-    "partial": {"partial_large_prob": 0.5, "partial_prob": 0.35, "split_prob": 0.15,
-                "partial_straight_share": 0.4, "partial_occluder_share": 0.3},
+    "label_model": {
+        "likelihood_perturbation": 0.7,
+        "extra_confusion_prob": 0.25,
+        "consistent_mislabel_prob": 0.3,
+        "label_persistence": 0.5,
+    },
+    "partial": {
+        "partial_large_prob": 0.5,
+        "partial_prob": 0.35,
+        "split_prob": 0.15,
+        "partial_straight_share": 0.4,
+        "partial_occluder_share": 0.3,
+    },
     "merged": {"merge_neighbor_prob": 0.3, "merge_prob": 0.2},
-    "border": {"bleed_prob": 0.5, "bleed_px": 8.0, "erode_prob": 0.2, "erode_px": 3.0,
-               "border_offset_px": 2.5, "border_jitter_px": 3.0},
-    "confusers": {"confuser_prob": 0.5, "blob_rate": 0.8, "small_object_miss_prob": 0.5,
-                  "score_miscalibration": 0.6},
+    "border": {
+        "bleed_prob": 0.5,
+        "bleed_px": 8.0,
+        "erode_prob": 0.2,
+        "erode_px": 3.0,
+        "border_offset_px": 2.5,
+        "border_jitter_px": 3.0,
+    },
+    "confusers": {"confuser_prob": 0.5, "blob_rate": 0.8, "small_object_miss_prob": 0.5, "score_miscalibration": 0.6},
 }
 #: The family name of a random combination of the families.
 MIXED = "mixed"
@@ -85,8 +99,7 @@ def _family_changes(family: str, severity: float) -> dict[str, Any]:
     if family not in FAMILY_DOSES:
         raise UserError(f"unknown noise family {family!r}; choose one of {', '.join(FAMILIES)}")
     s, base = float(severity), NoiseModel()
-    return _fit({name: getattr(base, name) + s * (dose - getattr(base, name))
-                 for name, dose in FAMILY_DOSES[family].items()})
+    return _fit({name: getattr(base, name) + s * (dose - getattr(base, name)) for name, dose in FAMILY_DOSES[family].items()})
 
 
 def family_noise(family: str, severity: float = 1.0, seed: int = 0, **changes: Any) -> NoiseModel:

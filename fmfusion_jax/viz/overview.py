@@ -30,10 +30,10 @@ _FONT = cv2.FONT_HERSHEY_SIMPLEX
 class OverviewLayer:
     """Points drawn in one panel of the overview: world positions, RGB colours and their spacing (m)."""
 
-    points: np.ndarray       # (N, 3) world metres, z up
-    colors: np.ndarray       # (N, 3) uint8 RGB
-    spacing: float           # typical distance between neighbouring points (sets the splat size)
-    z_bias: float = 0.0      # added to z for the z-buffer only
+    points: np.ndarray  # (N, 3) world metres, z up
+    colors: np.ndarray  # (N, 3) uint8 RGB
+    spacing: float  # typical distance between neighbouring points (sets the splat size)
+    z_bias: float = 0.0  # added to z for the z-buffer only
     faces: np.ndarray | None = None  # (F, 3) triangles over `points`: filled in where they are coarse
 
 
@@ -41,7 +41,7 @@ class OverviewLayer:
 class OverviewPanel:
     caption: str
     layers: list[OverviewLayer]
-    class_counts: dict[int, int]   # closed-class index -> instances of that class in the panel
+    class_counts: dict[int, int]  # closed-class index -> instances of that class in the panel
 
 
 def grey_from_colors(colors: np.ndarray | None, count: int) -> np.ndarray:
@@ -89,32 +89,48 @@ def point_spacing(points: np.ndarray, default: float, max_tree_points: int = 200
     return max(default, float(np.median(distances[:, 1])) / np.sqrt(step))
 
 
-def map_overview_panel(instances: list[MapInstance], label_sets: LabelSets, mesh_vertices: np.ndarray,
-                       mesh_colors: np.ndarray | None, mesh_faces: np.ndarray | None, voxel_size: float,
-                       caption: str = "fused map") -> OverviewPanel:
+def map_overview_panel(
+    instances: list[MapInstance],
+    label_sets: LabelSets,
+    mesh_vertices: np.ndarray,
+    mesh_colors: np.ndarray | None,
+    mesh_faces: np.ndarray | None,
+    voxel_size: float,
+    caption: str = "fused map",
+) -> OverviewPanel:
     """The fused map's panel: the global mesh in grey under the instance points coloured by class."""
     palette = overview_class_colors(label_sets)
     mesh_vertices = np.asarray(mesh_vertices, np.float32).reshape(-1, 3)
-    layers = [OverviewLayer(mesh_vertices, grey_from_colors(mesh_colors, len(mesh_vertices)),
-                            mesh_spacing(mesh_vertices, mesh_faces, voxel_size), faces=mesh_faces)]
+    layers = [
+        OverviewLayer(
+            mesh_vertices,
+            grey_from_colors(mesh_colors, len(mesh_vertices)),
+            mesh_spacing(mesh_vertices, mesh_faces, voxel_size),
+            faces=mesh_faces,
+        )
+    ]
     counts: dict[int, int] = {}
     structure = {label_sets.class_index("wall"), label_sets.class_index("floor")}
     # Walls and floor first, objects after them: a voxel held by two instances shows the object.
-    for group in ([i for i in instances if i.class_index in structure],
-                  [i for i in instances if i.class_index not in structure]):
+    for group in ([i for i in instances if i.class_index in structure], [i for i in instances if i.class_index not in structure]):
         if group:
             points = np.concatenate([inst.points for inst in group]).astype(np.float32)
-            colors = np.concatenate([np.repeat(palette[inst.class_index][None], len(inst.points), 0)
-                                     for inst in group])
+            colors = np.concatenate([np.repeat(palette[inst.class_index][None], len(inst.points), 0) for inst in group])
             layers.append(OverviewLayer(points, colors, point_spacing(points, voxel_size), INSTANCE_Z_BIAS))
     for inst in instances:
         counts[inst.class_index] = counts.get(inst.class_index, 0) + 1
     return OverviewPanel(caption, layers, counts)
 
 
-def ground_truth_overview_panel(vertices: np.ndarray, faces: np.ndarray | None, vertex_colors: np.ndarray | None,
-                                nyu40_ids: np.ndarray, instance_ids: np.ndarray, label_sets: LabelSets,
-                                caption: str = "ground truth") -> OverviewPanel:
+def ground_truth_overview_panel(
+    vertices: np.ndarray,
+    faces: np.ndarray | None,
+    vertex_colors: np.ndarray | None,
+    nyu40_ids: np.ndarray,
+    instance_ids: np.ndarray,
+    label_sets: LabelSets,
+    caption: str = "ground truth",
+) -> OverviewPanel:
     """The ground-truth mesh with its vertices coloured by the class of their instance (others grey).
 
     Ceiling vertices (nyu40 22) are left out so that the room can be seen from above.
@@ -197,8 +213,9 @@ def _top_points(idx: np.ndarray, z: np.ndarray) -> np.ndarray:
     return order[last]
 
 
-def _rasterize(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarray, colors: np.ndarray,
-               radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _rasterize(
+    shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarray, colors: np.ndarray, radii: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Splats points as discs of their radius (pixels) with a z-buffer: the highest point wins a pixel.
 
     Returns the `(H, W, 3)` uint8 image and the `(H, W)` bool coverage.
@@ -217,8 +234,9 @@ def _rasterize(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarr
         source_parts: list[np.ndarray] = []
         for r in np.unique(radii):
             members = np.flatnonzero(radii == r)
-            offsets = np.array([(dx, dy) for dx in range(-r, r + 1) for dy in range(-r, r + 1)
-                                if dx * dx + dy * dy <= r * r + r], np.int64)
+            offsets = np.array(
+                [(dx, dy) for dx in range(-r, r + 1) for dy in range(-r, r + 1) if dx * dx + dy * dy <= r * r + r], np.int64
+            )
             uu = u[members, None] + offsets[None, :, 0]
             vv = v[members, None] + offsets[None, :, 1]
             ok = (uu >= 0) & (uu < width) & (vv >= 0) & (vv < height)
@@ -232,8 +250,9 @@ def _rasterize(shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarr
     return image.reshape(height, width, 3), covered.reshape(height, width)
 
 
-def _densify(points: np.ndarray, colors: np.ndarray, faces: np.ndarray | None, pixel: float,
-             max_points: int = 3_000_000) -> tuple[np.ndarray, np.ndarray]:
+def _densify(
+    points: np.ndarray, colors: np.ndarray, faces: np.ndarray | None, pixel: float, max_points: int = 3_000_000
+) -> tuple[np.ndarray, np.ndarray]:
     """Adds points inside the triangles whose top-down edges are longer than 1.5 pixels (`pixel` metres),
     so that a coarse mesh draws as a surface; each new point takes its nearest corner's colour."""
     if faces is None or len(faces) == 0:
@@ -264,8 +283,7 @@ def _densify(points: np.ndarray, colors: np.ndarray, faces: np.ndarray | None, p
     return np.concatenate(new_points).astype(np.float32), np.concatenate(new_colors)
 
 
-def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: str,
-                    panel_width: int = 800) -> np.ndarray:
+def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: str, panel_width: int = 800) -> np.ndarray:
     """The overview picture (`(H, W, 3)` uint8 BGR): title, panels side by side, legend of the classes.
 
     Every panel uses the same top-down orthographic view (rotated so that the room's walls are along the
@@ -306,16 +324,21 @@ def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: s
             radius = int(max(1, min(6, round(0.6 * spacing * scale))))
             rs.append(np.full(len(pts), radius, np.int64))
         if us:
-            image, covered = _rasterize((panel_height, panel_width), np.concatenate(us), np.concatenate(vs),
-                                        np.concatenate(zs), np.concatenate(cs), np.concatenate(rs))
+            image, covered = _rasterize(
+                (panel_height, panel_width),
+                np.concatenate(us),
+                np.concatenate(vs),
+                np.concatenate(zs),
+                np.concatenate(cs),
+                np.concatenate(rs),
+            )
         else:
             image = np.zeros((panel_height, panel_width, 3), np.uint8)
             covered = np.zeros((panel_height, panel_width), bool)
         image[~covered] = _PANEL_BACKGROUND
         image = np.ascontiguousarray(image[..., ::-1])  # RGB -> BGR
         if not us:
-            cv2.putText(image, "empty", (panel_width // 2 - 30, panel_height // 2), _FONT, 0.8, (90, 90, 90), 2,
-                        cv2.LINE_AA)
+            cv2.putText(image, "empty", (panel_width // 2 - 30, panel_height // 2), _FONT, 0.8, (90, 90, 90), 2, cv2.LINE_AA)
         images.append(image)
 
     # Legend: every class in any panel, with its count per panel.
@@ -334,9 +357,10 @@ def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: s
         caption = f"{panel.caption}: {sum(panel.class_counts.values())} instances"
         put_fitted(canvas, caption, (x, title_h + 20), panel_width - 220, 0.6, 1)
         scale_bar(canvas, x + panel_width - 2, title_h + 20, scale)
-        canvas[title_h + caption_h:title_h + caption_h + panel_height, x:x + panel_width] = image
-        cv2.rectangle(canvas, (x, title_h + caption_h), (x + panel_width - 1, title_h + caption_h + panel_height - 1),
-                      (160, 160, 160), 1)
+        canvas[title_h + caption_h : title_h + caption_h + panel_height, x : x + panel_width] = image
+        cv2.rectangle(
+            canvas, (x, title_h + caption_h), (x + panel_width - 1, title_h + caption_h + panel_height - 1), (160, 160, 160), 1
+        )
     y0 = title_h + caption_h + panel_height + 12
     heading = "classes (instances per panel: " + " / ".join(p.caption for p in panels) + ")"
     if not present:
@@ -353,8 +377,7 @@ def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: s
     return canvas
 
 
-def put_fitted(image: np.ndarray, text: str, origin: tuple[int, int], max_width: int, scale: float,
-                thickness: int) -> None:
+def put_fitted(image: np.ndarray, text: str, origin: tuple[int, int], max_width: int, scale: float, thickness: int) -> None:
     """`cv2.putText`, shrinking the font (down to half) or cutting the text so it fits `max_width`."""
     text = text.encode("ascii", "replace").decode("ascii")
     for _ in range(6):
@@ -381,8 +404,9 @@ def scale_bar(image: np.ndarray, right: int, baseline: int, scale: float) -> Non
     cv2.putText(image, label, (x0 - text_w - 8, baseline), _FONT, 0.5, (40, 40, 40), 1, cv2.LINE_AA)
 
 
-def write_overview(path: Path, panels: list[OverviewPanel], label_sets: LabelSets, title: str,
-                   panel_width: int = 800) -> np.ndarray:
+def write_overview(
+    path: Path, panels: list[OverviewPanel], label_sets: LabelSets, title: str, panel_width: int = 800
+) -> np.ndarray:
     """Renders the overview (see `render_overview`) and writes it as PNG; returns the BGR image."""
     image = render_overview(panels, label_sets, title, panel_width)
     if not cv2.imwrite(str(path), image):

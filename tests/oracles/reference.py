@@ -173,9 +173,7 @@ def subsampled_pixel_points(depth, T_world_camera, intrinsics, config: MapConfig
 
 def reference_pixel_instances(grid: DenseGrid, depth, T_world_camera, intrinsics, config: MapConfig) -> np.ndarray:
     """Per subsampled pixel: union of the ids at the probed voxels, by summed weight, first seen first."""
-    probes = [
-        subsampled_pixel_points(depth, T_world_camera, intrinsics, config, o) for o in config.instance_lookup_offsets
-    ]
+    probes = [subsampled_pixel_points(depth, T_world_camera, intrinsics, config, o) for o in config.instance_lookup_offsets]
     hs, ws = probes[0][0].shape
     s = config.instance_slots
     out = np.full((hs, ws, s), -1, np.int64)
@@ -199,8 +197,9 @@ def reference_pixel_instances(grid: DenseGrid, depth, T_world_camera, intrinsics
     return out
 
 
-def reference_apply_hits(grid: DenseGrid, voxels, instances, detected=None, neutral=None,
-                         contrary_weight: float = 0.0) -> DenseGrid:
+def reference_apply_hits(
+    grid: DenseGrid, voxels, instances, detected=None, neutral=None, contrary_weight: float = 0.0
+) -> DenseGrid:
     """The slot update rule of `instance_volume` for explicit votes (global voxel, instance).
 
     `voxels` int `(N, 3)` global voxel coordinates (votes in unallocated voxels are dropped),
@@ -240,7 +239,7 @@ def reference_apply_hits(grid: DenseGrid, voxels, instances, detected=None, neut
         grid.instance_weight[x, y, z, k] += n
     for (x, y, z, k), n in lowered.items():
         grid.instance_weight[x, y, z, k] -= n
-    for (x, y, z, k) in lowered:  # emptied once every vote of the frame is in
+    for x, y, z, k in lowered:  # emptied once every vote of the frame is in
         if grid.instance_weight[x, y, z, k] <= 0:
             grid.instance_weight[x, y, z, k] = 0
             grid.instance_id[x, y, z, k] = -1
@@ -248,8 +247,15 @@ def reference_apply_hits(grid: DenseGrid, voxels, instances, detected=None, neut
 
 
 def reference_integrate_instances(
-    grid: DenseGrid, depth, T_world_camera, intrinsics, pixel_instance, config: MapConfig, detected=None,
-    neutral=None, contrary_weight: float = 0.0,
+    grid: DenseGrid,
+    depth,
+    T_world_camera,
+    intrinsics,
+    pixel_instance,
+    config: MapConfig,
+    detected=None,
+    neutral=None,
+    contrary_weight: float = 0.0,
 ) -> DenseGrid:
     """Each subsampled pixel votes its instance into its surface voxel (see `reference_apply_hits`)."""
     ok, g = subsampled_pixel_points(depth, T_world_camera, intrinsics, config, 0.0)

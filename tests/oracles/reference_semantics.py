@@ -85,8 +85,12 @@ def association_score_matrix(inter, det_area, inst_area, metric):
 
 def match_detections(scores, valid_det, valid_inst, threshold, one_to_one=True):
     n, k = scores.shape
-    cands = [(-float(scores[i, j]), i, j) for i in range(n) for j in range(k)
-             if valid_det[i] and valid_inst[j] and scores[i, j] > threshold]
+    cands = [
+        (-float(scores[i, j]), i, j)
+        for i in range(n)
+        for j in range(k)
+        if valid_det[i] and valid_inst[j] and scores[i, j] > threshold
+    ]
     match = np.full(n, -1, np.int32)
     if not one_to_one:
         for _, i, j in sorted(cands):
