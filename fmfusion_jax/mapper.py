@@ -438,7 +438,7 @@ def _tree_where(keep_new: jax.Array, new, old):
     return jax.tree.map(lambda a, b: jnp.where(keep_new, a, b), new, old)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("states",))
+@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("states",))
 def _batch_frame(states, frames, batches, likelihood, has_frame, has_detections, config: MapConfig, fusion: step.FusionConfig):
     """One frame for every map of a batch: the detection step where a map has detections, the TSDF alone where
     it has none, nothing where it has no frame. (A detection step with no valid detection integrates the TSDF
@@ -454,7 +454,7 @@ def _batch_frame(states, frames, batches, likelihood, has_frame, has_detections,
     return jax.vmap(one, in_axes=(0, 0, 0, 0, 0))(states, frames, batches, has_frame, has_detections)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "fusion", "kind"), donate_argnames=("states",))
+@functools.partial(jax.jit, static_argnames=("config", "kind"), donate_argnames=("states",))
 def _batch_refinement(states, due, config: MapConfig, fusion: step.FusionConfig, kind: str):
     """`refine`, `fuse_geometry` or `finalize` (`kind`) on the maps where `due`; the others unchanged."""
 

@@ -7,6 +7,8 @@ the right class, without recompiling, and a batch of two maps must equal two sep
 
 from __future__ import annotations
 
+import dataclasses
+
 import chex
 import jax
 import numpy as np
@@ -115,16 +117,16 @@ def test_no_recompilation_after_the_first_frames(room_frames):
     config = small_config()
     builder = build(config, room)
     # the same step, traced through chex's counter: every frame's inputs must hit the first trace
-    counted = jax.jit(chex.assert_max_traces(step.fuse_detections.__wrapped__, n=1), static_argnames=("config", "fusion"))
+    counted = jax.jit(chex.assert_max_traces(step.fuse_detections.__wrapped__, n=1), static_argnames=("config",))
     from fmfusion_jax.engine.detections import pack_detections
     from fmfusion_jax.pipeline import frame_inputs
 
     state = builder.state
-    for frame in frames[:4]:
+    for i, frame in enumerate(frames[:4]):
         batch = pack_detections(clean_detections(frame), LABELS.open_labels, 12, 100)
-        state, _ = counted(
-            state, frame_inputs(frame, builder.map_config), batch, builder.likelihood, builder.map_config, builder.fusion_config
-        )
+        # thresholds are traced: another association threshold or depth filter reuses the compiled step
+        fusion = dataclasses.replace(builder.fusion_config, association_threshold=0.5 - 0.05 * i, depth_high=0.9 + 0.02 * i)
+        state, _ = counted(state, frame_inputs(frame, builder.map_config), batch, builder.likelihood, builder.map_config, fusion)
     # and the loop's own jitted steps keep one compiled version each
     builder.add_frame(frames[0], clean_detections(frames[0]))
     builder.add_frame(frames[1], None)

@@ -22,14 +22,12 @@ from fmfusion_jax.pipeline import StageTimer
 #: Stages of one detection frame, in order (keys of the timings; `tsdf` is `step.integrate_frame`).
 FUSION_STAGES = ("tsdf", "detections", "projection", "association", "label_fusion", "integration")
 
-detection_image = jax.jit(step.detection_image, static_argnames=("config", "fusion"))
+detection_image = jax.jit(step.detection_image, static_argnames=("config",))
 project_instances = jax.jit(step.project_instances, static_argnames=("config",))
-associate = jax.jit(step.associate, static_argnames=("config", "fusion"))
+associate = jax.jit(step.associate, static_argnames=("config",))
 # the table and the pool are updated in place, as inside the fused step (no copy of the voxel pool)
-fuse_table = jax.jit(step.fuse_table, static_argnames=("config", "fusion"), donate_argnames=("table",))
-integrate_instance_votes = jax.jit(
-    step.integrate_instance_votes, static_argnames=("config", "fusion"), donate_argnames=("blocks",)
-)
+fuse_table = jax.jit(step.fuse_table, static_argnames=("config",), donate_argnames=("table",))
+integrate_instance_votes = jax.jit(step.integrate_instance_votes, static_argnames=("config",), donate_argnames=("blocks",))
 frame_stats = jax.jit(step.frame_stats)
 
 

@@ -36,10 +36,37 @@ from fmfusion_jax.engine.occupied_cells import fuse_instance_geometry, remap_cel
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
+#: Fields of `FusionConfig` that choose code paths (static: a change compiles another step); every other
+#: field is a threshold, traced (a change reuses the compiled step, and the thresholds can be differentiated
+#: or swept without recompiling).
+FUSION_MODES = ("association_metric", "label_mode", "contrary_vote_weight", "separate_min_frames")
 
+
+@functools.partial(
+    jax.tree_util.register_dataclass,
+    data_fields=[
+        "association_threshold",
+        "min_projected_pixels",
+        "depth_low",
+        "depth_high",
+        "merge_similarity",
+        "merge_overlap",
+        "remove_missed",
+        "remove_min_voxels",
+        "post_merge_iou",
+        "post_merge_similarity",
+        "geometry_min_weight",
+        "reunite_min_frames",
+    ],
+    meta_fields=list(FUSION_MODES),
+)
 @dataclasses.dataclass(frozen=True)
 class FusionConfig:
-    """Static parameters of association, label fusion and refinement (paper / reference defaults)."""
+    """Parameters of association, label fusion and refinement (paper / reference defaults).
+
+    A pytree: the modes (`FUSION_MODES`) are static, the thresholds are leaves, traced by the jitted steps
+    that take it as an ordinary argument (`fuse_detections`, `fuse_geometry`, `refine`, `finalize`).
+    """
 
     association_metric: str = "projection_overlap"  # or "iou"
     association_threshold: float = 0.5
@@ -56,12 +83,14 @@ class FusionConfig:
     geometry_min_weight: float = 1.0  # global TSDF weight a voxel needs to support instances
     # Weight of a contrary vote: a pixel that sees an instance's voxel outside the mask of that instance's
     # detection in the same frame (0: membership by hits alone, the paper's rule). See `instance_volume`.
+    # Static: 0 leaves the contrary-vote scatters out of the compiled step.
     contrary_vote_weight: float = 0.0
     # Reunite instance b with a when b was covered by a's detections in at least this many detection frames
     # and in at least as many as b was detected itself (0: off, the paper's merge tests alone).
     reunite_min_frames: int = 0
     # Never merge a and b while two different detections of one frame were fused into them in at least this
     # many frames and at least as often as one detection covered both (0: off, the paper's tests alone).
+    # Static: 0 leaves the separation counts out of the compiled steps.
     separate_min_frames: int = 0
 
 
@@ -98,7 +127,7 @@ def integrate_frame(state: MapState, frame: FrameInputs, config: MapConfig) -> M
     return state._replace(blocks=blocks, frame_index=frame.frame_index)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
+@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
 def fuse_detections(
     state: MapState, frame: FrameInputs, batch: DetectionBatch, likelihood: jax.Array, config: MapConfig, fusion: FusionConfig
 ) -> tuple[MapState, FrameStats]:
@@ -406,17 +435,17 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
     """
     params = _MergeParams(
         final=np.bool_(False),
-        remove_missed=np.int32(fusion.remove_missed),
-        remove_min_voxels=np.int32(fusion.remove_min_voxels),
-        similarity=np.float32(fusion.merge_similarity),
-        overlap=np.float32(fusion.merge_overlap),
-        reunite=np.int32(fusion.reunite_min_frames),
-        separate=np.int32(fusion.separate_min_frames),
+        remove_missed=jnp.asarray(fusion.remove_missed, jnp.int32),
+        remove_min_voxels=jnp.asarray(fusion.remove_min_voxels, jnp.int32),
+        similarity=jnp.asarray(fusion.merge_similarity, jnp.float32),
+        overlap=jnp.asarray(fusion.merge_overlap, jnp.float32),
+        reunite=jnp.asarray(fusion.reunite_min_frames, jnp.int32),
+        separate=jnp.asarray(fusion.separate_min_frames, jnp.int32),
     )
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "fusion"), donate_argnames=("state",))
+@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
 def fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> MapState:
     """Instance-geometry fusion: drop instance voxels the global surface does not support.
 
@@ -439,10 +468,10 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
         final=np.bool_(True),
         remove_missed=np.int32(np.iinfo(np.int32).max),
         remove_min_voxels=np.int32(0),
-        similarity=np.float32(fusion.post_merge_similarity),
-        overlap=np.float32(fusion.post_merge_iou),
-        reunite=np.int32(fusion.reunite_min_frames),
-        separate=np.int32(fusion.separate_min_frames),
+        similarity=jnp.asarray(fusion.post_merge_similarity, jnp.float32),
+        overlap=jnp.asarray(fusion.post_merge_iou, jnp.float32),
+        reunite=jnp.asarray(fusion.reunite_min_frames, jnp.int32),
+        separate=jnp.asarray(fusion.separate_min_frames, jnp.int32),
     )
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
