@@ -68,6 +68,14 @@ def test_special_files_are_refused_without_reading(tmp_path):
         read_image(tmp_path / "absent.png")
 
 
+def test_a_pose_file_that_is_a_fifo_is_refused_without_hanging(tmp_path):
+    root = make_scene(tmp_path / "s", num_frames=3)
+    (root / "pose" / "frame-000001.txt").unlink()
+    os.mkfifo(root / "pose" / "frame-000001.txt")
+    with pytest.raises(DataError, match=r"frame-000001\.txt: not a regular file"):
+        open_scene(root)
+
+
 def test_a_truncated_jpeg_is_an_error_naming_it(tmp_path):
     path = tmp_path / "cut.jpg"
     ok, encoded = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (64, 64, 3), np.uint8))

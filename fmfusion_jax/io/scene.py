@@ -138,7 +138,13 @@ def read_trajectory_log(path: Path) -> np.ndarray:
 
     Returns `(N, 4, 4)` float64 camera-to-world poses in file order.
     """
-    lines = [line.split() for line in path.read_text().splitlines() if line.strip()]
+    if not path.is_file():
+        raise DataError(f"{path}: not a regular file")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise DataError(f"{path}: unreadable ({error})") from None
+    lines = [line.split() for line in text.splitlines() if line.strip()]
     if len(lines) % 5:
         raise DataError(f"{path}: {len(lines)} non-empty lines, expected blocks of 5 (header + 4x4 matrix)")
     try:
@@ -592,6 +598,8 @@ def _read_intrinsics(root: Path, spec: _Layout, first_name: str) -> CameraIntrin
 
 def _read_numbers(path: Path) -> np.ndarray:
     """All whitespace-separated numbers of a text file (``inf``/``nan`` allowed), float64."""
+    if path.exists() and not path.is_file():
+        raise DataError(f"{path}: not a regular file")
     try:
         text = path.read_text()
     except FileNotFoundError:
