@@ -381,7 +381,7 @@ def run_method(
         from fmfusion_jax.pipeline import extract_map_instances
         from fmfusion_jax.runner import capacity_used, fuse_scene
 
-        result = fuse_scene(scene, source, config, progress=progress)
+        result = fuse_scene(scene, source, config, progress=progress, time_stages=True)
         instances = extract_map_instances(result, label_sets)
         details = {
             "frames": result.frames_integrated,

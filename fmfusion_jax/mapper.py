@@ -41,6 +41,7 @@ from fmfusion_jax.pipeline import (
     DetectionSchedule,
     FusionResult,
     MapBuilder,
+    StageTimer,
     build_map_config,
     extract_map_instances,
 )
@@ -190,6 +191,8 @@ class Mapper:
       bounds: `(min xyz, max xyz)` world metres the map must cover: fixes the block index and allocates the
         config's capacities up front. None: the map grows as the camera explores.
       label_sets, likelihood: the label sets and the `(O, C)` likelihood (default: the config's).
+      time_stages: time every engine step (waits for the device after each, so reading the next frame no
+        longer overlaps the device's work); the medians are in `finalize().timings`.
     """
 
     def __init__(
@@ -200,8 +203,10 @@ class Mapper:
         bounds: "tuple[ArrayLike, ArrayLike] | None" = None,
         label_sets: LabelSets | None = None,
         likelihood: np.ndarray | None = None,
+        time_stages: bool = False,
     ):
         self.config = as_config(config)
+        self.time_stages = time_stages
         self.label_sets = label_sets or load_label_sets()
         self._likelihood = likelihood
         self._intrinsics = intrinsics
@@ -335,13 +340,15 @@ class Mapper:
         return write_map_file(path, state, builder.map_config, builder.config, progress)
 
     @classmethod
-    def load(cls, path: str | Path) -> "Mapper":
+    def load(cls, path: str | Path, time_stages: bool = False) -> "Mapper":
         """A Mapper that continues the map saved at `path` (by `save`, or a run's `map_state.npz`)."""
         saved = read_map_file(path)
         progress = saved.progress
         lo, hi = saved.map_config.grid_bounds
-        mapper = cls(saved.config, bounds=None if progress.get("grows") else (lo, hi))
-        builder = MapBuilder(saved.config, saved.map_config, mapper.label_sets, state=saved.state)
+        mapper = cls(saved.config, bounds=None if progress.get("grows") else (lo, hi), time_stages=time_stages)
+        builder = MapBuilder(
+            saved.config, saved.map_config, mapper.label_sets, state=saved.state, timer=StageTimer(enabled=time_stages)
+        )
         builder.restore_progress(progress)
         mapper._builder = builder
         mapper._ceiling = mapper._capacity_ceiling(saved.map_config)
@@ -391,7 +398,9 @@ class Mapper:
                     max(MIN_INSTANCE_ROWS, _next_power_of_two(2 * self.config.detections.max_detections)),
                 ),
             )
-        self._builder = MapBuilder(self.config, map_config, self.label_sets, self._likelihood)
+        self._builder = MapBuilder(
+            self.config, map_config, self.label_sets, self._likelihood, timer=StageTimer(enabled=self.time_stages)
+        )
         log.info("map: %s", map_config.describe())
 
     def _grow_for(self, frame: RGBDFrame) -> None:

@@ -102,9 +102,9 @@ def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:
 @dataclasses.dataclass(frozen=True)
 class HostAdapter:
     """The one joint between the host (readers, detectors, simulator: arrays of any size) and the engine
-    (fixed shapes): frames become `FrameInputs`, detections a padded `DetectionBatch`, each checked once
-    against the map's image size with an error that names the frame. `MapBuilder` (so `Mapper` and the
-    bench), `MapperBatch` and the Kimera baseline all go through it."""
+    (fixed shapes): frames become `FrameInputs`, detections a padded `DetectionBatch` (masks at the fused
+    pixel stride), each checked once against the map's image size with an error that names the frame.
+    `MapBuilder` (so `Mapper` and the bench), `MapperBatch` and the Kimera baseline all go through it."""
 
     map_config: MapConfig
     open_labels: tuple[str, ...]
@@ -130,17 +130,26 @@ class HostAdapter:
             raise UserError(
                 f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are {self.image_shape}"
             )
-        return pack_detections(detections, self.open_labels, self.max_detections, self.min_mask_pixels)
+        return pack_detections(
+            detections, self.open_labels, self.max_detections, self.min_mask_pixels, stride=self.map_config.pixel_stride
+        )
 
 
 @dataclasses.dataclass
 class StageTimer:
-    """Wall time per named stage (milliseconds per call), with the first (compiling) call kept apart."""
+    """Wall time per named stage (milliseconds per call), with the first (compiling) call kept apart.
+
+    Timing a stage waits for its result, so the host cannot work ahead of the device; `enabled=False`
+    runs the stages without waiting and records nothing.
+    """
 
     first_ms: dict[str, float] = dataclasses.field(default_factory=dict)
     samples_ms: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+    enabled: bool = True
 
     def run(self, name: str, fn, *args):
+        if not self.enabled:
+            return fn(*args)
         start = time.perf_counter()
         out = jax.block_until_ready(fn(*args))
         elapsed = (time.perf_counter() - start) * 1e3
@@ -283,10 +292,20 @@ class MapBuilder:
         self.frames_integrated = 0
         self.detection_frames = 0
         self.counters = {"created": 0, "matched": 0, "merged": 0, "removed": 0, "detections": 0}
+        self._pending: tuple[str, Any, Any] | None = None  # the last detection frame's unread statistics
+
+    #: Frames between two reads of the capacity counters (each read waits for the device).
+    CAPACITY_CHECK_EVERY = 16
 
     def add_frame(self, frame: RGBDFrame, detections: FrameDetections | None) -> None:
         """Integrates a frame; fuses its detections when given (the caller applies the detection schedule,
-        e.g. `scheduled_detections`)."""
+        e.g. `scheduled_detections`).
+
+        The steps are dispatched without waiting for the device: the frame's statistics (counters, log line)
+        are read at the next call (or `flush`), so the caller may read and decode the next frame while the
+        device works; the merge and geometry-fusion schedules count detection frames on the host.
+        """
+        self.flush()
         adapter = self.adapter
         inputs = adapter.frame(frame)
         if detections is None:
@@ -296,25 +315,37 @@ class MapBuilder:
             self.state, stats = self.timer.run(
                 "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.map_config, self.fusion_config
             )
-            stats = jax.device_get(stats)  # one transfer for the counters and the log line
-            merge_due, geometry_due = self.record_detection_frame(stats)
-            log.info(
-                "%s: %d detections, %d matched, %d new instances, %d in view",
-                frame.name,
-                int(stats.detections),
-                int(stats.matched),
-                int(stats.created),
-                int(stats.in_view),
-            )
+            merge_due, geometry_due = self.count_detection_frame()
+            refine_stats = None
             if merge_due:
                 self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.map_config, self.fusion_config)
-                self._count_refinement(frame.name, refine_stats)
             if geometry_due:
                 self.state = self.timer.run(
                     "geometry_fusion", step.fuse_geometry, self.state, self.map_config, self.fusion_config
                 )
+            self._pending = (frame.name, stats, refine_stats)
         self.frames_integrated += 1
-        self.monitor.check(self.state, self.map_config, self.frames_integrated)
+        if self.frames_integrated % self.CAPACITY_CHECK_EVERY == 0:
+            self.monitor.check(self.state, self.map_config, self.frames_integrated)
+
+    def flush(self) -> None:
+        """Reads the statistics of the last detection frame (waits for the device): counters and log line."""
+        if self._pending is None:
+            return
+        name, stats, refine_stats = self._pending
+        self._pending = None
+        stats, refine_stats = jax.device_get((stats, refine_stats))  # one transfer
+        self.add_frame_counts(stats)
+        log.info(
+            "%s: %d detections, %d matched, %d new instances, %d in view",
+            name,
+            int(stats.detections),
+            int(stats.matched),
+            int(stats.created),
+            int(stats.in_view),
+        )
+        if refine_stats is not None:
+            self._count_refinement(name, refine_stats)
 
     @property
     def adapter(self) -> HostAdapter:
@@ -324,9 +355,18 @@ class MapBuilder:
     def record_detection_frame(self, stats: step.FrameStats) -> tuple[bool, bool]:
         """Counts one fused detection frame (`stats` on the host); returns whether the online merge and the
         geometry fusion are due after it (their schedules count detection frames)."""
-        self.detection_frames += 1
+        self.add_frame_counts(stats)
+        return self.count_detection_frame()
+
+    def add_frame_counts(self, stats: step.FrameStats) -> None:
+        """Adds a detection frame's counts (`stats` on the host) to the counters."""
         for name in ("created", "matched", "detections"):
             self.counters[name] += int(getattr(stats, name))
+
+    def count_detection_frame(self) -> tuple[bool, bool]:
+        """Counts one fused detection frame; returns whether the online merge and the geometry fusion are due
+        after it (their schedules count detection frames, so no device value is needed)."""
+        self.detection_frames += 1
         refinement = self.config.refinement
         return (
             refinement.enabled and self.detection_frames % refinement.merge_every == 0,
@@ -342,6 +382,7 @@ class MapBuilder:
 
     def snapshot(self, state: MapState) -> FusionResult:
         """`state` (this builder's, or a copy of it) with the builder's configs, timings and counts."""
+        self.flush()
         return FusionResult(
             state,
             self.map_config,
@@ -361,6 +402,8 @@ class MapBuilder:
 
     def result(self) -> FusionResult:
         """Finalizes (geometry fusion and post-merge when refinement is on) and returns the map."""
+        self.flush()
+        self.monitor.check(self.state, self.map_config, self.frames_integrated)
         if self.config.refinement.enabled:
             self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.map_config, self.fusion_config)
             self._count_refinement("final", stats)

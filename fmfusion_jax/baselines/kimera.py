@@ -429,14 +429,15 @@ class KimeraMapper:
             self.seconds["labels"] += time.perf_counter() - start
 
     def _add_labels(self, frame: RGBDFrame, detections: FrameDetections) -> None:
-        from fmfusion_jax.engine.detections import detection_pixel_image, filter_detection_depth
+        from fmfusion_jax.engine.detections import detection_pixel_image, filter_detection_depth, remaining_stride
 
         config, map_config = self.config, self.map_config
         batch = self.geometry.adapter.detections(detections)
         stride = map_config.pixel_stride
         depth_s = np.asarray(frame.depth, np.float32)[::stride, ::stride]
         lo, hi = config.detections.depth_percentiles
-        det_image = detection_pixel_image(batch.masks, batch.valid, stride)
+        image_shape = (map_config.image_height, map_config.image_width)
+        det_image = detection_pixel_image(batch.masks, batch.valid, remaining_stride(batch.masks.shape, image_shape, stride))
         det_image = np.asarray(
             filter_detection_depth(det_image, depth_s, batch.valid.shape[0], lo, hi, depth_max=map_config.depth_max)
         )

@@ -129,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             restart=args.restart,
             should_stop=stop,
+            time_stages=args.verbose > 0,
         )
     print(outcome.summary)
     if not outcome.complete:

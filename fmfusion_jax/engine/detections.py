@@ -27,7 +27,8 @@ class DetectionBatch(NamedTuple):
     """One frame's detections padded to a fixed capacity `N` (host arrays; jit converts them).
 
     Attributes:
-      masks: `(N, H, W)` bool, full-resolution masks; rows past the real detections are all False.
+      masks: `(N, H, W)` bool at full resolution, or `(N, Hs, Ws)` at the fused pixel stride (`pack_detections`);
+        rows past the real detections are all False.
       label_scores: `(N, O)` float32, score of each open-set label (0 = label not measured).
       valid: `(N,)` bool, which rows hold a real detection.
     """
@@ -50,7 +51,7 @@ def select_detections(
         return np.zeros((0,), np.int64), 0
     best = frame_detections.label_score_matrix(tuple(open_labels)).max(axis=1)
     all_masks = np.asarray(frame_detections.masks, bool)
-    pixels = all_masks.reshape(all_masks.shape[0], -1).sum(axis=1)
+    pixels = np.count_nonzero(all_masks.reshape(all_masks.shape[0], -1), axis=1)
     keep = np.flatnonzero((pixels >= min_mask_pixels) & (best > 0))
     usable = int(keep.size)
     if usable > max_detections:
@@ -60,9 +61,16 @@ def select_detections(
 
 
 def pack_detections(
-    frame_detections: FrameDetections, open_labels: Sequence[str], max_detections: int, min_mask_pixels: int
+    frame_detections: FrameDetections,
+    open_labels: Sequence[str],
+    max_detections: int,
+    min_mask_pixels: int,
+    stride: int = 1,
 ) -> DetectionBatch:
     """Pads a frame's detections into a `DetectionBatch` of capacity `max_detections` (host side).
+
+    `stride`: the masks are sent at `[::stride, ::stride]` (the fused pixel grid: a quarter of the bytes at
+    the default stride 2); the engine takes masks at full or at that resolution (`remaining_stride`).
 
     Dropped: masks with fewer than `min_mask_pixels` pixels (full resolution; the reference uses 1000
     in its Python pipeline, 100 in C++) and detections with no score on any label of `open_labels`
@@ -71,7 +79,7 @@ def pack_detections(
     (`select_detections`). Kept detections stay in their original order.
     """
     open_labels = tuple(open_labels)
-    height, width = frame_detections.image_shape
+    height, width = subsampled_shape(*frame_detections.image_shape, stride)
     masks = np.zeros((max_detections, height, width), bool)
     scores = np.zeros((max_detections, len(open_labels)), np.float32)
     valid = np.zeros((max_detections,), bool)
@@ -87,7 +95,7 @@ def pack_detections(
             stacklevel=2,
         )
     n = keep.size
-    masks[:n] = np.asarray(frame_detections.masks, bool)[keep]
+    masks[:n] = np.asarray(frame_detections.masks, bool)[keep, ::stride, ::stride]
     scores[:n] = frame_detections.label_score_matrix(open_labels)[keep]
     valid[:n] = True
     return DetectionBatch(masks, scores, valid)
@@ -96,6 +104,12 @@ def pack_detections(
 def subsampled_shape(height: int, width: int, stride: int) -> tuple[int, int]:
     """`(Hs, Ws)` of an `(H, W)` image sampled at `[::stride, ::stride]`."""
     return math.ceil(height / stride), math.ceil(width / stride)
+
+
+def remaining_stride(masks_shape: Sequence[int], image_shape: tuple[int, int], stride: int) -> int:
+    """The stride still to apply to a batch's `(N, h, w)` masks for an `image_shape` frame fused at `stride`:
+    1 when they were packed at that stride already (`pack_detections(..., stride=stride)`), else `stride`."""
+    return 1 if tuple(masks_shape[1:]) == subsampled_shape(*image_shape, stride) else stride
 
 
 @functools.partial(jax.jit, static_argnames=("stride",))

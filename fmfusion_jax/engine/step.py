@@ -164,7 +164,10 @@ def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig
     removed (mask borders that bleed onto the background would otherwise smear instances along the rays);
     removed pixels are `FILTERED_PIXEL`."""
     stride = config.pixel_stride
-    raw = detections.detection_pixel_image(batch.masks, batch.valid, stride)
+    image_shape = (config.image_height, config.image_width)
+    raw = detections.detection_pixel_image(
+        batch.masks, batch.valid, detections.remaining_stride(batch.masks.shape, image_shape, stride)
+    )
     kept = detections.filter_detection_depth(
         raw,
         frame.depth[::stride, ::stride],
