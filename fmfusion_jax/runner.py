@@ -5,6 +5,7 @@ Shared by `fmfusion run`, `fmfusion demo` and the experiments; the loop itself i
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import json
@@ -22,6 +23,7 @@ from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
 from fmfusion_jax.pipeline import DetectionSource, FusionResult, extract_map_instances
+from fmfusion_jax.types import RGBDFrame
 from fmfusion_jax.viz import overview
 
 log = logging.getLogger(__name__)
@@ -132,28 +134,43 @@ class SceneFusion:
             check_depth_units(scene, sample)
             self.mapper = Mapper(config, bounds=scene.bounds(sample=sample), time_stages=time_stages)
 
+    #: Frames read and decoded ahead, in a background thread, while the device fuses the current one.
+    READ_AHEAD = 2
+
     def run(self, progress: Callable[[int], None] | None = None, should_stop: Callable[[], bool] | None = None) -> bool:
         """Fuses the frames from `position` on; True when the scene is done, False when `should_stop()` said
-        stop (checked between frames; a checkpoint is written then, when the run has one)."""
+        stop (checked between frames; a checkpoint is written then, when the run has one). The next frames'
+        images are read and decoded in a background thread meanwhile."""
         if progress and self.position:
             progress(self.position)
-        while self.position < len(self.scene):
-            if should_stop and should_stop():
-                if self.checkpoint is not None:
+        with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
+            ahead: dict[int, concurrent.futures.Future] = {}
+            while self.position < len(self.scene):
+                if should_stop and should_stop():
+                    if self.checkpoint is not None:
+                        self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
+                    return False
+                for i in range(self.position, min(self.position + 1 + self.READ_AHEAD, len(self.scene))):
+                    if i not in ahead:
+                        ahead[i] = reader.submit(self._read_frame, i)
+                self._fuse_frame(self.position, ahead.pop(self.position).result())
+                self.position += 1
+                if progress:
+                    progress(1)
+                if (
+                    self.checkpoint is not None
+                    and self.checkpoint.every
+                    and self.position % self.checkpoint.every == 0
+                    and self.position < len(self.scene)
+                ):
                     self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
-                return False
-            self._fuse_frame(self.position)
-            self.position += 1
-            if progress:
-                progress(1)
-            if (
-                self.checkpoint is not None
-                and self.checkpoint.every
-                and self.position % self.checkpoint.every == 0
-                and self.position < len(self.scene)
-            ):
-                self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
         return True
+
+    def _read_frame(self, i: int) -> RGBDFrame | DataError:
+        try:
+            return self.scene.read_frame(i)
+        except DataError as error:
+            return error
 
     def finalize(self) -> FusionResult:
         """The finalized map of the frames fused so far (no frame can be added afterwards)."""
@@ -164,12 +181,10 @@ class SceneFusion:
             )
         return self.mapper.finalize()
 
-    def _fuse_frame(self, i: int) -> None:
+    def _fuse_frame(self, i: int, frame: RGBDFrame | DataError) -> None:
         name = self.scene.frame_names[i]
-        try:
-            frame = self.scene.read_frame(i)
-        except DataError as error:
-            self._bad_input(name, str(error), "skipping frame")
+        if isinstance(frame, DataError):
+            self._bad_input(name, str(frame), "skipping frame")
             if self.mapper.frames_integrated == 0 and len(self.skipped) - len(self.scene.skipped) >= _MAX_LEADING_BAD_FRAMES:
                 raise UserError(
                     f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: {self.skipped[len(self.scene.skipped)][1]}"
