@@ -11,6 +11,7 @@ import dataclasses
 import json
 import logging
 import shutil
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -364,9 +365,18 @@ def write_outputs(
     )
     lap("overview")
     summary["export_seconds"] = timings
+    summary["peak_rss_mib"] = round(_peak_rss_mib(), 1)
     (out_dir / "run.json").write_text(json.dumps(summary, indent=1, default=float))
     log.info("outputs of %s written into %s (seconds: %s)", scene.name, out_dir, timings)
     return summary
+
+
+def _peak_rss_mib() -> float:
+    """This process's peak resident memory so far, MiB (Linux reports KiB, macOS bytes)."""
+    import resource
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024
 
 
 def capacity_used(result: FusionResult) -> dict[str, int]:

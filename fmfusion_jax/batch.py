@@ -1,0 +1,294 @@
+"""`fmfusion batch`: many scenes, one command; each scene a `fmfusion run` of its own, one pooled benchmark.
+
+Each scene runs in a process of its own (`python -m fmfusion_jax.cli run ...`, after `simulate` with
+`--simulate`), so a scene that fails, crashes or runs past `--scene-timeout` is recorded with its error and
+the batch goes on. The executors give the same per-scene results: local worker processes (`--workers N`), or
+one Ray task per scene (`--ray ADDRESS`; needs the `cluster` extra and a file system the workers share).
+
+Outputs in OUT: `<scene>/` (the outputs of `fmfusion run`), `batch.json` (written atomically as scenes
+finish: the state of every scene, so `--resume` skips the complete ones), and at the end `batch.md` and
+`batch.csv` (per-scene table) with the pooled benchmark over all scored scenes (the ScanNet evaluation pools
+the matches of all scenes; it is not a mean of per-scene APs).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import csv
+import dataclasses
+import io
+import json
+import logging
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.scene import detect_layout
+
+log = logging.getLogger(__name__)
+
+BATCH_FILE = "batch.json"
+#: The detections of `--simulate`, per scene, under OUT.
+SIMULATED_DIR = "_detections"
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneTask:
+    """One scene's job: the commands to run and where its outputs go."""
+
+    name: str
+    scene: str
+    out: str
+    detections: str
+    simulate: bool
+    run_options: tuple[str, ...]
+    timeout_s: float | None
+
+
+def list_scenes(source: Path, root: Path | None = None) -> list[Path]:
+    """The scene folders of a dataset: the sub-folders of `source` that are scenes (ScanNet or SceneNN
+    layout), or the scene ids of a split file (one per line, `#` comments) resolved under `root` (default: the
+    split file's folder). A listed scene that does not exist is a `UserError`."""
+    if source.is_dir():
+        scenes = []
+        for child in sorted(source.iterdir()):
+            if child.is_dir():
+                try:
+                    detect_layout(child)
+                except UserError:
+                    continue
+                scenes.append(child)
+        if not scenes:
+            raise UserError(f"{source}: no scene folder inside (ScanNet or SceneNN layout)")
+        return scenes
+    if not source.is_file():
+        raise UserError(f"{source}: neither a folder of scenes nor a split file")
+    base = root or source.parent
+    ids = [line.split("#")[0].strip() for line in source.read_text().splitlines()]
+    scenes = [base / scene_id for scene_id in ids if scene_id]
+    missing = [str(path) for path in scenes if not path.is_dir()]
+    if missing:
+        raise UserError(f"{source}: {len(missing)} listed scenes not found under {base} (first: {missing[0]})")
+    if not scenes:
+        raise UserError(f"{source}: the split file lists no scene")
+    return scenes
+
+
+def detections_for(pattern: str, scene: Path) -> str:
+    """`--detections` pattern for one scene: `{scene}` is the scene's name, `{root}` its parent folder."""
+    return pattern.format(scene=scene.name, root=scene.parent)
+
+
+def run_scene(task: SceneTask) -> dict[str, Any]:
+    """Runs one scene's commands in child processes; returns its record (status ok / failed / timeout)."""
+    start = time.perf_counter()
+    record: dict[str, Any] = {"scene": task.name, "path": task.scene, "out": task.out}
+    command = [sys.executable, "-m", "fmfusion_jax.cli"]
+    steps = []
+    if task.simulate:
+        steps.append(command + ["simulate", task.scene, "--out", task.detections, "--no-progress"])
+    steps.append(
+        command + ["run", task.scene, "--detections", task.detections, "--out", task.out, "--no-progress", *task.run_options]
+    )
+    for argv in steps:
+        left = None if task.timeout_s is None else max(1.0, task.timeout_s - (time.perf_counter() - start))
+        outcome = _run_child(argv, left)
+        if outcome["status"] != "ok":
+            record.update(status=outcome["status"], error=outcome["error"])
+            break
+    else:
+        record["status"] = "ok"
+        summary = json.loads((Path(task.out) / "run.json").read_text())
+        benchmark = summary.get("benchmark", {})
+        record.update(
+            frames=summary["frames"],
+            detection_frames=summary["detection_frames"],
+            instances=summary["instances"],
+            mAP50=benchmark.get("mAP50"),
+            skipped_frames=len(summary.get("skipped_frames", [])),
+            peak_rss_mib=summary.get("peak_rss_mib"),
+        )
+    record["seconds"] = round(time.perf_counter() - start, 2)
+    return record
+
+
+def _run_child(argv: list[str], timeout_s: float | None) -> dict[str, Any]:
+    """One child process: its status and its error line."""
+    process = subprocess.Popen(
+        argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+    )
+    try:
+        _, stderr = process.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, stderr = process.communicate()
+        return {"status": "timeout", "error": f"stopped: past the scene timeout ({timeout_s:.0f} s were left)"}
+    lines = [line for line in (stderr or "").splitlines() if line.strip() and not line.startswith("WARNING")]
+    if process.returncode != 0:
+        error = next((line for line in reversed(lines) if "error" in line.lower()), lines[-1] if lines else "")
+        return {"status": "failed", "error": f"exit {process.returncode}: {error}"}
+    return {"status": "ok", "error": None}
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(text)
+    partial.replace(path)
+
+
+class Batch:
+    """A batch over scenes: its tasks, its record file and its executors."""
+
+    def __init__(
+        self,
+        scenes: Sequence[Path],
+        out: Path,
+        *,
+        detections: str | None,
+        simulate: bool,
+        run_options: Sequence[str] = (),
+        timeout_s: float | None = None,
+    ):
+        if (detections is None) == (not simulate):
+            raise UserError("give --detections PATTERN or --simulate")
+        names = [scene.name for scene in scenes]
+        if len(set(names)) != len(names):
+            raise UserError("two scenes share a folder name; their outputs would collide")
+        self.out = out
+        self.tasks = [
+            SceneTask(
+                scene.name,
+                str(scene),
+                str(out / scene.name),
+                str(out / SIMULATED_DIR / scene.name) if simulate else detections_for(detections or "", scene),
+                simulate,
+                tuple(run_options),
+                timeout_s,
+            )
+            for scene in scenes
+        ]
+        self.records: dict[str, dict[str, Any]] = {}
+
+    def load(self) -> None:
+        """Reads the records of an earlier run of this batch (for `--resume`)."""
+        path = self.out / BATCH_FILE
+        if path.is_file():
+            try:
+                self.records = {r["scene"]: r for r in json.loads(path.read_text()).get("scenes", [])}
+            except (json.JSONDecodeError, KeyError, TypeError) as error:
+                raise UserError(f"{path}: unreadable batch record ({error}); remove it or drop --resume") from None
+
+    def pending(self, resume: bool) -> list[SceneTask]:
+        """The tasks to run: all, or with `resume` those not complete (record ok and run.json present)."""
+        if not resume:
+            return list(self.tasks)
+        return [
+            t
+            for t in self.tasks
+            if not (self.records.get(t.name, {}).get("status") == "ok" and (Path(t.out) / "run.json").is_file())
+        ]
+
+    def record(self, result: dict[str, Any]) -> None:
+        self.records[result["scene"]] = result
+        order = [t.name for t in self.tasks]
+        scenes = sorted(self.records.values(), key=lambda r: order.index(r["scene"]) if r["scene"] in order else 0)
+        _write_atomic(self.out / BATCH_FILE, json.dumps({"scenes": scenes}, indent=1))
+
+    def run_local(self, tasks: Sequence[SceneTask], workers: int, report: Callable[[dict], None]) -> None:
+        """Runs `tasks` in up to `workers` concurrent scene processes."""
+        with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+            futures = [pool.submit(run_scene, task) for task in tasks]
+            for future in concurrent.futures.as_completed(futures):
+                result = future.result()
+                self.record(result)
+                report(result)
+
+    def run_ray(
+        self, tasks: Sequence[SceneTask], address: str, report: Callable[[dict], None], cpus_per_scene: float = 1.0
+    ) -> None:
+        """One Ray task per scene (`cpus_per_scene` CPUs declared), gathered on the driver as they finish."""
+        try:
+            import ray
+        except ImportError:
+            raise UserError("--ray needs Ray: pip install -e '.[cluster]'") from None
+        if not ray.is_initialized():
+            ray.init(address=None if address == "local" else address, log_to_driver=False)
+        remote = ray.remote(num_cpus=cpus_per_scene)(run_scene)
+        pending = {remote.remote(task): task for task in tasks}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                task = pending.pop(ref)
+                try:
+                    result = ray.get(ref)
+                except Exception as error:  # noqa: BLE001 - a lost worker is one scene's failure
+                    result = {
+                        "scene": task.name,
+                        "path": task.scene,
+                        "out": task.out,
+                        "status": "failed",
+                        "error": f"ray: {error}",
+                    }
+                self.record(result)
+                report(result)
+
+
+def pooled_benchmark(records: Sequence[dict[str, Any]]):
+    """`(result, scene names)`: the ScanNet benchmark pooled over the scenes that ran and have ground truth
+    (result None when none has)."""
+    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+    from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
+    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+
+    pairs, names = [], []
+    for record in records:
+        txt = Path(record["out"]) / "benchmark" / f"{record['scene']}.txt"
+        if record.get("status") != "ok" or not txt.is_file():
+            continue
+        gt_ids = load_scannet_ground_truth(Path(record["path"])).benchmark_ids()
+        pairs.append((gt_ids, read_benchmark_predictions(txt, len(gt_ids))))
+        names.append(record["scene"])
+    return (evaluate_scenes(pairs, scene_names=names) if pairs else None), names
+
+
+COLUMNS = ("scene", "status", "frames", "instances", "mAP50", "seconds", "peak_rss_mib", "skipped_frames", "error")
+
+
+def write_reports(out: Path, records: Sequence[dict[str, Any]], pooled, scored: Sequence[str]) -> str:
+    """batch.md and batch.csv (per-scene table, the pooled score, the failures); returns the Markdown."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    for record in records:
+        writer.writerow({k: record.get(k, "") for k in COLUMNS})
+    _write_atomic(out / "batch.csv", buffer.getvalue())
+
+    def cell(record: dict, key: str) -> str:
+        value = record.get(key)
+        if value is None:
+            return "-"
+        return f"{100 * value:.1f}" if key == "mAP50" else str(value)
+
+    ok = [r for r in records if r.get("status") == "ok"]
+    lines = ["# fmfusion batch", "", f"{len(records)} scenes: {len(ok)} ok, {len(records) - len(ok)} failed.", ""]
+    if pooled is not None:
+        lines += [
+            f"Pooled ScanNet benchmark over the {len(scored)} scored scenes: mAP {100 * pooled.mAP:.1f}, "
+            f"mAP50 {100 * pooled.mAP50:.1f}, mAP25 {100 * pooled.mAP25:.1f} (%).",
+            "",
+        ]
+    header = ["scene", "status", "frames", "instances", "AP50 %", "seconds", "peak RSS MiB", "skipped frames"]
+    lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r in records:
+        lines.append("| " + " | ".join(cell(r, k) for k in COLUMNS[:-1]) + " |")
+    failed = [r for r in records if r.get("status") != "ok"]
+    if failed:
+        lines += ["", "## Failures", ""] + [f"- `{r['scene']}`: {r.get('status')}: {r.get('error')}" for r in failed]
+    text = "\n".join(lines) + "\n"
+    _write_atomic(out / "batch.md", text)
+    return text

@@ -1,0 +1,113 @@
+"""`fmfusion batch`: three generated rooms through the local executor (and Ray where it is installed) give the
+same per-scene results; the pooled score equals `fmfusion eval` over the three prediction folders; a failed
+scene is recorded and the others go on; `--resume` skips the finished ones."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from fmfusion_jax import cli
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene
+
+SPECS = [GeneratedSceneSpec(seed=seed, num_objects=3, num_frames=12, width=160, height=120) for seed in (1, 2, 3)]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("batch") / "data"
+    root.mkdir()
+    for spec in SPECS:
+        generated_scene(spec, root)
+    (root / "split.txt").write_text("\n".join(sorted(p.name for p in root.iterdir() if p.is_dir())) + "\n# the end\n")
+    return root
+
+
+def _records(out: Path) -> dict[str, dict]:
+    return {r["scene"]: r for r in json.loads((out / "batch.json").read_text())["scenes"]}
+
+
+def _key(record: dict) -> tuple:
+    return record["status"], record["frames"], record["instances"], record["mAP50"]
+
+
+def test_local_batch_pools_like_eval_and_resumes(dataset, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert (
+        cli.main(["batch", str(dataset / "split.txt"), "--simulate", "--out", str(out), "--workers", "2", "--config", "demo"])
+        == 0
+    )
+    records = _records(out)
+    assert sorted(records) == sorted(p.name for p in dataset.iterdir() if p.is_dir())
+    assert all(r["status"] == "ok" and r["frames"] == 12 for r in records.values())
+    printed = capsys.readouterr().out
+    assert "3 scenes: 3 ok, 0 failed" in printed and (out / "batch.md").is_file() and (out / "batch.csv").is_file()
+
+    # the pooled score is `fmfusion eval` over the three prediction folders together
+    assert (
+        cli.main(
+            [
+                "eval",
+                *[str(out / name / "benchmark") for name in records],
+                "--gt",
+                *[str(dataset / name) for name in records],
+                "--json",
+                str(tmp_path / "eval.json"),
+            ]
+        )
+        == 0
+    )
+    pooled = json.loads((tmp_path / "eval.json").read_text())
+    assert f"mAP50 {100 * pooled['mAP50']:.1f}" in printed
+
+    # --resume runs nothing again
+    first = sorted(records)[0]
+    stamp = (out / first / "run.json").stat().st_mtime_ns
+    assert cli.main(["batch", str(dataset), "--simulate", "--out", str(out), "--config", "demo", "--resume"]) == 0
+    assert "3 scenes, 0 to run (3 done before)" in capsys.readouterr().err
+    assert (out / first / "run.json").stat().st_mtime_ns == stamp
+
+
+def test_a_failed_scene_is_recorded_and_the_batch_goes_on(dataset, tmp_path, capsys):
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    broken = sorted(p for p in data.iterdir() if p.is_dir())[0]
+    for pose in (broken / "pose").iterdir():
+        pose.write_text("not a pose")
+    out = tmp_path / "out"
+    assert cli.main(["batch", str(data), "--simulate", "--out", str(out), "--config", "demo"]) == 1
+    records = _records(out)
+    assert records[broken.name]["status"] == "failed" and "not a list of numbers" in records[broken.name]["error"]
+    assert sum(r["status"] == "ok" for r in records.values()) == 2
+    assert "## Failures" in (out / "batch.md").read_text()
+
+
+def test_ray_executor_gives_the_local_results(dataset, tmp_path):
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install -e '.[cluster]')")
+    local, distributed = tmp_path / "local", tmp_path / "ray"
+    assert cli.main(["batch", str(dataset), "--simulate", "--out", str(local), "--config", "demo", "--no-progress"]) == 0
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        assert (
+            cli.main(
+                [
+                    "batch",
+                    str(dataset),
+                    "--simulate",
+                    "--out",
+                    str(distributed),
+                    "--config",
+                    "demo",
+                    "--ray",
+                    "auto",
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
+    finally:
+        ray.shutdown()
+    assert {k: _key(r) for k, r in _records(local).items()} == {k: _key(r) for k, r in _records(distributed).items()}
