@@ -27,6 +27,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.scene import detect_layout
 
@@ -236,6 +238,88 @@ class Batch:
                     }
                 self.record(result)
                 report(result)
+
+    def run_vmapped(self, tasks: Sequence[SceneTask], size: int, config, report: Callable[[dict], None]) -> None:
+        """Fuses `size` scenes at a time in this process, vmapped on one device (`MapperBatch`: one compiled
+        step for the group, maps padded to a common block layout covering every scene's bounds); then writes
+        each scene's outputs as `fmfusion run` does. Scenes of another image size than the group's first go
+        into a later group. A group that fails records its error for each of its scenes."""
+        queue = list(tasks)
+        while queue:
+            group = [queue.pop(0)]
+            while queue and len(group) < size:
+                group.append(queue.pop(0))
+            for result in _fuse_group(group, config):
+                self.record(result)
+                report(result)
+
+
+def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
+    from fmfusion_jax.io.detections import DetectionFolder
+    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.mapper import MapperBatch
+    from fmfusion_jax.runner import clear_outputs, write_outputs
+
+    start = time.perf_counter()
+    records: list[dict[str, Any]] = [{"scene": t.name, "path": t.scene, "out": t.out} for t in group]
+    try:
+        for task in group:
+            if task.simulate:
+                outcome = _run_child(
+                    [sys.executable, "-m", "fmfusion_jax.cli", "simulate", task.scene, "--out", task.detections, "--no-progress"],
+                    task.timeout_s,
+                )
+                if outcome["status"] != "ok":
+                    raise UserError(f"{task.name}: simulate: {outcome['error']}")
+        dataset = config.dataset
+        scenes = [
+            open_scene(
+                t.scene,
+                layout=dataset.layout,
+                stride=dataset.frame_stride,
+                depth_max=dataset.depth_max,
+                depth_scale=dataset.depth_scale,
+                max_frames=dataset.max_frames,
+            )
+            for t in group
+        ]
+        shapes = {(s.intrinsics.height, s.intrinsics.width) for s in scenes}
+        if len(shapes) != 1:
+            raise UserError(f"scenes of different image sizes {sorted(shapes)} cannot be fused in one batch")
+        folders = [DetectionFolder(t.detections, image_shape=next(iter(shapes))) for t in group]
+        bounds = [s.bounds() for s in scenes]
+        lo = np.min([b[0] for b in bounds], axis=0)
+        hi = np.max([b[1] for b in bounds], axis=0)
+        batch = MapperBatch(config, len(group), bounds=(lo, hi), image_shape=next(iter(shapes)))
+        for position in range(max(len(s) for s in scenes)):
+            frames = [s.read_frame(position) if position < len(s) else None for s in scenes]
+            detections = [f.get(fr.name) if fr is not None else None for f, fr in zip(folders, frames)]
+            batch.integrate(frames, detections)
+        results = batch.finalize()
+        seconds = (time.perf_counter() - start) / len(group)
+        for task, scene, result, record in zip(group, scenes, results, records):
+            out = Path(task.out)
+            out.mkdir(parents=True, exist_ok=True)
+            clear_outputs(out)
+            summary = write_outputs(result, scene, out)
+            benchmark = summary.get("benchmark", {})
+            record.update(
+                status="ok",
+                frames=summary["frames"],
+                detection_frames=summary["detection_frames"],
+                instances=summary["instances"],
+                mAP50=benchmark.get("mAP50"),
+                skipped_frames=len(summary.get("skipped_frames", [])),
+                peak_rss_mib=summary.get("peak_rss_mib"),
+                seconds=round(seconds, 2),
+                batched_with=[t.name for t in group],
+            )
+    except (UserError, OSError) as error:
+        for record in records:
+            record.setdefault("status", "failed")
+            if record["status"] != "ok":
+                record["error"] = f"batch of {len(group)}: {error}"
+    return records
 
 
 def pooled_benchmark(records: Sequence[dict[str, Any]]):

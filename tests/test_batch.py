@@ -1,9 +1,11 @@
-"""`fmfusion batch`: three generated rooms through the local executor (and Ray where it is installed) give the
-same per-scene results; the pooled score equals `fmfusion eval` over the three prediction folders; a failed
-scene is recorded and the others go on; `--resume` skips the finished ones."""
+"""`fmfusion batch`: three generated rooms through the local executor, the vmapped one (and Ray where it is
+installed) give the same per-scene results; the pooled score equals `fmfusion eval` over the three prediction
+folders; a failed scene is recorded and the others go on; `--resume` skips the finished ones."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import shutil
 from pathlib import Path
@@ -26,6 +28,19 @@ def dataset(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.fixture(scope="module")
+def local_run(dataset, tmp_path_factory) -> tuple[Path, str]:
+    """The split file through the local executor, two workers: `(OUT, what it printed)`."""
+    out = tmp_path_factory.mktemp("local") / "out"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = cli.main(
+            ["batch", str(dataset / "split.txt"), "--simulate", "--out", str(out), "--workers", "2", "--config", "demo"]
+        )
+    assert code == 0
+    return out, printed.getvalue()
+
+
 def _records(out: Path) -> dict[str, dict]:
     return {r["scene"]: r for r in json.loads((out / "batch.json").read_text())["scenes"]}
 
@@ -34,36 +49,23 @@ def _key(record: dict) -> tuple:
     return record["status"], record["frames"], record["instances"], record["mAP50"]
 
 
-def test_local_batch_pools_like_eval_and_resumes(dataset, tmp_path, capsys):
-    out = tmp_path / "out"
-    assert (
-        cli.main(["batch", str(dataset / "split.txt"), "--simulate", "--out", str(out), "--workers", "2", "--config", "demo"])
-        == 0
-    )
+def test_local_batch_pools_like_eval_and_resumes(dataset, local_run, tmp_path, capsys):
+    out, printed = local_run
     records = _records(out)
     assert sorted(records) == sorted(p.name for p in dataset.iterdir() if p.is_dir())
     assert all(r["status"] == "ok" and r["frames"] == 12 for r in records.values())
-    printed = capsys.readouterr().out
     assert "3 scenes: 3 ok, 0 failed" in printed and (out / "batch.md").is_file() and (out / "batch.csv").is_file()
 
     # the pooled score is `fmfusion eval` over the three prediction folders together
-    assert (
-        cli.main(
-            [
-                "eval",
-                *[str(out / name / "benchmark") for name in records],
-                "--gt",
-                *[str(dataset / name) for name in records],
-                "--json",
-                str(tmp_path / "eval.json"),
-            ]
-        )
-        == 0
-    )
-    pooled = json.loads((tmp_path / "eval.json").read_text())
+    eval_json = tmp_path / "eval.json"
+    predictions = [str(out / name / "benchmark") for name in records]
+    scenes = [str(dataset / name) for name in records]
+    assert cli.main(["eval", *predictions, "--gt", *scenes, "--json", str(eval_json)]) == 0
+    pooled = json.loads(eval_json.read_text())
     assert f"mAP50 {100 * pooled['mAP50']:.1f}" in printed
 
     # --resume runs nothing again
+    capsys.readouterr()
     first = sorted(records)[0]
     stamp = (out / first / "run.json").stat().st_mtime_ns
     assert cli.main(["batch", str(dataset), "--simulate", "--out", str(out), "--config", "demo", "--resume"]) == 0
@@ -71,43 +73,38 @@ def test_local_batch_pools_like_eval_and_resumes(dataset, tmp_path, capsys):
     assert (out / first / "run.json").stat().st_mtime_ns == stamp
 
 
-def test_a_failed_scene_is_recorded_and_the_batch_goes_on(dataset, tmp_path, capsys):
+def test_a_failed_scene_is_recorded_and_the_batch_goes_on(dataset, tmp_path):
     data = tmp_path / "data"
     shutil.copytree(dataset, data)
     broken = sorted(p for p in data.iterdir() if p.is_dir())[0]
     for pose in (broken / "pose").iterdir():
         pose.write_text("not a pose")
     out = tmp_path / "out"
-    assert cli.main(["batch", str(data), "--simulate", "--out", str(out), "--config", "demo"]) == 1
+    assert cli.main(["batch", str(data), "--simulate", "--out", str(out), "--config", "demo", "--no-progress"]) == 1
     records = _records(out)
     assert records[broken.name]["status"] == "failed" and "not a list of numbers" in records[broken.name]["error"]
     assert sum(r["status"] == "ok" for r in records.values()) == 2
     assert "## Failures" in (out / "batch.md").read_text()
 
 
-def test_ray_executor_gives_the_local_results(dataset, tmp_path):
+def test_vmapped_executor_gives_the_local_results(dataset, local_run, tmp_path):
+    """--batch 3: the three rooms fused in one vmapped step (one block layout covering all three)."""
+    out = tmp_path / "vmapped"
+    argv = ["batch", str(dataset), "--simulate", "--out", str(out), "--config", "demo", "--batch", "3", "--no-progress"]
+    assert cli.main(argv) == 0
+    records = _records(out)
+    assert all(len(r["batched_with"]) == 3 for r in records.values())
+    assert {k: _key(r) for k, r in records.items()} == {k: _key(r) for k, r in _records(local_run[0]).items()}
+
+
+def test_ray_executor_gives_the_local_results(dataset, local_run, tmp_path):
     ray = pytest.importorskip("ray", reason="Ray is not installed (pip install -e '.[cluster]')")
-    local, distributed = tmp_path / "local", tmp_path / "ray"
-    assert cli.main(["batch", str(dataset), "--simulate", "--out", str(local), "--config", "demo", "--no-progress"]) == 0
+    distributed = tmp_path / "ray"
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        assert (
-            cli.main(
-                [
-                    "batch",
-                    str(dataset),
-                    "--simulate",
-                    "--out",
-                    str(distributed),
-                    "--config",
-                    "demo",
-                    "--ray",
-                    "auto",
-                    "--no-progress",
-                ]
-            )
-            == 0
-        )
+        argv = ["batch", str(dataset), "--simulate", "--out", str(distributed), "--config", "demo", "--ray", "auto"]
+        assert cli.main([*argv, "--no-progress"]) == 0
     finally:
         ray.shutdown()
-    assert {k: _key(r) for k, r in _records(local).items()} == {k: _key(r) for k, r in _records(distributed).items()}
+    local = _records(local_run[0])
+    assert {k: _key(r) for k, r in local.items()} == {k: _key(r) for k, r in _records(distributed).items()}

@@ -31,6 +31,7 @@ def register(subparsers) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--workers", type=int, default=1, help="scenes fused at once on this machine (default 1)")
     parser.add_argument("--ray", metavar="ADDRESS", help="run one Ray task per scene on this cluster (auto, local or an address)")
+    parser.add_argument("--batch", type=int, metavar="K", help="fuse K scenes at once in this process, vmapped on one device")
     parser.add_argument("--resume", action="store_true", help="skip the scenes whose outputs are complete")
     parser.add_argument("--scene-timeout", type=float, metavar="S", help="stop a scene after S seconds (recorded as timeout)")
     parser.add_argument("--config", help="config of every scene's run (default: scannet)")
@@ -82,7 +83,11 @@ def run(args: argparse.Namespace) -> int:
             what = record["status"] if record["status"] == "ok" else f"{record['status']}: {record.get('error')}"
             print(f"[{done}/{total}] {record['scene']}: {what}{score} ({record.get('seconds', 0):.0f} s)", file=sys.stderr)
 
-    if args.ray:
+    if args.batch:
+        if args.batch < 1 or args.ray:
+            raise UserError("--batch K needs K >= 1 and no --ray")
+        batch.run_vmapped(tasks, args.batch, load_config(args.config or "scannet", args.overrides), report)
+    elif args.ray:
         batch.run_ray(tasks, args.ray, report)
     else:
         batch.run_local(tasks, args.workers, report)
