@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io import map_outputs
@@ -275,6 +276,8 @@ OUTPUT_NAMES = (
     "overview.png",
     "run.json",
     "benchmark",
+    "scene_graph.json",
+    "scene_graph.graphml",
     "report.json",
     "explain.md",
     "explain.json",
@@ -322,6 +325,10 @@ def write_outputs(
     map_outputs.write_instances_json(out_dir / "instances.json", instances, label_sets)
     map_outputs.write_instance_clouds(out_dir, instances, label_sets)
     lap("write_instances")
+    graph = scene_graph.build_scene_graph(map_outputs.instances_json(instances, label_sets))
+    (out_dir / "scene_graph.json").write_text(json.dumps(graph, indent=1))
+    scene_graph.write_graphml(out_dir / "scene_graph.graphml", graph)
+    lap("scene_graph")
     vertices, faces, colors = extraction.extract_mesh(result.state, result.map_config)
     map_outputs.write_mesh(out_dir / "mesh.ply", vertices, faces, colors)
     if len(faces) == 0:
@@ -621,6 +628,7 @@ def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: 
         "mesh.ply",
         MAP_STATE_FILE,
         "run.json",
+        "scene_graph.json",
         "report.json",
         "explain.md",
         "explain.json",

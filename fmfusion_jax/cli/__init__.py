@@ -28,7 +28,20 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 #: Subcommand modules, in the order `--help` lists them.
-SUBCOMMANDS = ("demo", "info", "synth", "simulate", "detect", "run", "batch", "eval", "bench", "likelihood", "experiment")
+SUBCOMMANDS = (
+    "demo",
+    "info",
+    "synth",
+    "simulate",
+    "detect",
+    "run",
+    "batch",
+    "query",
+    "eval",
+    "bench",
+    "likelihood",
+    "experiment",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
