@@ -100,13 +100,16 @@ class SceneFusion:
         checkpoint: Checkpoint | None = None,
         resume: bool = False,
         time_stages: bool = False,
+        observer: Callable[..., None] | None = None,
     ):
+        """`observer(position, frame, detections or None, mapper)` is called after each frame is fused (e.g. a
+        `viz.live.RerunView`)."""
         from fmfusion_jax.mapper import Mapper
 
         if on_error not in ON_ERROR_POLICIES:
             raise UserError(f"on_error {on_error!r}: expected one of {ON_ERROR_POLICIES}")
         self.scene, self.detection_source, self.config = scene, detection_source, config
-        self.on_error, self.checkpoint = on_error, checkpoint
+        self.on_error, self.checkpoint, self.observer = on_error, checkpoint, observer
         #: `(frame name, reason)` of the frames left out: bad poses (found when the scene was opened) and
         #: frames whose files failed to read
         self.skipped: list[tuple[str, str]] = list(scene.skipped)
@@ -198,7 +201,9 @@ class SceneFusion:
                 detections = self.detection_source(frame)
             except DataError as error:  # the frame's geometry is still fused
                 self._bad_input(name, f"detections skipped: {error}", "frame")
-        self.mapper.integrate(frame, detections)
+        fused = self.mapper.integrate(frame, detections)
+        if self.observer is not None:
+            self.observer(i, frame, detections if fused else None, self.mapper)
 
     def _bad_input(self, name: str, reason: str, action: str) -> None:
         if self.on_error == "stop":
@@ -531,6 +536,7 @@ def run_and_export(
     restart: bool = False,
     should_stop: Callable[[], bool] | None = None,
     time_stages: bool = False,
+    observer: Callable[..., None] | None = None,
 ) -> RunOutcome:
     """`fmfusion run`: fuse, write, and summarize.
 
@@ -553,11 +559,20 @@ def run_and_export(
             )
         shutil.rmtree(staging)  # a run that failed before its first checkpoint: nothing to keep
     fusion = SceneFusion(
-        scene, detection_source, config, on_error=on_error, checkpoint=checkpoint, resume=resume, time_stages=time_stages
+        scene,
+        detection_source,
+        config,
+        on_error=on_error,
+        checkpoint=checkpoint,
+        resume=resume,
+        time_stages=time_stages,
+        observer=observer,
     )
     staging.mkdir(parents=True, exist_ok=True)
     with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
         complete = fusion.run(update, should_stop)
+    if observer is not None and hasattr(observer, "close"):
+        observer.close(fusion.mapper)
     if not complete:
         log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
     result = fusion.finalize()

@@ -67,6 +67,13 @@ def register(subparsers) -> None:
         "--resume", action="store_true", help="continue an interrupted run from its checkpoint in OUT.partial (same arguments)"
     )
     resume.add_argument("--restart", action="store_true", help="discard an interrupted run's checkpoint")
+    parser.add_argument("--viewer", choices=("rerun",), help="show the fusion live in a Rerun viewer (the viewer extra)")
+    parser.add_argument(
+        "--viewer-save",
+        type=Path,
+        metavar="FILE.rrd",
+        help="record the live view to a Rerun file instead of opening a window (headless)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
@@ -114,6 +121,11 @@ def run(args: argparse.Namespace) -> int:
                 f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})"
             )
         source = lambda frame: folder.get(frame.name)  # noqa: E731
+    observer = None
+    if args.viewer or args.viewer_save:
+        from fmfusion_jax.viz.live import RerunView
+
+        observer = RerunView(save=args.viewer_save, spawn=args.viewer_save is None)
     with StopRequest(
         "stopping after the frame being fused, then writing a checkpoint and the map so far (outputs "
         "already being written are finished); Ctrl-C again to exit at once"
@@ -130,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
             restart=args.restart,
             should_stop=stop,
             time_stages=args.verbose > 0,
+            observer=observer,
         )
     print(outcome.summary)
     if not outcome.complete:
