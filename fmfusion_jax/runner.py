@@ -275,6 +275,8 @@ OUTPUT_NAMES = (
     "instances.json",
     "semantic.ply",
     "instances.ply",
+    "labelled_points.npz",
+    "labelled_points.pcd",
     "instances",
     "mesh.ply",
     MAP_STATE_FILE,

@@ -90,7 +90,7 @@ def test_queries_by_class_label_synonym_and_relation():
     assert query(records, "zebra") == []
 
 
-def test_every_map_has_its_graph_and_fmfusion_query_finds_every_instance_of_a_class(tmp_path, capsys):
+def test_every_map_has_its_graph_labelled_points_and_fmfusion_query_finds_every_instance_of_a_class(tmp_path, capsys):
     out = tmp_path / "demo"
     assert (
         cli.main(
@@ -104,6 +104,18 @@ def test_every_map_has_its_graph_and_fmfusion_query_finds_every_instance_of_a_cl
     assert len(graph["nodes"]) == len(records) + 1
     loaded = nx.read_graphml(out / "scene_graph.graphml")
     assert loaded.number_of_nodes() == len(records) + 1 and loaded.number_of_edges() == len(graph["edges"])
+    # the labelled points for robotics tools: NPZ and binary PCD with the same points
+    cloud = np.load(out / "labelled_points.npz")
+    assert cloud["points"].shape == (len(cloud["label"]), 3) == (len(cloud["instance"]), 3)
+    assert set(np.unique(cloud["instance"]).tolist()) == {r["id"] for r in records}
+    raw = (out / "labelled_points.pcd").read_bytes()
+    header, _, body = raw.partition(b"DATA binary\n")
+    assert b"FIELDS x y z rgb label instance" in header and f"POINTS {len(cloud['label'])}".encode() in header
+    rows = np.frombuffer(
+        body, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4"), ("label", "<u4"), ("instance", "<i4")])
+    )
+    np.testing.assert_array_equal(rows["instance"], cloud["instance"])
+    np.testing.assert_allclose(np.stack([rows["x"], rows["y"], rows["z"]], 1), cloud["points"])
     cls = records[0]["class"]
     assert cli.main(["query", str(out), cls, "--json", str(tmp_path / "q.json"), "--top", "100"]) == 0
     found = {m["id"] for m in json.loads((tmp_path / "q.json").read_text())["matches"]}

@@ -87,6 +87,41 @@ def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.n
     mesh.export(str(path))
 
 
+def write_labelled_points(out_dir: Path, points: np.ndarray, colors: np.ndarray, label: np.ndarray, instance: np.ndarray) -> None:
+    """The instance points with their labels for robotics tools: `labelled_points.npz` (arrays `points` float32
+    (N, 3) world metres, `colors` uint8 (N, 3), `label` uint16 NYU40 ids, `instance` int32 ids) and
+    `labelled_points.pcd` (PCD v0.7, binary; fields x y z rgb label instance, as PCL and ROS read them)."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    colors = np.asarray(colors, np.uint8).reshape(-1, 3)
+    np.savez_compressed(
+        out_dir / "labelled_points.npz",
+        points=points,
+        colors=colors,
+        label=np.asarray(label, np.uint16),
+        instance=np.asarray(instance, np.int32),
+    )
+    rgb = (colors[:, 0].astype(np.uint32) << 16) | (colors[:, 1].astype(np.uint32) << 8) | colors[:, 2].astype(np.uint32)
+    rows = np.empty(
+        len(points), np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4"), ("label", "<u4"), ("instance", "<i4")])
+    )
+    rows["x"], rows["y"], rows["z"] = points[:, 0], points[:, 1], points[:, 2]
+    rows["rgb"], rows["label"], rows["instance"] = rgb, np.asarray(label, np.uint32), np.asarray(instance, np.int32)
+    header = [
+        "# .PCD v0.7 - written by fmfusion-jax",
+        "VERSION 0.7",
+        "FIELDS x y z rgb label instance",
+        "SIZE 4 4 4 4 4 4",
+        "TYPE F F F U U I",
+        "COUNT 1 1 1 1 1 1",
+        f"WIDTH {len(points)}",
+        "HEIGHT 1",
+        "VIEWPOINT 0 0 0 1 0 0 0",
+        f"POINTS {len(points)}",
+        "DATA binary",
+    ]
+    (out_dir / "labelled_points.pcd").write_bytes(("\n".join(header) + "\n").encode("ascii") + rows.tobytes())
+
+
 def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_sets: LabelSets) -> None:
     """`semantic.ply` (coloured by class), `instances.ply` (per instance) and one PLY per instance.
 
@@ -97,14 +132,10 @@ def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_set
     folder = out_dir / "instances"
     folder.mkdir(exist_ok=True)
     if not instances:
+        empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.uint16), np.zeros(0, np.int32))
         for name in ("semantic.ply", "instances.ply"):
-            write_point_cloud(
-                out_dir / name,
-                np.zeros((0, 3), np.float32),
-                np.zeros((0, 3), np.uint8),
-                np.zeros(0, np.uint16),
-                np.zeros(0, np.int32),
-            )
+            write_point_cloud(out_dir / name, *empty)
+        write_labelled_points(out_dir, *empty)
         return
     points = np.concatenate([inst.points for inst in instances])
     label = np.concatenate([np.full(len(inst.points), label_sets.nyu40_ids[inst.class_index], np.uint16) for inst in instances])
@@ -116,6 +147,7 @@ def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_set
     per_instance = np.concatenate([np.repeat(palette[i][None], len(inst.points), 0) for i, inst in enumerate(instances)])
     write_point_cloud(out_dir / "semantic.ply", points, class_colors, label, instance)
     write_point_cloud(out_dir / "instances.ply", points, per_instance, label, instance)
+    write_labelled_points(out_dir, points, class_colors, label, instance)
     for i, inst in enumerate(instances):
         name = label_sets.class_names[inst.class_index].replace(" ", "_")
         write_point_cloud(
