@@ -291,7 +291,7 @@ class MapBuilder:
         self.monitor = CapacityMonitor()
         self.frames_integrated = 0
         self.detection_frames = 0
-        self.counters = {"created": 0, "matched": 0, "merged": 0, "removed": 0, "detections": 0}
+        self._counters = {"created": 0, "matched": 0, "merged": 0, "removed": 0, "detections": 0}
         self._pending: tuple[str, Any, Any] | None = None  # the last detection frame's unread statistics
 
     #: Frames between two reads of the capacity counters (each read waits for the device).
@@ -348,6 +348,12 @@ class MapBuilder:
             self._count_refinement(name, refine_stats)
 
     @property
+    def counters(self) -> dict[str, int]:
+        """Instances created, matched, merged, removed and detections fused so far (reads pending statistics)."""
+        self.flush()
+        return self._counters
+
+    @property
     def adapter(self) -> HostAdapter:
         """The host-to-engine packing for the current `map_config` (a growing map replaces it)."""
         return HostAdapter.for_map(self.config, self.map_config, self.label_sets)
@@ -361,7 +367,7 @@ class MapBuilder:
     def add_frame_counts(self, stats: step.FrameStats) -> None:
         """Adds a detection frame's counts (`stats` on the host) to the counters."""
         for name in ("created", "matched", "detections"):
-            self.counters[name] += int(getattr(stats, name))
+            self._counters[name] += int(getattr(stats, name))
 
     def count_detection_frame(self) -> tuple[bool, bool]:
         """Counts one fused detection frame; returns whether the online merge and the geometry fusion are due
@@ -375,8 +381,8 @@ class MapBuilder:
 
     def _count_refinement(self, where: str, stats: step.RefineStats) -> None:
         removed, merged = int(stats.removed), int(stats.merged)
-        self.counters["removed"] += removed
-        self.counters["merged"] += merged
+        self._counters["removed"] += removed
+        self._counters["merged"] += merged
         if removed or merged:
             log.info("%s: refinement removed %d and merged %d instances", where, removed, merged)
 
@@ -391,14 +397,14 @@ class MapBuilder:
             self.timer,
             self.frames_integrated,
             self.detection_frames,
-            dict(self.counters),
+            dict(self._counters),
         )
 
     def restore_progress(self, progress: dict) -> None:
         """Continues the counts of a saved map (`FusionResult.progress`): frames, detection frames, counters."""
         self.frames_integrated = int(progress.get("frames_integrated", 0))
         self.detection_frames = int(progress.get("detection_frames", 0))
-        self.counters.update({k: int(v) for k, v in progress.get("counters", {}).items()})
+        self._counters.update({k: int(v) for k, v in progress.get("counters", {}).items()})
 
     def result(self) -> FusionResult:
         """Finalizes (geometry fusion and post-merge when refinement is on) and returns the map."""

@@ -117,6 +117,11 @@ def test_every_map_has_its_graph_labelled_points_and_fmfusion_query_finds_every_
     np.testing.assert_array_equal(rows["instance"], cloud["instance"])
     np.testing.assert_allclose(np.stack([rows["x"], rows["y"], rows["z"]], 1), cloud["points"])
     cls = records[0]["class"]
-    assert cli.main(["query", str(out), cls, "--json", str(tmp_path / "q.json"), "--top", "100"]) == 0
+    picture = tmp_path / "q.png"
+    assert cli.main(["query", str(out), cls, "--json", str(tmp_path / "q.json"), "--top", "100", "--picture", str(picture)]) == 0
+    import cv2
+
+    image = cv2.imread(str(picture))
+    assert image is not None and (np.abs(image.astype(int) - [30, 30, 220]).sum(axis=2) < 40).any()  # red (BGR) drawn
     found = {m["id"] for m in json.loads((tmp_path / "q.json").read_text())["matches"]}
     assert {r["id"] for r in records if r["class"] == cls} <= found
