@@ -17,21 +17,14 @@ from pathlib import Path
 
 from fmfusion_jax import Mapper
 from fmfusion_jax.io.detections import DetectionFolder
-from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.io.scene import open_dataset_scene, open_scene
 
 
 def fuse(scene_dir: str | Path, detections_dir: str | Path, config="scannet", progress: bool = True) -> Mapper:
     """Every frame of the scene integrated into a new Mapper, detections read on the frames it fuses."""
     mapper = Mapper(config)
     dataset = mapper.config.dataset
-    scene = open_scene(
-        scene_dir,
-        layout=dataset.layout,
-        stride=dataset.frame_stride,
-        depth_max=dataset.depth_max,
-        depth_scale=dataset.depth_scale,
-        max_frames=dataset.max_frames,
-    )
+    scene = open_dataset_scene(scene_dir, dataset)
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
     for position, frame in enumerate(scene.frames()):
         # ask the schedule first: the detections (here a file, on a robot the models) only when they are fused

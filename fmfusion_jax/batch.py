@@ -256,7 +256,7 @@ class Batch:
 
 def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
     from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.mapper import MapperBatch
     from fmfusion_jax.runner import clear_outputs, write_outputs
 
@@ -272,17 +272,7 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
                 if outcome["status"] != "ok":
                     raise UserError(f"{task.name}: simulate: {outcome['error']}")
         dataset = config.dataset
-        scenes = [
-            open_scene(
-                t.scene,
-                layout=dataset.layout,
-                stride=dataset.frame_stride,
-                depth_max=dataset.depth_max,
-                depth_scale=dataset.depth_scale,
-                max_frames=dataset.max_frames,
-            )
-            for t in group
-        ]
+        scenes = [open_dataset_scene(t.scene, dataset) for t in group]
         shapes = {(s.intrinsics.height, s.intrinsics.width) for s in scenes}
         if len(shapes) != 1:
             raise UserError(f"scenes of different image sizes {sorted(shapes)} cannot be fused in one batch")

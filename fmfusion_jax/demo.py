@@ -166,7 +166,7 @@ def run_demo(
 
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.runner import fuse_scene, summarize_run, write_outputs
     from fmfusion_jax.simulation.procedural import generate_scene
     from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
@@ -210,14 +210,7 @@ def run_demo(
     log.info("demo scene written into %s (%.1f s)", scene_dir, seconds["generate_scene"])
 
     dataset = config.dataset
-    opened = open_scene(
-        scene_dir,
-        layout=dataset.layout,
-        stride=dataset.frame_stride,
-        depth_max=dataset.depth_max,
-        depth_scale=dataset.depth_scale,
-        max_frames=dataset.max_frames,
-    )
+    opened = open_dataset_scene(scene_dir, dataset)
     gt = load_scannet_ground_truth(scene_dir)
     noise = demo_noise(seed, width, height)
     detections_dir = out_dir / DETECTIONS_DIR

@@ -515,7 +515,7 @@ def prepare_source(
     """Makes (or finds in `cache_dir`) the scene and its simulated detections of each variant, on the
     detection frames of `base_config`, then opens the scene and reads its ground truth."""
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.simulation.scene_sets import prepare_generated, prepare_real
 
     start = time.perf_counter()
@@ -537,14 +537,7 @@ def prepare_source(
         noise[variant] = variant_noise.to_dict()
     scene_dir = next(iter(detections.values())).scene_dir
     dataset = base_config.dataset
-    scene = open_scene(
-        scene_dir,
-        layout=dataset.layout,
-        stride=dataset.frame_stride,
-        depth_max=dataset.depth_max,
-        depth_scale=dataset.depth_scale,
-        max_frames=dataset.max_frames,
-    )
+    scene = open_dataset_scene(scene_dir, dataset)
     gt = load_scannet_ground_truth(scene_dir)
     return PreparedSource(source, detections, noise, scene, gt, round(time.perf_counter() - start, 2))
 

@@ -452,7 +452,7 @@ def open_source(source: SceneSource, cache_dir: Path, config, progress: bool) ->
     """Makes (or finds) a generated scene, opens the scene with the config's dataset settings, reads its
     ground truth and caches its decoded frames when they fit."""
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.simulation.scene_sets import generated_scene
 
     if source.kind == "real":
@@ -462,14 +462,7 @@ def open_source(source: SceneSource, cache_dir: Path, config, progress: bool) ->
         assert source.spec is not None  # a generated scene has its spec
         scene_dir = generated_scene(source.spec, cache_dir, progress)
     dataset = config.dataset
-    scene = open_scene(
-        scene_dir,
-        layout=dataset.layout,
-        stride=dataset.frame_stride,
-        depth_max=dataset.depth_max,
-        depth_scale=dataset.depth_scale,
-        max_frames=dataset.max_frames,
-    )
+    scene = open_dataset_scene(scene_dir, dataset)
     gt = load_scannet_ground_truth(scene_dir)
     cached = cache_frames(scene)
     record = {

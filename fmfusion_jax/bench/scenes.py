@@ -48,20 +48,13 @@ def prepare_real_scene(
     """The real scene's first `max_frames` frames (None: all), with detections simulated on every frame of
     the scene into `cache_dir/<scene>/detections` (once: any frame count reuses them)."""
     from fmfusion_jax.config import load_config
-    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.simulation.noise import NoiseModel
     from fmfusion_jax.simulation.scene_sets import simulated_detections
 
     config = load_config(REAL_SCENE_CONFIG, [*([f"dataset.max_frames={max_frames}"] if max_frames else []), *overrides])
     dataset = config.dataset
-    scene = open_scene(
-        scene_dir,
-        layout=dataset.layout,
-        stride=dataset.frame_stride,
-        depth_max=dataset.depth_max,
-        depth_scale=dataset.depth_scale,
-        max_frames=dataset.max_frames,
-    )
+    scene = open_dataset_scene(scene_dir, dataset)
     folder = cache_dir / scene.name
     detections_dir = simulated_detections(
         scene_dir, folder / "detections", NoiseModel.preset("default", seed=seed), every=1, progress=progress

@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.cli.interrupt import StopRequest
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.runner import prepare_output_dir, run_and_export
 
     if not args.scene.is_dir():
@@ -93,14 +93,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
     config = load_config(args.config, args.overrides)
     prepare_output_dir(args.out, create=False)  # a bad --out fails now, not after the fusion
-    scene = open_scene(
-        args.scene,
-        layout=config.dataset.layout,
-        stride=config.dataset.frame_stride,
-        depth_max=config.dataset.depth_max,
-        depth_scale=config.dataset.depth_scale,
-        max_frames=config.dataset.max_frames,
-    )
+    scene = open_dataset_scene(args.scene, config.dataset)
     source: DetectionSource
     if args.models is not None:
         from detectors import FoundationModels

@@ -25,6 +25,7 @@ import logging
 import re
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -32,6 +33,9 @@ import numpy as np
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
 from fmfusion_jax.types import CameraIntrinsics, RGBDFrame
+
+if TYPE_CHECKING:
+    from fmfusion_jax.config import DatasetConfig
 
 logger = logging.getLogger(__name__)
 
@@ -511,6 +515,19 @@ def open_scene(
         depth_scale,
         depth_max,
         stride,
+    )
+
+
+def open_dataset_scene(path: str | Path, dataset: "DatasetConfig") -> Scene:
+    """`open_scene` with the reading options of a config's `dataset` section (layout, stride, depth range,
+    depth scale, frame limit)."""
+    return open_scene(
+        path,
+        layout=dataset.layout,
+        stride=dataset.frame_stride,
+        depth_max=dataset.depth_max,
+        depth_scale=dataset.depth_scale,
+        max_frames=dataset.max_frames,
     )
 
 

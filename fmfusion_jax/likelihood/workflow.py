@@ -179,7 +179,7 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     from fmfusion_jax.instances import drop_small_instances, postprocess_instances
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.likelihood.matching import match_instances
     from fmfusion_jax.pipeline import extract_map_instances
     from fmfusion_jax.runner import fuse_scene, score_instances
@@ -188,14 +188,7 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     start = time.perf_counter()
     config = with_likelihood(case.config, likelihood)
     dataset = config.dataset
-    scene = open_scene(
-        case.scene_dir,
-        layout=dataset.layout,
-        stride=dataset.frame_stride,
-        depth_max=dataset.depth_max,
-        depth_scale=dataset.depth_scale,
-        max_frames=dataset.max_frames,
-    )
+    scene = open_dataset_scene(case.scene_dir, dataset)
     folder = DetectionFolder(case.detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
     result = fuse_scene(scene, lambda frame: folder.get(frame.name), config, progress=progress)
     gt = load_scannet_ground_truth(case.scene_dir)
