@@ -50,6 +50,7 @@ class SceneTask:
     simulate: bool
     run_options: tuple[str, ...]
     timeout_s: float | None
+    memory_mib: float | None = None
 
 
 def list_scenes(source: Path, root: Path | None = None) -> list[Path]:
@@ -99,7 +100,7 @@ def run_scene(task: SceneTask) -> dict[str, Any]:
     )
     for argv in steps:
         left = None if task.timeout_s is None else max(1.0, task.timeout_s - (time.perf_counter() - start))
-        outcome = _run_child(argv, left)
+        outcome = _run_child(argv, left, task.memory_mib)
         if outcome["status"] != "ok":
             record.update(status=outcome["status"], error=outcome["error"])
             break
@@ -119,22 +120,45 @@ def run_scene(task: SceneTask) -> dict[str, Any]:
     return record
 
 
-def _run_child(argv: list[str], timeout_s: float | None) -> dict[str, Any]:
-    """One child process: its status and its error line."""
-    process = subprocess.Popen(
-        argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
-    )
-    try:
-        _, stderr = process.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        _, stderr = process.communicate()
-        return {"status": "timeout", "error": f"stopped: past the scene timeout ({timeout_s:.0f} s were left)"}
-    lines = [line for line in (stderr or "").splitlines() if line.strip() and not line.startswith("WARNING")]
+def _run_child(argv: list[str], timeout_s: float | None, memory_mib: float | None = None) -> dict[str, Any]:
+    """One child process: its status (ok, failed, timeout, memory) and its error line. The child is stopped
+    past `timeout_s` seconds or `memory_mib` MiB of resident memory (polled twice a second)."""
+    import tempfile
+
+    with tempfile.TemporaryFile("w+") as stderr_file:
+        process = subprocess.Popen(
+            argv, stdout=subprocess.DEVNULL, stderr=stderr_file, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+        )
+        start = time.perf_counter()
+        stopped = None
+        while process.poll() is None:
+            if timeout_s is not None and time.perf_counter() - start > timeout_s:
+                stopped = {"status": "timeout", "error": f"stopped: past the scene timeout ({timeout_s:.0f} s were left)"}
+            elif memory_mib is not None and _resident_mib(process.pid) > memory_mib:
+                stopped = {"status": "memory", "error": f"stopped: over the scene memory limit ({memory_mib:.0f} MiB)"}
+            if stopped:
+                process.kill()
+                process.wait()
+                return stopped
+            time.sleep(0.5)
+        stderr_file.seek(0)
+        stderr = stderr_file.read()
+    lines = [line for line in stderr.splitlines() if line.strip() and not line.startswith("WARNING")]
     if process.returncode != 0:
         error = next((line for line in reversed(lines) if "error" in line.lower()), lines[-1] if lines else "")
         return {"status": "failed", "error": f"exit {process.returncode}: {error}"}
     return {"status": "ok", "error": None}
+
+
+def _resident_mib(pid: int) -> float:
+    """A process's resident memory, MiB (Linux /proc; 0 where it cannot be read)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0.0
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -155,6 +179,7 @@ class Batch:
         simulate: bool,
         run_options: Sequence[str] = (),
         timeout_s: float | None = None,
+        memory_mib: float | None = None,
     ):
         if (detections is None) == (not simulate):
             raise UserError("give --detections PATTERN or --simulate")
@@ -171,6 +196,7 @@ class Batch:
                 simulate,
                 tuple(run_options),
                 timeout_s,
+                memory_mib,
             )
             for scene in scenes
         ]

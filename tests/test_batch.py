@@ -87,6 +87,16 @@ def test_a_failed_scene_is_recorded_and_the_batch_goes_on(dataset, tmp_path):
     assert "## Failures" in (out / "batch.md").read_text()
 
 
+def test_scene_time_and_memory_limits_stop_a_scene_and_say_why(dataset, tmp_path):
+    out = tmp_path / "out"
+    argv = ["batch", str(dataset), "--simulate", "--out", str(out)]  # each scene runs for seconds, in 100s of MiB
+    assert cli.main([*argv, "--config", "demo", "--no-progress", "--scene-memory", "0.05"]) == 1
+    assert {r["status"] for r in _records(out).values()} == {"memory"}  # a JAX process alone holds more
+    assert "over the scene memory limit (51 MiB)" in (out / "batch.md").read_text()
+    assert cli.main([*argv, "--config", "demo", "--no-progress", "--scene-timeout", "0.5"]) == 1
+    assert {r["status"] for r in _records(out).values()} == {"timeout"}
+
+
 def test_vmapped_executor_gives_the_local_results(dataset, local_run, tmp_path):
     """--batch 3: the three rooms fused in one vmapped step (one block layout covering all three)."""
     out = tmp_path / "vmapped"

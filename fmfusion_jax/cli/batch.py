@@ -34,6 +34,12 @@ def register(subparsers) -> None:
     parser.add_argument("--batch", type=int, metavar="K", help="fuse K scenes at once in this process, vmapped on one device")
     parser.add_argument("--resume", action="store_true", help="skip the scenes whose outputs are complete")
     parser.add_argument("--scene-timeout", type=float, metavar="S", help="stop a scene after S seconds (recorded as timeout)")
+    parser.add_argument(
+        "--scene-memory",
+        type=float,
+        metavar="GIB",
+        help="stop a scene whose process holds more than this resident memory (recorded as memory)",
+    )
     parser.add_argument("--config", help="config of every scene's run (default: scannet)")
     parser.add_argument(
         "--set",
@@ -55,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     if args.scene_timeout is not None and args.scene_timeout <= 0:
         raise UserError(f"--scene-timeout must be > 0, got {args.scene_timeout}")
+    if args.scene_memory is not None and args.scene_memory <= 0:
+        raise UserError(f"--scene-memory must be > 0 GiB, got {args.scene_memory}")
     load_config(args.config or "scannet", args.overrides)  # a bad config fails now, not in every scene
     scenes = list_scenes(args.dataset, args.root)
     options = (
@@ -65,7 +73,13 @@ def run(args: argparse.Namespace) -> int:
     options.append("--restart")  # an interrupted scene of an earlier batch starts over
     args.out.mkdir(parents=True, exist_ok=True)
     batch = Batch(
-        scenes, args.out, detections=args.detections, simulate=args.simulate, run_options=options, timeout_s=args.scene_timeout
+        scenes,
+        args.out,
+        detections=args.detections,
+        simulate=args.simulate,
+        run_options=options,
+        timeout_s=args.scene_timeout,
+        memory_mib=None if args.scene_memory is None else 1024 * args.scene_memory,
     )
     if args.resume:
         batch.load()
