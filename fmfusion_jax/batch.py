@@ -20,6 +20,7 @@ import io
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 import time
@@ -87,20 +88,24 @@ def detections_for(pattern: str, scene: Path) -> str:
     return pattern.format(scene=scene.name, root=scene.parent)
 
 
-def run_scene(task: SceneTask) -> dict[str, Any]:
-    """Runs one scene's commands in child processes; returns its record (status ok / failed / timeout)."""
+#: Seconds between two progress lines of a running scene.
+PROGRESS_EVERY_S = 15.0
+
+
+def run_scene(task: SceneTask, progress: Callable[[str, str], None] | None = None) -> dict[str, Any]:
+    """Runs one scene's commands in child processes; returns its record (status ok / failed / timeout /
+    memory). `progress(scene, text)` hears how far the fusion got every `PROGRESS_EVERY_S` seconds."""
     start = time.perf_counter()
     record: dict[str, Any] = {"scene": task.name, "path": task.scene, "out": task.out}
     command = [sys.executable, "-m", "fmfusion_jax.cli"]
     steps = []
     if task.simulate:
         steps.append(command + ["simulate", task.scene, "--out", task.detections, "--no-progress"])
-    steps.append(
-        command + ["run", task.scene, "--detections", task.detections, "--out", task.out, "--no-progress", *task.run_options]
-    )
+    steps.append(command + ["run", task.scene, "--detections", task.detections, "--out", task.out, *task.run_options])
     for argv in steps:
         left = None if task.timeout_s is None else max(1.0, task.timeout_s - (time.perf_counter() - start))
-        outcome = _run_child(argv, left, task.memory_mib)
+        report = None if progress is None else (lambda text: progress(task.name, text))  # noqa: E731
+        outcome = _run_child(argv, left, task.memory_mib, report)
         if outcome["status"] != "ok":
             record.update(status=outcome["status"], error=outcome["error"])
             break
@@ -108,6 +113,8 @@ def run_scene(task: SceneTask) -> dict[str, Any]:
         record["status"] = "ok"
         summary = json.loads((Path(task.out) / "run.json").read_text())
         benchmark = summary.get("benchmark", {})
+        if "error" in benchmark:
+            record["not_scored"] = benchmark["error"]
         record.update(
             frames=summary["frames"],
             detection_frames=summary["detection_frames"],
@@ -120,18 +127,27 @@ def run_scene(task: SceneTask) -> dict[str, Any]:
     return record
 
 
-def _run_child(argv: list[str], timeout_s: float | None, memory_mib: float | None = None) -> dict[str, Any]:
+def _run_child(
+    argv: list[str], timeout_s: float | None, memory_mib: float | None = None, progress: Callable[[str], None] | None = None
+) -> dict[str, Any]:
     """One child process: its status (ok, failed, timeout, memory) and its error line. The child is stopped
-    past `timeout_s` seconds or `memory_mib` MiB of resident memory (polled twice a second)."""
+    past `timeout_s` seconds or `memory_mib` MiB of resident memory (polled twice a second); `progress` hears
+    the last frame count of its progress bar every `PROGRESS_EVERY_S` seconds."""
     import tempfile
 
     with tempfile.TemporaryFile("w+") as stderr_file:
         process = subprocess.Popen(
             argv, stdout=subprocess.DEVNULL, stderr=stderr_file, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
         )
-        start = time.perf_counter()
+        start = last_report = time.perf_counter()
         stopped = None
         while process.poll() is None:
+            if progress is not None and time.perf_counter() - last_report > PROGRESS_EVERY_S:
+                last_report = time.perf_counter()
+                stderr_file.seek(0)
+                counts = re.findall(r"(\d+)/(\d+) \[", stderr_file.read())
+                if counts:
+                    progress(f"{counts[-1][0]}/{counts[-1][1]} frames")
             if timeout_s is not None and time.perf_counter() - start > timeout_s:
                 stopped = {"status": "timeout", "error": f"stopped: past the scene timeout ({timeout_s:.0f} s were left)"}
             elif memory_mib is not None and _resident_mib(process.pid) > memory_mib:
@@ -227,10 +243,16 @@ class Batch:
         scenes = sorted(self.records.values(), key=lambda r: order.index(r["scene"]) if r["scene"] in order else 0)
         _write_atomic(self.out / BATCH_FILE, json.dumps({"scenes": scenes}, indent=1))
 
-    def run_local(self, tasks: Sequence[SceneTask], workers: int, report: Callable[[dict], None]) -> None:
-        """Runs `tasks` in up to `workers` concurrent scene processes."""
+    def run_local(
+        self,
+        tasks: Sequence[SceneTask],
+        workers: int,
+        report: Callable[[dict], None],
+        progress: Callable[[str, str], None] | None = None,
+    ) -> None:
+        """Runs `tasks` in up to `workers` concurrent scene processes (`progress`: see `run_scene`)."""
         with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-            futures = [pool.submit(run_scene, task) for task in tasks]
+            futures = [pool.submit(run_scene, task, progress) for task in tasks]
             for future in concurrent.futures.as_completed(futures):
                 result = future.result()
                 self.record(result)
@@ -319,6 +341,8 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
             clear_outputs(out)
             summary = write_outputs(result, scene, out)
             benchmark = summary.get("benchmark", {})
+            if "error" in benchmark:
+                record["not_scored"] = benchmark["error"]
             record.update(
                 status="ok",
                 frames=summary["frames"],
@@ -386,6 +410,9 @@ def write_reports(out: Path, records: Sequence[dict[str, Any]], pooled, scored: 
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in records:
         lines.append("| " + " | ".join(cell(r, k) for k in COLUMNS[:-1]) + " |")
+    unscored = [r for r in records if r.get("not_scored")]
+    if unscored:
+        lines += ["", "## Not scored", ""] + [f"- `{r['scene']}`: {r['not_scored']}" for r in unscored]
     failed = [r for r in records if r.get("status") != "ok"]
     if failed:
         lines += ["", "## Failures", ""] + [f"- `{r['scene']}`: {r.get('status')}: {r.get('error')}" for r in failed]

@@ -49,7 +49,9 @@ def register(subparsers) -> None:
         metavar="KEY=VALUE",
         help="override a config value of every scene's run (repeatable)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no line per finished scene")
+    parser.add_argument(
+        "--no-progress", action="store_true", help="no progress lines (a line per finished scene, and how far running scenes got)"
+    )
     parser.set_defaults(func=run)
 
 
@@ -104,7 +106,12 @@ def run(args: argparse.Namespace) -> int:
     elif args.ray:
         batch.run_ray(tasks, args.ray, report)
     else:
-        batch.run_local(tasks, args.workers, report)
+        batch.run_local(
+            tasks,
+            args.workers,
+            report,
+            None if args.no_progress else lambda scene, text: print(f"  {scene}: {text}", file=sys.stderr),
+        )
     records = [batch.records[t.name] for t in batch.tasks if t.name in batch.records]
     pooled, scored = pooled_benchmark(records)
     print(write_reports(args.out, records, pooled, scored))
