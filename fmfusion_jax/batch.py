@@ -259,16 +259,22 @@ class Batch:
                 report(result)
 
     def run_ray(
-        self, tasks: Sequence[SceneTask], address: str, report: Callable[[dict], None], cpus_per_scene: float = 1.0
+        self,
+        tasks: Sequence[SceneTask],
+        address: str,
+        report: Callable[[dict], None],
+        cpus_per_scene: float = 1.0,
+        gpus_per_scene: float = 0.0,
     ) -> None:
-        """One Ray task per scene (`cpus_per_scene` CPUs declared), gathered on the driver as they finish."""
+        """One Ray task per scene (`cpus_per_scene` CPUs and `gpus_per_scene` GPUs declared), gathered on the
+        driver as they finish."""
         try:
             import ray
         except ImportError:
             raise UserError("--ray needs Ray: pip install -e '.[cluster]'") from None
         if not ray.is_initialized():
             ray.init(address=None if address == "local" else address, log_to_driver=False)
-        remote = ray.remote(num_cpus=cpus_per_scene)(run_scene)
+        remote = ray.remote(num_cpus=cpus_per_scene, num_gpus=gpus_per_scene)(run_scene)
         pending = {remote.remote(task): task for task in tasks}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)

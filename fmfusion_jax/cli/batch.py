@@ -31,6 +31,8 @@ def register(subparsers) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--workers", type=int, default=1, help="scenes fused at once on this machine (default 1)")
     parser.add_argument("--ray", metavar="ADDRESS", help="run one Ray task per scene on this cluster (auto, local or an address)")
+    parser.add_argument("--ray-cpus", type=float, default=1.0, metavar="N", help="CPUs a scene's Ray task declares")
+    parser.add_argument("--ray-gpus", type=float, default=0.0, metavar="N", help="GPUs a scene's Ray task declares")
     parser.add_argument("--batch", type=int, metavar="K", help="fuse K scenes at once in this process, vmapped on one device")
     parser.add_argument("--resume", action="store_true", help="skip the scenes whose outputs are complete")
     parser.add_argument("--scene-timeout", type=float, metavar="S", help="stop a scene after S seconds (recorded as timeout)")
@@ -104,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError("--batch K needs K >= 1 and no --ray")
         batch.run_vmapped(tasks, args.batch, load_config(args.config or "scannet", args.overrides), report)
     elif args.ray:
-        batch.run_ray(tasks, args.ray, report)
+        batch.run_ray(tasks, args.ray, report, cpus_per_scene=args.ray_cpus, gpus_per_scene=args.ray_gpus)
     else:
         batch.run_local(
             tasks,
