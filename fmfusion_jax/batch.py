@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.scene import detect_layout
 
 log = logging.getLogger(__name__)
@@ -111,20 +112,25 @@ def run_scene(task: SceneTask, progress: Callable[[str, str], None] | None = Non
             break
     else:
         record["status"] = "ok"
-        summary = json.loads((Path(task.out) / "run.json").read_text())
-        benchmark = summary.get("benchmark", {})
-        if "error" in benchmark:
-            record["not_scored"] = benchmark["error"]
-        record.update(
-            frames=summary["frames"],
-            detection_frames=summary["detection_frames"],
-            instances=summary["instances"],
-            mAP50=benchmark.get("mAP50"),
-            skipped_frames=len(summary.get("skipped_frames", [])),
-            peak_rss_mib=summary.get("peak_rss_mib"),
-        )
+        record.update(_summary_fields(json.loads((Path(task.out) / "run.json").read_text())))
     record["seconds"] = round(time.perf_counter() - start, 2)
     return record
+
+
+def _summary_fields(summary: dict[str, Any]) -> dict[str, Any]:
+    """A scene's record fields from its run summary (`run.json`)."""
+    benchmark = summary.get("benchmark", {})
+    fields = {
+        "frames": summary["frames"],
+        "detection_frames": summary["detection_frames"],
+        "instances": summary["instances"],
+        "mAP50": benchmark.get("mAP50"),
+        "skipped_frames": len(summary.get("skipped_frames", [])),
+        "peak_rss_mib": summary.get("peak_rss_mib"),
+    }
+    if "error" in benchmark:
+        fields["not_scored"] = benchmark["error"]
+    return fields
 
 
 def _run_child(
@@ -177,12 +183,6 @@ def _resident_mib(pid: int) -> float:
     return 0.0
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(text)
-    partial.replace(path)
-
-
 class Batch:
     """A batch over scenes: its tasks, its record file and its executors."""
 
@@ -217,6 +217,7 @@ class Batch:
             for scene in scenes
         ]
         self.records: dict[str, dict[str, Any]] = {}
+        self._position = {task.name: i for i, task in enumerate(self.tasks)}  # the record file's order
 
     def load(self) -> None:
         """Reads the records of an earlier run of this batch (for `--resume`)."""
@@ -239,9 +240,8 @@ class Batch:
 
     def record(self, result: dict[str, Any]) -> None:
         self.records[result["scene"]] = result
-        order = [t.name for t in self.tasks]
-        scenes = sorted(self.records.values(), key=lambda r: order.index(r["scene"]) if r["scene"] in order else 0)
-        _write_atomic(self.out / BATCH_FILE, json.dumps({"scenes": scenes}, indent=1))
+        scenes = sorted(self.records.values(), key=lambda r: self._position.get(r["scene"], 0))
+        write_atomic(self.out / BATCH_FILE, json.dumps({"scenes": scenes}, indent=1))
 
     def run_local(
         self,
@@ -312,7 +312,7 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.mapper import MapperBatch
-    from fmfusion_jax.runner import clear_outputs, write_outputs
+    from fmfusion_jax.runner import write_outputs
 
     start = time.perf_counter()
     records: list[dict[str, Any]] = [{"scene": t.name, "path": t.scene, "out": t.out} for t in group]
@@ -344,21 +344,9 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
         for task, scene, result, record in zip(group, scenes, results, records):
             out = Path(task.out)
             out.mkdir(parents=True, exist_ok=True)
-            clear_outputs(out)
-            summary = write_outputs(result, scene, out)
-            benchmark = summary.get("benchmark", {})
-            if "error" in benchmark:
-                record["not_scored"] = benchmark["error"]
+            summary = write_outputs(result, scene, out)  # it clears an earlier run's outputs first
             record.update(
-                status="ok",
-                frames=summary["frames"],
-                detection_frames=summary["detection_frames"],
-                instances=summary["instances"],
-                mAP50=benchmark.get("mAP50"),
-                skipped_frames=len(summary.get("skipped_frames", [])),
-                peak_rss_mib=summary.get("peak_rss_mib"),
-                seconds=round(seconds, 2),
-                batched_with=[t.name for t in group],
+                status="ok", **_summary_fields(summary), seconds=round(seconds, 2), batched_with=[t.name for t in group]
             )
     except (UserError, OSError) as error:
         for record in records:
@@ -396,7 +384,7 @@ def write_reports(out: Path, records: Sequence[dict[str, Any]], pooled, scored: 
     writer.writeheader()
     for record in records:
         writer.writerow({k: record.get(k, "") for k in COLUMNS})
-    _write_atomic(out / "batch.csv", buffer.getvalue())
+    write_atomic(out / "batch.csv", buffer.getvalue())
 
     def cell(record: dict, key: str) -> str:
         value = record.get(key)
@@ -423,5 +411,5 @@ def write_reports(out: Path, records: Sequence[dict[str, Any]], pooled, scored: 
     if failed:
         lines += ["", "## Failures", ""] + [f"- `{r['scene']}`: {r.get('status')}: {r.get('error')}" for r in failed]
     text = "\n".join(lines) + "\n"
-    _write_atomic(out / "batch.md", text)
+    write_atomic(out / "batch.md", text)
     return text

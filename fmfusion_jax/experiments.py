@@ -396,7 +396,7 @@ def run_method(
     _replace_run_dir(out_dir)
     predictions, score = score_instances(instances, gt, scene.name, config, label_sets)
     write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
-    map_outputs.write_instances_json(out_dir / "instances.json", instances, label_sets)
+    map_outputs.write_instances_json(out_dir / "instances.json", map_outputs.instances_json(instances, label_sets))
     (out_dir / "config.yaml").write_text(config.to_yaml())
     summary = {
         "scene": scene.name,

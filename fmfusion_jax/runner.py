@@ -21,6 +21,7 @@ from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io import map_outputs
+from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
@@ -71,9 +72,7 @@ class Checkpoint:
             "skipped": [list(item) for item in skipped],
             "config": mapper.config.to_dict(),
         }
-        partial = self.folder / (self.INFO_FILE + ".partial")
-        partial.write_text(json.dumps(info, indent=1))
-        partial.replace(self.folder / self.INFO_FILE)
+        write_atomic(self.folder / self.INFO_FILE, json.dumps(info, indent=1))
 
     def remove(self) -> None:
         for name in (self.MAP_FILE, self.INFO_FILE):
@@ -329,10 +328,11 @@ def write_outputs(
     (out_dir / "config.yaml").write_text(result.config.to_yaml())
     instances = extract_map_instances(result, label_sets)
     lap("extract_instances")
-    map_outputs.write_instances_json(out_dir / "instances.json", instances, label_sets)
+    records = map_outputs.instances_json(instances, label_sets)
+    map_outputs.write_instances_json(out_dir / "instances.json", records)
     map_outputs.write_instance_clouds(out_dir, instances, label_sets)
     lap("write_instances")
-    graph = scene_graph.build_scene_graph(map_outputs.instances_json(instances, label_sets))
+    graph = scene_graph.build_scene_graph(records)
     (out_dir / "scene_graph.json").write_text(json.dumps(graph, indent=1))
     scene_graph.write_graphml(out_dir / "scene_graph.graphml", graph)
     lap("scene_graph")

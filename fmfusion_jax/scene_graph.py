@@ -69,15 +69,12 @@ Box = tuple[np.ndarray, np.ndarray, float]
 
 
 def _gap(a: Box, b: Box) -> float:
-    """Distance between two boxes, approximated from their sample points (0 when they overlap)."""
-    pa = _samples(*a, n=7, closed=True)
-    local = _to_local(pa, b[0], b[2])
-    outside = np.maximum(np.abs(local) - b[1] / 2, 0.0)
-    gap_ab = float(np.min(np.linalg.norm(outside, axis=1)))
-    pb = _samples(*b, n=7, closed=True)
-    local = _to_local(pb, a[0], a[2])
-    outside = np.maximum(np.abs(local) - a[1] / 2, 0.0)
-    return min(gap_ab, float(np.min(np.linalg.norm(outside, axis=1))))
+    """Distance between two boxes, approximated from sample points reaching their faces (0 when they overlap)."""
+    gaps = []
+    for one, other in ((a, b), (b, a)):
+        local = _to_local(_samples(*one, n=7, closed=True), other[0], other[2])
+        gaps.append(float(np.min(np.linalg.norm(np.maximum(np.abs(local) - other[1] / 2, 0.0), axis=1))))
+    return min(gaps)
 
 
 def build_scene_graph(records: Sequence[dict], settings: GraphSettings = GraphSettings()) -> dict[str, Any]:
@@ -119,13 +116,13 @@ def build_scene_graph(records: Sequence[dict], settings: GraphSettings = GraphSe
     contained: set[tuple] = set()
     for a in objects:
         ia, box_a = a["id"], boxes[a["id"]]
-        footprint = _samples(*box_a, n=6)
+        footprint = _samples(*box_a, n=6)  # a's volume samples; their x, y are its footprint
         best = None
         for b in objects:
             ib, box_b = b["id"], boxes[b["id"]]
             if ib == ia:
                 continue
-            share = _inside_share(_samples(*box_a, n=6), *box_b)
+            share = _inside_share(footprint, *box_b)
             if share >= settings.min_inside_share and np.prod(box_a[1]) < np.prod(box_b[1]):
                 edges.append({"source": ia, "relation": "inside", "target": ib, "score": round(share, 3)})
                 contained.add((ia, ib))

@@ -121,6 +121,7 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         raise DataError(f"{txt_path}: cannot read the prediction file ({error})") from error
     masks, ids, confidences = [], [], []
     seen: dict[Path, int] = {}
+    resolved_folder = txt_path.parent.resolve()
     for number, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue
@@ -139,7 +140,7 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
             raise DataError(f"{where}: confidence {confidence_text!r} is not a number") from None
         if not math.isfinite(confidence):
             raise DataError(f"{where}: confidence {confidence_text!r} is not finite")
-        mask_path = _mask_path_inside(txt_path.parent, relative, where)
+        mask_path = _mask_path_inside(txt_path.parent, resolved_folder, relative, where)
         if mask_path in seen:
             raise DataError(f"{where}: mask {relative} is already listed on line {seen[mask_path]}")
         seen[mask_path] = number
@@ -170,13 +171,14 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
     return InstancePredictions(np.stack(masks), np.asarray(ids, np.int64), np.asarray(confidences, np.float64))
 
 
-def _mask_path_inside(folder: Path, relative: str, where: str) -> Path:
-    """`folder / relative`, refused (`DataError`) when it is absolute or leads out of `folder`."""
+def _mask_path_inside(folder: Path, resolved_folder: Path, relative: str, where: str) -> Path:
+    """`folder / relative`, refused (`DataError`) when it is absolute or leads out of `folder` (`resolved_folder`
+    is `folder.resolve()`, resolved once per prediction file)."""
     if Path(relative).is_absolute():
         raise DataError(f"{where}: mask path {relative!r} is absolute; paths are relative to the prediction file")
     path = folder / relative
     try:
-        inside = path.resolve().is_relative_to(folder.resolve())
+        inside = path.resolve().is_relative_to(resolved_folder)
     except (OSError, RuntimeError):  # a symlink loop
         inside = False
     if not inside:

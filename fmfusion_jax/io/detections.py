@@ -29,7 +29,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -38,6 +37,7 @@ import cv2
 import numpy as np
 
 from fmfusion_jax.errors import DataError, UserError
+from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.image_file import read_image
 from fmfusion_jax.types import FrameDetections
 
@@ -254,10 +254,10 @@ def write_frame_detections(folder: str | Path, detections: FrameDetections, mask
     else:
         mask_path, stale_path = folder / f"{name}{NPY_SUFFIX}", folder / f"{name}{PNG_SUFFIX}"
         payload = _npy_bytes(masks.astype(np.uint8))
-    _write_atomic(mask_path, payload)
+    write_atomic(mask_path, payload)
     stale_path.unlink(missing_ok=True)
     json_path = label_path(folder, name)
-    _write_atomic(json_path, json.dumps(document, indent=1).encode())
+    write_atomic(json_path, json.dumps(document, indent=1).encode())
     return [mask_path, json_path]
 
 
@@ -375,16 +375,3 @@ def _npy_bytes(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, array, allow_pickle=False)
     return buffer.getvalue()
-
-
-def _write_atomic(path: Path, payload: bytes) -> None:
-    """Writes through a temporary file in the same folder, so a reader never sees half a file."""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as file:
-            file.write(payload)
-        os.chmod(temporary, 0o644)  # mkstemp makes 0600; these are ordinary data files
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise

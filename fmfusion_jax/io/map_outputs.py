@@ -201,14 +201,14 @@ INSTANCES_SCHEMA = "fmfusion-jax instances"
 INSTANCES_SCHEMA_VERSION = 2
 
 
-def write_instances_json(path: Path, instances: list[MapInstance], label_sets: LabelSets) -> None:
-    """instances.json: a header saying what the numbers mean, then one record per instance."""
+def write_instances_json(path: Path, records: list[dict]) -> None:
+    """instances.json: a header saying what the numbers mean, then the records of `instances_json`."""
     document = {
         "schema": INSTANCES_SCHEMA,
         "version": INSTANCES_SCHEMA_VERSION,
         "units": "metres",
         "frame": "world: the frame the camera poses map into (T_world_camera); ScanNet's world is z up",
-        "instances": instances_json(instances, label_sets),
+        "instances": records,
     }
     path.write_text(json.dumps(document, indent=1))
 
