@@ -10,8 +10,9 @@
 Without `bounds`, the map grows as the camera explores: the block index, the voxel-block pool and the instance
 table start small and are enlarged (by doubling, so a handful of recompiles per run, each logged) before a
 frame that would not fit. The voxel lattice is fixed (origins on whole blocks), so a grown map equals one
-allocated at its final size. With `bounds` (as `fmfusion run` passes the scene's), the index is fixed and the
-pool and table have the config's capacities from the start.
+allocated at its final size. With `bounds` (as `fmfusion run` passes the scene's), the index is fixed; the pool
+starts at `expected_blocks` (the config's capacity when not given) and grows the same way. The config's
+capacities are the ceiling of growth.
 """
 
 from __future__ import annotations
@@ -173,11 +174,44 @@ def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
     camera = np.stack([np.tile(x, len(offsets)) * zs, np.tile(y, len(offsets)) * zs, zs], axis=1)
     world = camera @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
     keys = np.floor(world / map_config.block_length).astype(np.int64)
-    return np.unique(keys, axis=0)
+    return unique_block_keys(keys)
+
+
+#: Bits per axis of a packed block key (block coordinates within +-2^20 blocks: +-131 km at 12.5 cm blocks).
+_KEY_BITS = 21
+
+
+def unique_block_keys(keys: np.ndarray) -> np.ndarray:
+    """int64 `(M, 3)` -> `(N, 3)`: the distinct rows in lexicographic order (as `np.unique(axis=0)`, ~30x
+    faster: each row packed into one int64)."""
+    half, mask = 1 << (_KEY_BITS - 1), (1 << _KEY_BITS) - 1
+    shifted = np.clip(keys + half, 0, mask)
+    packed = np.unique((shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2])
+    return np.stack([(packed >> (2 * _KEY_BITS)) & mask, (packed >> _KEY_BITS) & mask, packed & mask], axis=1) - half
+
+
+def sample_block_count(points_world: np.ndarray, ray_origins: np.ndarray, map_config: MapConfig) -> int:
+    """Distinct blocks that depth samples would allocate: each point `(N, 3)` and its truncation band along
+    the ray from its camera centre `(N, 3)` (world metres). From a sample of the frames this underestimates
+    what the whole sequence allocates; `fmfusion run` starts its pool there (see `Mapper(expected_blocks)`)."""
+    if len(points_world) == 0:
+        return 0
+    rays = points_world - ray_origins
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+    trunc = map_config.sdf_trunc
+    offsets = np.linspace(-trunc, trunc, map_config.alloc_depth_samples) if map_config.alloc_depth_samples > 1 else [0.0]
+    world = np.concatenate([points_world + o * rays for o in offsets])
+    return len(unique_block_keys(np.floor(world / map_config.block_length).astype(np.int64)))
 
 
 def _next_power_of_two(n: int) -> int:
     return 1 << max(0, int(np.ceil(np.log2(max(n, 1)))))
+
+
+def initial_pool_blocks(expected_blocks: int, ceiling: int) -> int:
+    """The pool a map expected to use `expected_blocks` starts with: the power of two above 1.25x that (a
+    sample of the frames sees most of a room, not all), at least `MIN_POOL_BLOCKS`, at most `ceiling`."""
+    return min(ceiling, max(MIN_POOL_BLOCKS, _next_power_of_two(int(np.ceil(1.25 * expected_blocks)))))
 
 
 class Mapper:
@@ -188,8 +222,11 @@ class Mapper:
         a dict of overrides, or a `PipelineConfig` (None: scannet).
       intrinsics: the camera, used for frames given as arrays without their own (`CameraIntrinsics`, 3x3 K
         or `(fx, fy, cx, cy)`).
-      bounds: `(min xyz, max xyz)` world metres the map must cover: fixes the block index and allocates the
-        config's capacities up front. None: the map grows as the camera explores.
+      bounds: `(min xyz, max xyz)` world metres the map must cover: fixes the block index. None: the index
+        grows as the camera explores.
+      expected_blocks: voxel blocks the map is expected to use (e.g. `sample_block_count` over a sample of
+        the frames): the pool starts at the power of two above 1.25x this and doubles when a frame might not
+        fit. None: the config's `tsdf.block_capacity` up front with `bounds`, a small pool without.
       label_sets, likelihood: the label sets and the `(O, C)` likelihood (default: the config's).
       time_stages: time every engine step (waits for the device after each, so reading the next frame no
         longer overlaps the device's work); the medians are in `finalize().timings`.
@@ -201,6 +238,7 @@ class Mapper:
         intrinsics: "CameraIntrinsics | np.ndarray | Sequence | None" = None,
         *,
         bounds: "tuple[ArrayLike, ArrayLike] | None" = None,
+        expected_blocks: int | None = None,
         label_sets: LabelSets | None = None,
         likelihood: np.ndarray | None = None,
         time_stages: bool = False,
@@ -214,7 +252,12 @@ class Mapper:
         self._builder: MapBuilder | None = None
         self._schedule = DetectionSchedule(self.config)
         self._result: FusionResult | None = None
+        self._expected_blocks = expected_blocks
         self._ceiling: MapConfig | None = None  # the config's capacities: how far a growing map may grow
+        # upper bounds of the pool's blocks in use and the table's live rows, kept on the host so that the
+        # growth check reads the device only when a bound comes close to a capacity (None: read it)
+        self._blocks_bound: int | None = None
+        self._rows_bound: int | None = None
         #: how often the map's layout grew (each one recompiles the steps)
         self.growths = 0
 
@@ -251,7 +294,7 @@ class Mapper:
             name=name,
         )
         due = detections is not None and self.detection_due(frame.T_world_camera)
-        self._prepare(frame)
+        self._prepare(frame, due)
         assert self._builder is not None
         self._builder.add_frame(frame, detections if due else None)
         if due:
@@ -369,8 +412,8 @@ class Mapper:
         """The config's capacities for frames of `map_config`'s size (the ceiling of growth)."""
         return build_map_config(self.config, np.zeros(3), np.ones(3), map_config.image_height, map_config.image_width)
 
-    def _prepare(self, frame: RGBDFrame) -> None:
-        """Makes the map ready for `frame`: built on the first frame, grown when it would not fit."""
+    def _prepare(self, frame: RGBDFrame, detections_due: bool) -> None:
+        """Makes the map ready for `frame`: built on the first frame, grown when it might not fit."""
         height, width = frame.depth.shape
         if self._builder is not None:
             built = self._builder.map_config
@@ -378,14 +421,17 @@ class Mapper:
                 raise UserError(
                     f"{frame.name}: image {width}x{height}, the map's frames are {built.image_width}x{built.image_height}"
                 )
-            if self._bounds is None:
-                self._grow_for(frame)
+            self._grow_for(frame, detections_due)
             return
         # the config's capacities for these frames: a fixed map's sizes, a growing map's ceiling
         layout = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
         self._ceiling = layout
         if self._bounds is not None:
             map_config = build_map_config(self.config, *self._bounds, height, width)
+            if self._expected_blocks is not None:  # at least what the first frame needs
+                first = len(frame_block_keys(frame, map_config))
+                pool = initial_pool_blocks(max(self._expected_blocks, first), layout.block_capacity)
+                map_config = dataclasses.replace(map_config, block_capacity=pool)
         else:
             keys = frame_block_keys(frame, layout)
             lo = keys.min(axis=0) - INDEX_PAD_BLOCKS if len(keys) else -INDEX_PAD_BLOCKS * np.ones(3, np.int64)
@@ -401,17 +447,44 @@ class Mapper:
         self._builder = MapBuilder(
             self.config, map_config, self.label_sets, self._likelihood, timer=StageTimer(enabled=self.time_stages)
         )
+        self._blocks_bound = self._rows_bound = None  # read after the first frame
         log.info("map: %s", map_config.describe())
 
-    def _grow_for(self, frame: RGBDFrame) -> None:
-        """Enlarges the index, the pool or the table (by at least half / doubling) if `frame` might not fit."""
+    def _grow_for(self, frame: RGBDFrame, detections_due: bool) -> None:
+        """Enlarges the pool or the table (doubling) and, without bounds, the index (by at least half a side)
+        if `frame` might not fit.
+
+        The frame adds at most its distinct blocks to the pool and `detections.max_detections` rows to the
+        table. Upper bounds of both are summed on the host; the device's counts are read (a wait) only when a
+        bound would pass a capacity, so most frames are checked without waiting for the previous one.
+        """
         builder = self._require_builder()
         old, ceiling = builder.map_config, self._ceiling
         assert ceiling is not None
+        grows_index = self._bounds is None
+        full_pool, full_table = old.block_capacity >= ceiling.block_capacity, old.instance_capacity >= ceiling.instance_capacity
+        if full_pool and full_table and not grows_index:
+            return  # nothing left to grow: the capacity monitor reports an overflow
         keys = frame_block_keys(frame, old)
+        new_rows = self.config.detections.max_detections if detections_due else 0
+
+        pool, rows = old.block_capacity, old.instance_capacity
+        if not full_pool:
+            if self._blocks_bound is None or self._blocks_bound + len(keys) + 1 > pool:
+                self._blocks_bound = int(builder.state.blocks.num_blocks)  # waits for the device
+            self._blocks_bound += len(keys)
+            if self._blocks_bound + 1 > pool:
+                pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(self._blocks_bound + 1)))
+        if not full_table:
+            if self._rows_bound is None or self._rows_bound + new_rows > rows:
+                self._rows_bound = int(builder.state.instances.valid.sum())  # waits for the device
+            self._rows_bound += new_rows
+            if self._rows_bound > rows:
+                rows = min(ceiling.instance_capacity, max(2 * rows, _next_power_of_two(self._rows_bound)))
+
         lo, hi = growth.bounds_block_range(old)
         new_lo, new_hi = lo.copy(), hi.copy()
-        if len(keys):
+        if grows_index and len(keys):
             need_lo, need_hi = keys.min(axis=0) - 1, keys.max(axis=0) + 2
             extent = hi - lo
             for axis in range(3):  # grow a side by at least half the extent: few recompiles
@@ -419,16 +492,6 @@ class Mapper:
                     new_lo[axis] = min(need_lo[axis] - INDEX_PAD_BLOCKS, lo[axis] - extent[axis] // 2)
                 if need_hi[axis] > hi[axis]:
                     new_hi[axis] = max(need_hi[axis] + INDEX_PAD_BLOCKS, hi[axis] + extent[axis] // 2)
-        blocks_needed = int(builder.state.blocks.num_blocks) + len(keys) + 1
-        pool = old.block_capacity
-        if blocks_needed > pool and pool < ceiling.block_capacity:
-            pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(blocks_needed)))
-        rows = old.instance_capacity
-        if (
-            int(builder.state.instances.valid.sum()) + self.config.detections.max_detections > rows
-            and rows < ceiling.instance_capacity
-        ):
-            rows = min(ceiling.instance_capacity, 2 * rows)
         if (new_lo == lo).all() and (new_hi == hi).all() and pool == old.block_capacity and rows == old.instance_capacity:
             return
         new = dataclasses.replace(growth.config_for_block_range(old, new_lo, new_hi), block_capacity=pool, instance_capacity=rows)

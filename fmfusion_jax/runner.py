@@ -103,7 +103,8 @@ class SceneFusion:
     ):
         """`observer(position, frame, detections or None, mapper)` is called after each frame is fused (e.g. a
         `viz.live.RerunView`)."""
-        from fmfusion_jax.mapper import Mapper
+        from fmfusion_jax.mapper import Mapper, sample_block_count
+        from fmfusion_jax.pipeline import build_map_config
 
         if on_error not in ON_ERROR_POLICIES:
             raise UserError(f"on_error {on_error!r}: expected one of {ON_ERROR_POLICIES}")
@@ -136,7 +137,11 @@ class SceneFusion:
         else:
             sample = scene.sample_depth(max_frames=60)
             check_depth_units(scene, sample)
-            self.mapper = Mapper(config, bounds=scene.bounds(sample=sample), time_stages=time_stages)
+            bounds = scene.bounds(sample=sample)
+            # the pool starts at what the sampled frames allocate (it doubles if the others show more)
+            layout = build_map_config(config, *bounds, scene.intrinsics.height, scene.intrinsics.width)
+            expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
+            self.mapper = Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages)
 
     #: Frames read and decoded ahead, in a background thread, while the device fuses the current one.
     READ_AHEAD = 2

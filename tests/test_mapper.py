@@ -18,7 +18,7 @@ from fmfusion_jax.engine import growth
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.mapper import Mapper, as_config
+from fmfusion_jax.mapper import Mapper, as_config, frame_block_keys, initial_pool_blocks, sample_block_count
 from fmfusion_jax.pipeline import build_map_config, extract_map_instances
 from fmfusion_jax.runner import fuse_scene
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
@@ -71,9 +71,47 @@ def test_example_grows_the_same_map_as_fmfusion_run(room):
     assert len(expected) >= 3
     assert _key(mapper.instances()) == _key(expected)
     assert mapper.detection_frames == reference.detection_frames and mapper.growths >= 1
-    # it grew from a small allocation: well under the fixed-size map of the same scene
-    assert mapper.map_config.memory_bytes() < reference.map_config.memory_bytes()
+    # it grew from a small allocation: well under the config's capacities
+    full = build_map_config(config, *open_scene(scene_dir).bounds(), SPEC.height, SPEC.width)
+    assert mapper.map_config.memory_bytes() < full.memory_bytes()
     assert mapper.frames_integrated == SPEC.num_frames
+
+
+def test_a_bounded_map_grows_its_pool_from_the_expected_blocks_to_the_same_map(room):
+    """With bounds and a (far too small) expected block count, the pool starts small and doubles before a frame
+    that might not fit: the same map, voxel for voxel, as the pool allocated at the config's capacity."""
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    bounds = scene.bounds()
+    # 5,357 blocks used: `fixed` starts at 8,192 and never grows, `sized` starts at 4,096 (a shared compile)
+    fixed, sized = Mapper(config, bounds=bounds, expected_blocks=6000), Mapper(config, bounds=bounds, expected_blocks=2000)
+    for frame in scene.frames():
+        fixed.integrate(frame, folder.get(frame.name))
+        sized.integrate(frame, folder.get(frame.name))
+    used = int(fixed.state.blocks.num_blocks)
+    assert int(sized.state.blocks.num_blocks) == used and int(sized.state.blocks.dropped_blocks) == 0
+    assert fixed.growths == 0 and sized.growths == 1 and used < sized.map_config.block_capacity == fixed.map_config.block_capacity
+    for name in ("tsdf", "weight", "color", "instance_id", "instance_weight", "block_coords"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(sized.state.blocks, name))[:used], np.asarray(getattr(fixed.state.blocks, name))[:used]
+        )
+    assert _key(sized.instances()) == _key(fixed.instances())
+
+
+def test_sample_block_count_matches_the_frames_it_samples(room):
+    """The runner's pool estimate from sampled depth: the blocks of the sampled frames, within the sampling's
+    coarseness (every 8th pixel there, every 4th in the engine's block finder)."""
+    scene_dir, _, config = room
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    sample = scene.sample_depth(max_frames=len(scene), pixel_step=8)
+    layout = build_map_config(config, *scene.bounds(sample=sample), SPEC.height, SPEC.width)
+    estimate = sample_block_count(sample.points_world, sample.ray_origins, layout)
+    keys = np.concatenate([frame_block_keys(frame, layout) for frame in scene.frames()])
+    truth = len(np.unique(keys, axis=0))
+    assert 0.7 * truth <= estimate <= 1.05 * truth, (estimate, truth)
+    assert initial_pool_blocks(estimate, 1 << 16) >= 1.25 * estimate
+    assert initial_pool_blocks(10**9, 4096) == 4096
 
 
 def test_snapshot_mid_sequence_leaves_the_map_unchanged(room):

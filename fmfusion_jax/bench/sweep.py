@@ -100,12 +100,17 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     from fmfusion_jax.bench.stages import FrameTimer
     from fmfusion_jax.bench.worker import _frames_with_detections, _open, device_description, peak_rss_mb
     from fmfusion_jax.labels import load_label_sets, load_likelihood
+    from fmfusion_jax.mapper import initial_pool_blocks, sample_block_count
     from fmfusion_jax.pipeline import MapBuilder, build_map_config
 
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
-    bounds_min, bounds_max = _open(scene, None)[1].bounds()  # the map of the ours worker (all the scene's frames)
+    whole = _open(scene, None)[1]  # the map of the ours worker (all the scene's frames)
+    sample = whole.sample_depth(max_frames=60)
+    bounds_min, bounds_max = whole.bounds(sample=sample)
     map_config = build_map_config(config, bounds_min, bounds_max, opened.intrinsics.height, opened.intrinsics.width)
+    expected = sample_block_count(sample.points_world, sample.ray_origins, map_config)
+    map_config = dataclasses.replace(map_config, block_capacity=initial_pool_blocks(expected, map_config.block_capacity))
     label_sets = load_label_sets()
     likelihood = jnp.asarray(load_likelihood(config.label_fusion.likelihood), jnp.float32)
     open_labels, det = label_sets.open_labels, config.detections

@@ -214,6 +214,8 @@ class DepthSample:
       valid_fraction: fraction of sampled pixels with depth in (0, depth_max].
       depth_percentiles: `(5,)` metres at the 1st, 25th, 50th, 75th, 99th percentiles of valid depth.
       world_min, world_max: `(3,)` AABB of the back-projected sampled points (no margin).
+      points_world: `(N, 3)` float32 the back-projected sampled points, world metres.
+      ray_origins: `(N, 3)` float32 the camera centre each point was seen from.
     """
 
     frame_names: tuple[str, ...]
@@ -221,6 +223,8 @@ class DepthSample:
     depth_percentiles: np.ndarray
     world_min: np.ndarray
     world_max: np.ndarray
+    points_world: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3), np.float32), repr=False)
+    ray_origins: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3), np.float32), repr=False)
 
 
 class Scene:
@@ -351,7 +355,7 @@ class Scene:
         if len(self) == 0:
             raise DataError(f"{self.path}: no usable frame (all {len(self.skipped)} skipped)")
         picks = np.unique(np.linspace(0, len(self) - 1, min(max_frames, len(self))).round().astype(int))
-        points, depths, num_pixels, read = [], [], 0, []
+        points, origins, depths, num_pixels, read = [], [], [], 0, []
         errors: list[DataError] = []
         for i in picks:
             try:
@@ -364,6 +368,7 @@ class Scene:
             num_pixels += grid.size
             depths.append(grid[grid > 0])
             points.append(transform_points(self._T_world_cameras[i], backproject(depth, self.intrinsics, pixel_step)))
+            origins.append(np.broadcast_to(self._T_world_cameras[i, :3, 3], points[-1].shape))
         if not read:
             raise errors[0]
         valid = np.concatenate(depths)
@@ -379,6 +384,8 @@ class Scene:
             depth_percentiles=np.percentile(valid, [1, 25, 50, 75, 99]),
             world_min=world.min(axis=0),
             world_max=world.max(axis=0),
+            points_world=world.astype(np.float32),
+            ray_origins=np.concatenate(origins).astype(np.float32),
         )
 
     def bounds(
