@@ -137,6 +137,7 @@ def run_demo(
     seed: int = 0,
     num_objects: int = DEFAULT_OBJECTS,
     num_frames: int = DEFAULT_FRAMES,
+    stacked: int = 0,
     width: int = DEFAULT_WIDTH,
     height: int = DEFAULT_HEIGHT,
     overrides: Sequence[str] = (),
@@ -150,12 +151,14 @@ def run_demo(
       seed: seed of the room, the camera path, the sensor noise and the simulated detections.
       num_objects: objects in the room (besides walls, floor, ceiling).
       num_frames: frames on the loop around the room.
+      stacked: small objects (lamps, boxes, baskets) standing on the tables, desks, counters and low cabinets,
+        besides `num_objects` (`generate_scene(stacked=...)`; a room with `on` relations for the scene graph).
       width, height: image size.
       overrides: `section.key=value` config overrides (applied last).
       progress: tqdm progress bars.
       depth_noise: simulate depth-sensor noise.
     """
-    if num_frames < 2 or num_objects < 1 or width < 32 or height < 24:
+    if num_frames < 2 or num_objects < 1 or stacked < 0 or width < 32 or height < 24:
         raise UserError(
             f"demo needs at least 2 frames, 1 object and 32x24 pixels (got {num_frames} frames, "
             f"{num_objects} objects, {width}x{height})"
@@ -184,6 +187,7 @@ def run_demo(
     record = {
         "seed": seed,
         "objects": num_objects,
+        "stacked": stacked,
         "frames": num_frames,
         "width": width,
         "height": height,
@@ -191,7 +195,7 @@ def run_demo(
     }
     (out_dir / MARKER).write_text(json.dumps(record, indent=1) + "\n")
     try:
-        scene = generate_scene(seed, num_objects=num_objects)
+        scene = generate_scene(seed, num_objects=num_objects, stacked=stacked)
     except ValueError as error:
         raise UserError(f"cannot generate the room: {error}") from None
     log.info("demo room: %s", scene.summary())

@@ -117,6 +117,40 @@ def test_objects_do_not_overlap_and_stay_in_the_room(seed, num_objects):
         assert corners[:, 1].max() <= d + slack and -1e-6 <= corners[:, 2].min() and corners[:, 2].max() <= h
 
 
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), stacked=st.integers(1, 6))
+def test_stacked_objects_stand_on_their_support_and_overlap_nothing(seed, stacked):
+    kinds = ("table", "desk", "counter", "cabinet", "chair")
+    plain, scene = (
+        generate_scene(seed, num_objects=6, kinds=kinds),
+        generate_scene(seed, num_objects=6, kinds=kinds, stacked=stacked),
+    )
+    same = generate_scene(seed, num_objects=6, kinds=kinds, stacked=0)  # 0: the room without the option
+    arrays = lambda room: [np.concatenate([b.center, b.half_extents, b.color, [b.yaw]]) for b in room.boxes]  # noqa: E731
+    np.testing.assert_array_equal(arrays(same), arrays(plain))
+    floor = next(i for i, info in scene.instances.items() if info.kind == "floor")
+    on_objects = {a: b for a, b in scene.resting_on.items() if b != floor}
+    assert 1 <= len(on_objects) <= stacked and len(scene.object_ids) == len(plain.object_ids) + len(on_objects)
+    objects = [b for b in scene.boxes if b.instance_id in scene.object_ids]
+    for i, a in enumerate(objects):
+        for b in objects[i + 1 :]:
+            if a.instance_id != b.instance_id:
+                assert not box_overlap(a, b), (scene.instances[a.instance_id], scene.instances[b.instance_id])
+    for thing, support in on_objects.items():
+        assert scene.instances[thing].class_name == "otherfurniture" and scene.instances[support].kind in kinds
+        center, extent, yaw = scene.instance_box(thing)
+        s_center, s_extent, s_yaw = scene.instance_box(support)
+        assert center[2] - extent[2] / 2 == pytest.approx(s_center[2] + s_extent[2] / 2, abs=1e-9)  # on its top
+        corners = (
+            center[:2]
+            + np.array([[x, y] for x in (-0.5, 0.5) for y in (-0.5, 0.5)]) * extent[:2] @ raycast.yaw_rotation(yaw)[:2, :2].T
+        )
+        local = (corners - s_center[:2]) @ raycast.yaw_rotation(s_yaw)[:2, :2]
+        assert (np.abs(local) <= s_extent[:2] / 2 + 1e-9).all()  # wholly over it
+        assert (thing, support) in scene.relations()["on"]
+    assert {a for a, b in scene.resting_on.items() if b == floor} == set(plain.resting_on)
+
+
 # ------------------------------------------------------------------------------------------- trajectory
 
 

@@ -28,6 +28,13 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the room, camera path, noise and detections")
     parser.add_argument("--objects", type=int, default=DEFAULT_OBJECTS, metavar="N", help="objects in the room")
+    parser.add_argument(
+        "--stacked",
+        type=int,
+        default=0,
+        metavar="N",
+        help="small objects (lamps, boxes, baskets) standing on the tables, desks, counters and cabinets (default 0)",
+    )
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES, metavar="N", help="frames on the loop")
     parser.add_argument("--width", type=int, default=DEFAULT_WIDTH, help="image width")
     parser.add_argument("--height", type=int, default=DEFAULT_HEIGHT, help="image height")
@@ -46,13 +53,16 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.demo import run_demo
 
-    if args.frames < 2 or args.objects < 1:
-        raise UserError(f"--frames must be >= 2 and --objects >= 1 (got {args.frames}, {args.objects})")
+    if args.frames < 2 or args.objects < 1 or args.stacked < 0:
+        raise UserError(
+            f"--frames must be >= 2, --objects >= 1 and --stacked >= 0 (got {args.frames}, {args.objects}, {args.stacked})"
+        )
     result = run_demo(
         args.out,
         seed=args.seed,
         num_objects=args.objects,
         num_frames=args.frames,
+        stacked=args.stacked,
         width=args.width,
         height=args.height,
         overrides=args.overrides,

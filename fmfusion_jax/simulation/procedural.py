@@ -5,8 +5,10 @@ objects of the ScanNet benchmark classes, each object an instance made of one or
 the vertical axis only. Everything is deterministic per seed. The world frame has its origin at a floor corner
 of the room, z up, the room spanning `[0, W] x [0, D] x [0, H]`.
 
-- `generate_scene(seed, room_size, num_objects, kinds)`: the room and its objects, placed without overlap
-  (furniture on the floor or against a wall, doors/windows/pictures/curtains on walls).
+- `generate_scene(seed, room_size, num_objects, kinds, stacked)`: the room and its objects, placed without
+  overlap (furniture on the floor or against a wall, doors/windows/pictures/curtains on walls, and `stacked`
+  small things on top of tables, desks, counters and cabinets); `ProceduralScene.relations` says which object
+  rests on which and which are near each other, for testing a scene graph.
 - `camera_trajectory(scene, num_frames)`: a smooth hand-held-like loop around the room, `T_world_camera`.
 - `build_mesh(scene)`: the visible box surfaces as a triangle mesh with ~3 cm vertex spacing (like ScanNet's
   `_vh_clean_2.ply`), per-vertex instance and over-segmentation ids.
@@ -84,6 +86,11 @@ RAW_LABELS = {
     "trash can": "otherfurniture",
     "ottoman": "otherfurniture",
     "bench": "otherfurniture",
+    # small things that `generate_scene(stacked=...)` puts on tables, desks, counters and cabinets (the
+    # generator's own class for them: ScanNet's 20 classes have no lamp or box)
+    "lamp": "otherfurniture",
+    "storage box": "otherfurniture",
+    "basket": "otherfurniture",
 }
 
 #: Relative frequency of a kind once every allowed kind has been placed once.
@@ -175,6 +182,20 @@ class Box:
         return np.all(np.abs(local) <= self.half_extents + margin, axis=1)
 
 
+def box_distance(a: tuple[np.ndarray, np.ndarray, float], b: tuple[np.ndarray, np.ndarray, float], samples: int = 11) -> float:
+    """Metres between two oriented boxes `(center (3,), extent (3,), yaw)` (0 when they touch or overlap): the
+    least distance from a grid of points over each box (faces included) to the other, exact to ~extent/samples."""
+    t = np.linspace(-0.5, 0.5, samples)
+    grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
+    distance = math.inf
+    for one, other in ((a, b), (b, a)):
+        points = one[0] + (grid * one[1]) @ raycast.yaw_rotation(one[2]).T
+        local = (points - other[0]) @ raycast.yaw_rotation(other[2])
+        outside = np.maximum(np.abs(local) - np.asarray(other[1]) / 2, 0.0)
+        distance = min(distance, float(np.linalg.norm(outside, axis=1).min()))
+    return distance
+
+
 @dataclasses.dataclass(frozen=True)
 class InstanceInfo:
     """What an instance is.
@@ -205,6 +226,8 @@ class ProceduralScene:
       instances: instance id -> `InstanceInfo` (walls, floor, ceiling and objects).
       light_position: `(3,)` the point light used for shading.
       enclosure_boxes: `(6,)` indices in `boxes` of the x-, x+, y-, y+ walls, the floor and the ceiling.
+      resting_on: object instance id -> the instance it stands on: the floor's id for objects whose lowest
+        box touches the floor, the supporting object's for stacked ones (objects hung on walls: absent).
     """
 
     seed: int
@@ -213,6 +236,7 @@ class ProceduralScene:
     instances: dict[int, InstanceInfo]
     light_position: np.ndarray
     enclosure_boxes: tuple[int, ...]
+    resting_on: dict[int, int] = dataclasses.field(default_factory=dict)
 
     @functools.cached_property
     def _box_arrays(self) -> raycast.BoxArrays:
@@ -250,6 +274,32 @@ class ProceduralScene:
             result[inside] = box.instance_id
         return result
 
+    def instance_box(self, instance_id: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """`(center (3,), extent (3,), yaw)`: the oriented box around an instance's boxes (they share a yaw)."""
+        boxes = self.instance_boxes(instance_id)
+        yaw = boxes[0].yaw
+        rotation = raycast.yaw_rotation(yaw)
+        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+        corners = np.concatenate([(b.center - boxes[0].center) @ rotation + signs * b.half_extents for b in boxes])
+        lower, upper = corners.min(axis=0), corners.max(axis=0)
+        return boxes[0].center + rotation @ ((lower + upper) / 2), upper - lower, float(yaw)
+
+    def relations(self, near_distance: float = 0.3) -> dict[str, set[tuple[int, int]]]:
+        """The relations the generator made: `{"on": {(object, support)}, "near": {(a, b)}}` with instance ids
+        (`on` the floor: the floor's id), `near` pairs sorted, between objects that do not rest on one another
+        and whose oriented boxes (`instance_box`) are less than `near_distance` metres apart."""
+        on = set(self.resting_on.items())
+        objects = self.object_ids
+        boxes = {i: self.instance_box(i) for i in objects}
+        near = set()
+        for k, a in enumerate(objects):
+            for b in objects[k + 1 :]:
+                if (a, b) in on or (b, a) in on:
+                    continue
+                if box_distance(boxes[a], boxes[b]) < near_distance:
+                    near.add((min(a, b), max(a, b)))
+        return {"on": on, "near": near}
+
     def trajectory(self, num_frames: int, seed: int | None = None) -> np.ndarray:
         """`camera_trajectory(self, num_frames, seed)`."""
         return camera_trajectory(self, num_frames, seed)
@@ -283,7 +333,7 @@ class _Spec:
     kind: str
     raw_label: str
     parts: list[_Part]
-    placement: str  # "wall" (back against a wall, on the floor), "free" (anywhere on the floor), "mounted"
+    placement: str  # "wall" (back against a wall, on the floor), "free" (anywhere on the floor), "mounted", "on" (a top)
     wall_gap: float = _WALL_GAP  # distance of the local back plane (y = +depth/2) in front of the wall
 
     @property
@@ -592,6 +642,28 @@ def _otherfurniture(rng) -> _Spec:
     return _Spec("otherfurniture", label, parts, "free")
 
 
+def _small_object(rng) -> _Spec:
+    """A lamp, a storage box or a basket, to stand on a table, desk, counter or cabinet (local z = 0 at its base)."""
+    label = rng.choice(["lamp", "storage box", "basket"])
+    if label == "lamp":
+        base, h, shade = rng.uniform(0.14, 0.2), rng.uniform(0.38, 0.5), rng.uniform(0.24, 0.32)
+        metal = _jitter(rng, rng.choice([(0.3, 0.3, 0.32), (0.75, 0.72, 0.6), (0.85, 0.85, 0.85)]))
+        cloth = _jitter(rng, rng.choice([(0.92, 0.88, 0.78), (0.85, 0.85, 0.8), (0.6, 0.2, 0.15)]))
+        stem = 0.6 * h
+        parts = [
+            _Part((0, 0, 0.015), (base, base, 0.03), metal, "metal", "base"),
+            _Part((0, 0, 0.03 + (stem - 0.03) / 2), (0.03, 0.03, stem - 0.03), metal, "metal", "stem"),
+            _Part((0, 0, stem + (h - stem) / 2), (shade, shade, h - stem), cloth, "fabric", "shade"),
+        ]
+    elif label == "storage box":
+        w, d, h = rng.uniform(0.22, 0.4), rng.uniform(0.18, 0.3), rng.uniform(0.14, 0.3)
+        parts = [_Part((0, 0, h / 2), (w, d, h), _jitter(rng, rng.choice([(0.7, 0.55, 0.35), (0.2, 0.4, 0.7)])), "plain", "box")]
+    else:
+        w, h = rng.uniform(0.24, 0.36), rng.uniform(0.16, 0.26)
+        parts = _hollow(0, 0, 0, w, w * rng.uniform(0.7, 1.0), h, 0.012, _jitter(rng, (0.62, 0.48, 0.3)), "fabric", "basket")
+    return _Spec("otherfurniture", str(label), parts, "on")
+
+
 def _curtain(rng, height) -> _Spec:
     w = rng.uniform(0.6, 1.4)
     top = height - rng.uniform(0.15, 0.3)
@@ -695,6 +767,7 @@ class _Placed:
     along: float  # position along the wall
     spec: _Spec | None
     reserved: bool = False  # a keep-clear zone, not an object
+    support: int = -1  # index in the placed list of the object it stands on (-1: the floor or a wall)
 
 
 def _rect_corners(center, yaw, half) -> np.ndarray:
@@ -889,6 +962,59 @@ def _place_objects(room_size, kinds: list[str], rng, allowed: Sequence[str] | No
     return result
 
 
+#: Kinds whose flat top `generate_scene(stacked=...)` puts small objects on, and the highest top it uses (the
+#: camera, at 1.3 m or more, must see onto it).
+_SUPPORT_KINDS = ("table", "desk", "counter", "cabinet")
+_MAX_SUPPORT_TOP = 1.0
+
+
+def _top_rect(spec: _Spec) -> tuple[np.ndarray, np.ndarray, float]:
+    """`(centre (2,), half size (2,), z)` of the highest part's top face, in the spec's local frame."""
+    part = max(spec.parts, key=lambda q: q.center[2] + q.size[2] / 2)
+    return np.asarray(part.center[:2], np.float64), np.asarray(part.size[:2], np.float64) / 2, part.center[2] + part.size[2] / 2
+
+
+def _place_on_tops(placed: list[_Placed], count: int, rng, max_tries: int = 30) -> list[_Placed]:
+    """Up to `count` small objects standing on the tops of the placed supports (round robin over them in a
+    random order), each wholly on its support's top and clear of the others and of wall-mounted things."""
+    supports = [
+        i
+        for i, q in enumerate(placed)
+        if q.spec is not None and q.kind in _SUPPORT_KINDS and _top_rect(q.spec)[2] <= _MAX_SUPPORT_TOP
+    ]
+    result: list[_Placed] = []
+    if not supports:
+        return result
+    order = [supports[k] for k in rng.permutation(len(supports))]
+    for n in range(count):
+        index = order[n % len(order)]
+        support = placed[index]
+        assert support.spec is not None
+        center, half, top = _top_rect(support.spec)
+        for _ in range(max_tries):
+            spec = _small_object(rng)
+            lower, upper = spec.bounds
+            small_half = np.maximum(np.abs(lower[:2]), np.abs(upper[:2]))
+            room = half - small_half - 0.03
+            if (room < 0).any():
+                continue
+            local = center + rng.uniform(-room, room)
+            c, s = math.cos(support.yaw), math.sin(support.yaw)
+            world = support.center + np.array([c * local[0] - s * local[1], s * local[0] + c * local[1]])
+            for part in spec.parts:  # on the top: shift up by its height
+                part.center = (part.center[0], part.center[1], part.center[2] + top)
+            cand = _Placed(spec.kind, world, support.yaw, small_half, (top, top + float(upper[2])), -1, 0.0, spec, support=index)
+            clash = any(
+                _rects_overlap(cand, other, 0.03) and cand.z[0] < other.z[1] and other.z[0] < cand.z[1]
+                for other in placed + result
+                if other is not support
+            )
+            if not clash:
+                result.append(cand)
+                break
+    return result
+
+
 class _NoRoom(Exception):
     def __init__(self, placed: int):
         super().__init__(placed)
@@ -909,7 +1035,11 @@ def default_room_size(num_objects: int) -> tuple[float, float, float]:
 
 
 def generate_scene(
-    seed: int, room_size: Sequence[float] | None = None, num_objects: int = 12, kinds: Sequence[str] | None = None
+    seed: int,
+    room_size: Sequence[float] | None = None,
+    num_objects: int = 12,
+    kinds: Sequence[str] | None = None,
+    stacked: int = 0,
 ) -> ProceduralScene:
     """A random room with `num_objects` objects, deterministic per `seed`.
 
@@ -920,6 +1050,9 @@ def generate_scene(
       num_objects: objects besides walls, floor and ceiling (>= 1). Without `kinds` the first two are a door
         and a window, then every other kind once in random order, then kinds drawn by frequency (chairs most).
       kinds: the object kinds to draw from (`OBJECT_KINDS`), each placed once before any repeats.
+      stacked: small objects (lamps, boxes, baskets: class otherfurniture) to stand on the tops of the tables,
+        desks, counters and low cabinets, besides `num_objects` (fewer when there is no such top or no room on
+        them). 0 draws nothing more: the room is the same as without the argument.
 
     Raises:
       ValueError: bad arguments, or (with an explicit `room_size`) the objects do not fit in the room.
@@ -954,6 +1087,8 @@ def generate_scene(
             size = (round(size[0] * 1.12, 2), round(size[1] * 1.12, 2), size[2])
     else:  # pragma: no cover - the room grows by 2.5x in area over the attempts
         raise ValueError(f"could not place {num_objects} objects")
+    if stacked:
+        placed = placed + _place_on_tops(placed, int(stacked), rng)
     return _assemble(int(seed), size, placed, rng)
 
 
@@ -1004,10 +1139,18 @@ def _assemble(seed: int, size, placed: list[_Placed], rng) -> ProceduralScene:
         )
     )
 
+    floor_id = next(i for i, info in instances.items() if info.kind == "floor")
+    instance_of: list[int] = []
+    resting_on: dict[int, int] = {}
     for p in placed:
         spec = p.spec
         assert spec is not None  # placed objects have their spec (only keep-clear zones have none)
         instance_id = add_instance(spec.kind, spec.kind, spec.raw_label, nyu40[spec.kind])
+        instance_of.append(instance_id)
+        if p.support >= 0:
+            resting_on[instance_id] = instance_of[p.support]
+        elif spec.bounds[0][2] <= 0.01:
+            resting_on[instance_id] = floor_id
         R = raycast.yaw_rotation(p.yaw)
         origin = np.array([p.center[0], p.center[1], 0.0])
         for part in spec.parts:
@@ -1024,7 +1167,9 @@ def _assemble(seed: int, size, placed: list[_Placed], rng) -> ProceduralScene:
                 )
             )
     light = np.array([w / 2, d / 2, h - 0.35])
-    return ProceduralScene(seed, (float(w), float(d), float(h)), tuple(boxes), instances, light, (0, 1, 2, 3, 4, 5))
+    return ProceduralScene(
+        seed, (float(w), float(d), float(h)), tuple(boxes), instances, light, (0, 1, 2, 3, 4, 5), resting_on=resting_on
+    )
 
 
 def empty_room(room_size: Sequence[float] = DEFAULT_ROOM, seed: int = 0) -> ProceduralScene:

@@ -37,6 +37,7 @@ class GeneratedSceneSpec:
     num_frames: int = 120
     width: int = 640
     height: int = 480
+    stacked: int = 0  # small objects on tables, desks, counters and cabinets (`generate_scene(stacked=...)`)
 
     @property
     def name(self) -> str:
@@ -60,12 +61,14 @@ def generated_scene(spec: GeneratedSceneSpec, root: str | Path, progress: bool =
 
     scene_dir = Path(root) / spec.name
     record = dataclasses.asdict(spec)
+    if not spec.stacked:  # the record of a scene rendered before the option: its cache stays valid
+        del record["stacked"]
     if _read_record(scene_dir / _SCENE_RECORD) == record:
         return scene_dir
     if scene_dir.exists():
         shutil.rmtree(scene_dir)  # made with other parameters, or interrupted
     try:
-        scene = generate_scene(spec.seed, num_objects=spec.num_objects)
+        scene = generate_scene(spec.seed, num_objects=spec.num_objects, stacked=spec.stacked)
     except ValueError as error:
         raise UserError(f"cannot generate {spec.name}: {error}") from None
     log.info("rendering %s: %s", spec.name, scene.summary())
