@@ -2,10 +2,20 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
+
+# The `fmfusion` commands the tests run, in this process and as subprocesses, share one persistent compile
+# cache in a temporary folder (never the user's): each step compiles once per suite, not once per command.
+if "FMFUSION_COMPILE_CACHE" not in os.environ:
+    _cache = tempfile.mkdtemp(prefix="fmfusion-test-xla-")
+    os.environ["FMFUSION_COMPILE_CACHE"] = _cache
+    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_SCANNET = Path(os.environ.get("FMFUSION_SCANNET_DIR", REPO_ROOT.parent / "shared" / "data" / "scannet"))

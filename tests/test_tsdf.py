@@ -82,7 +82,8 @@ def test_matches_dense_reference_frame_by_frame():
         m = got.allocated
         assert np.array_equal(got.weight[m], grid.weight[m])
         np.testing.assert_allclose(got.tsdf[m], grid.tsdf[m], atol=1e-4)
-        np.testing.assert_allclose(got.color[m], grid.color[m], atol=1e-2)
+        # colour is stored in half precision (steps of 1/8 between 128 and 255): within two steps of the reference
+        np.testing.assert_allclose(got.color[m].astype(np.float32), grid.color[m], atol=0.25)
         assert not np.any(grid.weight[~m]), "the reference updated voxels outside the allocated blocks"
     check_pool_consistent(blocks, CONFIG)
     assert int(blocks.dropped_blocks) == int(blocks.out_of_bounds) == int(blocks.touched_overflow) == 0

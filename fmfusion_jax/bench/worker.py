@@ -18,6 +18,7 @@ Times exclude reading images and detection files, for every pipeline.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import resource
@@ -110,12 +111,20 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """Our engine: the fused pass (`frames`: stage name -> ms per frame, from `MapBuilder`'s timer: `fusion`,
     `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`)."""
     from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+    from fmfusion_jax.compile_cache import enable_compile_cache
+    from fmfusion_jax.mapper import initial_pool_blocks, sample_block_count
     from fmfusion_jax.pipeline import MapBuilder, build_map_config
 
+    cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)
+    cache_entries = sum(1 for _ in cache.iterdir()) if cache else None
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
-    bounds_min, bounds_max = opened.bounds()
+    sample = opened.sample_depth(max_frames=60)
+    bounds_min, bounds_max = opened.bounds(sample=sample)
     map_config = build_map_config(config, bounds_min, bounds_max, opened.intrinsics.height, opened.intrinsics.width)
+    # the pool `fmfusion run` starts with (the bench's builder does not grow: a pool too small is reported)
+    expected = sample_block_count(sample.points_world, sample.ray_origins, map_config)
+    map_config = dataclasses.replace(map_config, block_capacity=initial_pool_blocks(expected, map_config.block_capacity))
     device = device_description()
     print(
         f"ours on {scene.name}: {len(opened)} frames, device {device['device_kind']} ({device['platform']}), "
@@ -151,6 +160,8 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
         "counters": dict(builder.counters),
         **counts,
         "blocks_used": int(builder.state.blocks.num_blocks),
+        "dropped_blocks": int(builder.state.blocks.dropped_blocks),
+        "compile_cache": {"dir": str(cache) if cache else None, "entries_before": cache_entries},
         "block_capacity": map_config.block_capacity,
         "peak_rss_mb": peak_rss_mb(),
         "baseline_rss_mb": baseline_mb,

@@ -13,6 +13,7 @@ import logging
 import os
 import sys
 
+from fmfusion_jax.compile_cache import enable_compile_cache
 from fmfusion_jax.errors import UserError
 
 
@@ -94,6 +95,7 @@ def main(argv: list[str] | None = None, *, exit_at_once_on_interrupt: bool = Fal
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if args.verbose < 2:  # JAX's own INFO lines (backend probing) are noise unless debugging
         logging.getLogger("jax").setLevel(logging.WARNING)
+    enable_compile_cache()  # steps compiled by an earlier run load from disk (FMFUSION_COMPILE_CACHE=off: never)
     try:
         return int(args.func(args) or 0)
     except UserError as error:

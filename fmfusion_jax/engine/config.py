@@ -158,7 +158,7 @@ class MapConfig:
     def memory_bytes(self) -> int:
         """Approximate bytes of one `MapState` for this config (device arrays only)."""
         b, v, s, k = self.block_capacity, self.voxels_per_block, self.instance_slots, self.instance_capacity
-        pool = b * v * (4 + 4 + 12 + 8 * s)  # tsdf, weight, colour (f32 x 3), instance id + weight per slot
+        pool = b * v * (4 + 4 + 6 + 8 * s)  # tsdf, weight, colour (f16 x 3), instance id + weight per slot
         index = self.num_grid_blocks * 4 + b * 12
         table = k * (1 + 4 * (self.num_classes + self.num_open_labels) + 6 * 4 + 8 * k)
         return int(pool + index + table)

@@ -149,6 +149,8 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
             full[:n] = value
             full[capacity - 1 :] = scratch
             value = full
+        if name == "color" and value.dtype == np.float32 and spec.dtype != np.float32:
+            value = value.astype(spec.dtype)  # a map saved before colour was stored in half precision
         if value.shape != spec.shape or value.dtype != spec.dtype:
             raise ValueError(
                 f"map state array {key} is {value.dtype}{list(value.shape)}, the config needs {spec.dtype}{list(spec.shape)}"

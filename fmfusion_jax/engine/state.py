@@ -28,6 +28,10 @@ import numpy as np
 
 from fmfusion_jax.engine.config import MapConfig
 
+#: Storage of the voxels' mean colour: half precision (0.06-0.125 steps between 128 and 255), a sixth of the
+#: pool's bytes instead of a third; colour only feeds the mesh and the pictures, never a decision.
+COLOR_DTYPE = jnp.float16
+
 
 class VoxelBlocks(NamedTuple):
     """The voxel-block pool: global TSDF, colour and per-voxel instance slots.
@@ -41,7 +45,7 @@ class VoxelBlocks(NamedTuple):
     num_blocks: jax.Array  # int32[]: allocated slots, always < B (slot B - 1 is the scratch slot)
     tsdf: jax.Array  # float32[B, V]: truncated signed distance / sdf_trunc, in [-1, 1] (1 = unobserved/free)
     weight: jax.Array  # float32[B, V]: TSDF integration weight (observations, capped at config.max_weight)
-    color: jax.Array  # float32[B, V, 3]: weighted mean RGB in [0, 255]
+    color: jax.Array  # float16[B, V, 3]: weighted mean RGB in [0, 255] (to 1/16 at 255: colour is only drawn)
     instance_id: jax.Array  # int32[B, V, S]: instance ids seen at the voxel, -1 = empty slot
     instance_weight: jax.Array  # float32[B, V, S]: evidence per slot (pixel hits, see instance_volume)
     dropped_blocks: jax.Array  # int32[]: blocks that needed a slot when the pool was full (cumulative)
@@ -123,7 +127,7 @@ def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
         num_blocks=zero(),
         tsdf=jnp.ones((b, v), jnp.float32),
         weight=jnp.zeros((b, v), jnp.float32),
-        color=jnp.zeros((b, v, 3), jnp.float32),
+        color=jnp.zeros((b, v, 3), COLOR_DTYPE),
         instance_id=jnp.full((b, v, s), -1, jnp.int32),
         instance_weight=jnp.zeros((b, v, s), jnp.float32),
         dropped_blocks=zero(),

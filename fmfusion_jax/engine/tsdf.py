@@ -138,12 +138,12 @@ def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: Map
 
     w_old = blocks.weight[slots]
     t_old = blocks.tsdf[slots]
-    c_old = blocks.color[slots]
+    c_old = blocks.color[slots].astype(jnp.float32)  # stored in half precision, averaged in single
     observed = jnp.minimum(sdf / config.sdf_trunc, 1.0)
     inv = 1.0 / (w_old + 1.0)
     t_new = jnp.where(update, jnp.clip((t_old * w_old + observed) * inv, -1.0, 1.0), t_old)
     rgb = color.reshape(-1, 3)[pixel]  # (C, V, 3)
-    c_new = jnp.where(update[..., None], (c_old * w_old[..., None] + rgb) * inv[..., None], c_old)
+    c_new = jnp.where(update[..., None], (c_old * w_old[..., None] + rgb) * inv[..., None], c_old).astype(blocks.color.dtype)
     w_new = jnp.where(update, jnp.minimum(w_old + 1.0, config.max_weight), w_old)
     return t_new, w_new, c_new
 

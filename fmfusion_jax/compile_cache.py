@@ -1,0 +1,64 @@
+"""JAX's persistent compilation cache, in one folder for every `fmfusion` process.
+
+The engine's steps take seconds each to compile on a CPU, and compiling costs memory (LLVM's working set
+stays in the process's resident memory). With the cache on, a process whose steps were compiled before,
+by any earlier process with the same shapes, JAX and device, loads them instead: `fmfusion run` on a scene
+of a size already seen starts at once, and `fmfusion batch` compiles once per map size instead of once
+per scene. Entries are keyed by the program, the compile options, the JAX version and the device, so a
+stale entry is never used.
+
+The `fmfusion` commands turn it on (`enable_compile_cache()`); the Python API leaves it to the caller.
+`FMFUSION_COMPILE_CACHE=off` turns it off, `FMFUSION_COMPILE_CACHE=DIR` moves it (default:
+`$XDG_CACHE_HOME/fmfusion-jax/xla`, i.e. `~/.cache/fmfusion-jax/xla`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+#: The environment variable naming the cache folder (`off`, `0`, `no` or `false`: no cache).
+ENV = "FMFUSION_COMPILE_CACHE"
+_OFF = ("off", "0", "no", "false")
+
+
+def compile_cache_dir() -> Path | None:
+    """The folder `enable_compile_cache` uses by default (None when `FMFUSION_COMPILE_CACHE` turns it off)."""
+    setting = os.environ.get(ENV, "").strip()
+    if setting.lower() in _OFF:
+        return None
+    if setting:
+        return Path(setting).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "fmfusion-jax" / "xla"
+
+
+def enable_compile_cache(path: str | Path | None = None) -> Path | None:
+    """Turns JAX's persistent compilation cache on in `path` (default: `compile_cache_dir()`) for this process
+    and the processes it starts; returns the folder, or None when it is turned off or the folder cannot be
+    made (logged; compiling goes on as usual). Does not import JAX when it is not imported yet (JAX reads
+    the setting from the environment when it is)."""
+    folder = Path(path).expanduser() if path is not None else compile_cache_dir()
+    if folder is None:
+        return None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        log.warning("compile cache off: cannot make %s (%s)", folder, error.strerror or error)
+        return None
+    settings = {"jax_compilation_cache_dir": str(folder), "jax_persistent_cache_min_compile_time_secs": "0"}
+    for name, value in settings.items():
+        os.environ[name.upper()] = value
+    if "jax" in sys.modules:
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", str(folder))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # every step: entries are small
+    return folder
+
+
+__all__ = ["ENV", "compile_cache_dir", "enable_compile_cache"]
