@@ -55,7 +55,9 @@ class TSDFConfig(_Section):
     voxel_size: Float = knob(0.015625, "m; 4.0/256 as in the reference (paper: 1.5 cm)", "shape", gt=0)
     sdf_trunc: Float = knob(0.04, "m; truncation distance of the TSDF (must exceed voxel_size)", "shape", gt=0)
     block_size: Int = knob(8, "voxels per block side (even; 8^3-voxel blocks are 12.5 cm)", "shape", ge=2)
-    block_capacity: Int = knob(65536, "blocks the pool may hold (~14 KB each; a ScanNet room uses ~20-40k)", "shape", ge=2)
+    block_capacity: Int = knob(
+        65536, "blocks the pool may grow to (~15 KB each; a ScanNet room uses ~20-40k; runs start smaller)", "shape", ge=2
+    )
     max_touched_blocks: Int = knob(
         12288, "blocks integrated per frame (more are skipped, counted and warned about)", "shape", ge=1
     )
@@ -114,7 +116,9 @@ class AssociationConfig(_Section):
 
 
 class InstanceConfig(_Section):
-    capacity: Int = knob(1024, "instance table rows (overflowing detections are dropped and warned about)", "shape", ge=2)
+    capacity: Int = knob(
+        1024, "instance table rows (overflowing detections are dropped and warned about)", "shape", ge=2, le=32767
+    )
     voxel_slots: Int = knob(2, "instances one voxel can hold (overlapping instance volumes)", "shape", ge=1)
     contrary_vote_weight: Float = knob(
         0.5,

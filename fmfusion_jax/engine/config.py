@@ -13,6 +13,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+#: Most rows an instance table may have: the voxels store instance ids in 16 bits (`state.INSTANCE_ID_DTYPE`).
+MAX_INSTANCE_CAPACITY = 32767
+
 
 @dataclasses.dataclass(frozen=True)
 class MapConfig:
@@ -83,6 +86,8 @@ class MapConfig:
             problems.append("cell_list_capacity must be >= 0")
         if self.instance_slots < 1 or self.instance_capacity < 1 or self.overlap_ids_per_cell < 1:
             problems.append("instance_slots, instance_capacity and overlap_ids_per_cell must be >= 1")
+        if self.instance_capacity > MAX_INSTANCE_CAPACITY:
+            problems.append(f"instance_capacity must be <= {MAX_INSTANCE_CAPACITY} (16-bit ids), got {self.instance_capacity}")
         if not self.instance_lookup_offsets:
             problems.append("instance_lookup_offsets needs at least one offset")
         if problems:
@@ -158,7 +163,7 @@ class MapConfig:
     def memory_bytes(self) -> int:
         """Approximate bytes of one `MapState` for this config (device arrays only)."""
         b, v, s, k = self.block_capacity, self.voxels_per_block, self.instance_slots, self.instance_capacity
-        pool = b * v * (4 + 4 + 6 + 8 * s)  # tsdf, weight, colour (f16 x 3), instance id + weight per slot
+        pool = b * v * (4 + 4 + 6 + 6 * s)  # tsdf, weight, colour (f16 x 3), instance id (i16) + weight per slot
         index = self.num_grid_blocks * 4 + b * 12
         table = k * (1 + 4 * (self.num_classes + self.num_open_labels) + 6 * 4 + 8 * k)
         return int(pool + index + table)

@@ -26,7 +26,7 @@ def _host_blocks(state_or_blocks) -> dict[str, np.ndarray]:
         "tsdf": np.asarray(blocks.tsdf)[:n],
         "weight": np.asarray(blocks.weight)[:n],
         "color": np.asarray(blocks.color)[:n].astype(np.float32),
-        "instance_id": np.asarray(blocks.instance_id)[:n],
+        "instance_id": np.asarray(blocks.instance_id)[:n].astype(np.int32),
         "instance_weight": np.asarray(blocks.instance_weight)[:n],
     }
 

@@ -97,7 +97,7 @@ def _slot_entries(blocks: VoxelBlocks, slot, voxel):
     base = jnp.where(hit, (slot * v_per_block + voxel) * num_slots, 0)
     ids_flat = blocks.instance_id.reshape(-1)
     w_flat = blocks.instance_weight.reshape(-1)
-    ids = [jnp.where(hit, ids_flat.at[base + s].get(mode="promise_in_bounds"), -1) for s in range(num_slots)]
+    ids = [jnp.where(hit, ids_flat.at[base + s].get(mode="promise_in_bounds").astype(jnp.int32), -1) for s in range(num_slots)]
     weights = [jnp.where(i >= 0, w_flat.at[base + s].get(mode="promise_in_bounds"), 0.0) for s, i in enumerate(ids)]
     return ids, weights
 
@@ -194,9 +194,10 @@ def _apply_instance_hits(
     safe_entry = jnp.minimum(entry, n_entries - 1)
 
     # Pass 1, claim: empty target slots take the largest claiming id (-1 is a no-op for the others).
-    ids_flat = blocks.instance_id.reshape(-1).at[entry].max(jnp.where(claim, instance, -1), mode="drop")
+    id_dtype = blocks.instance_id.dtype  # stored narrow (`state.INSTANCE_ID_DTYPE`), compared as int32
+    ids_flat = blocks.instance_id.reshape(-1).at[entry].max(jnp.where(claim, instance, -1).astype(id_dtype), mode="drop")
     # Pass 2, add: pixels whose instance holds the target slot vote +1, displaced ones vote -1.
-    won = valid & ~decay & (ids_flat[safe_entry] == instance)
+    won = valid & ~decay & (ids_flat[safe_entry].astype(jnp.int32) == instance)
     vote = jnp.where(won, 1.0, jnp.where(decay, -1.0, 0.0))
     if contrary_weight > 0.0 and detected is not None:
         # Contrary votes: a slot whose instance was detected in this frame loses `contrary_weight` for each
@@ -219,7 +220,7 @@ def _apply_instance_hits(
     # Slots voted down to zero are emptied.
     for entries, _, lowered in per_slot:
         cleared_entry = jnp.where(lowered & (w_flat[jnp.minimum(entries, n_entries - 1)] <= 0.0), entries, n_entries)
-        ids_flat = ids_flat.at[cleared_entry].set(-1, mode="drop")
+        ids_flat = ids_flat.at[cleared_entry].set(jnp.asarray(-1, id_dtype), mode="drop")
         w_flat = w_flat.at[cleared_entry].set(0.0, mode="drop")
     return blocks._replace(
         instance_id=ids_flat.reshape(blocks.instance_id.shape),

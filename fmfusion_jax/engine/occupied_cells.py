@@ -323,7 +323,7 @@ def census(blocks: VoxelBlocks, config: MapConfig, overlap=None, keep=None, list
         return jnp.where(plain, plain_value, inflated_value)
 
     def entries_at(index, ok):
-        entries = _gather_cells(cell_ids, index, ok, -1)
+        entries = _gather_cells(cell_ids, index, ok, -1).astype(jnp.int32)  # widened: pair keys need 32 bits
         if keep is not None:
             entries = jnp.where(_known(entries, k) & keep[jnp.clip(entries, 0, k - 1)], entries, -1)
         return entries
@@ -489,17 +489,17 @@ def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, ac
     shape = blocks.instance_id.shape
     num_slots = shape[-1]
 
-    def cell_step(index, ok, carry):
-        return carry, changes(_gather_cells(_cell_rows(carry[0]), index, ok, -1), index), None
+    def cell_step(index, ok, carry):  # ids widened to int32 for `changes` and `edit`, stored narrow
+        return carry, changes(_gather_cells(_cell_rows(carry[0]), index, ok, -1).astype(jnp.int32), index), None
 
     def flagged_step(index, ok, carry):
         ids, weights, extra = carry
         id_rows, w_rows = _cell_rows(ids), _cell_rows(weights)
-        old_ids = _gather_cells(id_rows, index, ok, -1).reshape(-1, 8, num_slots)
+        old_ids = _gather_cells(id_rows, index, ok, -1).astype(jnp.int32).reshape(-1, 8, num_slots)
         old_w = _gather_cells(w_rows, index, ok, 0.0).reshape(-1, 8, num_slots)
         new_ids, new_w, extra = edit(old_ids, old_w, index, extra)
         target = jnp.where(ok, index, id_rows.shape[0])
-        id_rows = id_rows.at[target].set(new_ids.reshape(-1, id_rows.shape[1]), mode="drop")
+        id_rows = id_rows.at[target].set(new_ids.reshape(-1, id_rows.shape[1]).astype(id_rows.dtype), mode="drop")
         w_rows = w_rows.at[target].set(new_w.reshape(-1, w_rows.shape[1]), mode="drop")
         return id_rows.reshape(shape), w_rows.reshape(shape), extra
 

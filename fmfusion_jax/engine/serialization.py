@@ -151,6 +151,10 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
             value = full
         if name == "color" and value.dtype == np.float32 and spec.dtype != np.float32:
             value = value.astype(spec.dtype)  # a map saved before colour was stored in half precision
+        if name == "instance_id" and value.dtype == np.int32 and spec.dtype == np.int16:
+            if value.size and (value.min() < -1 or value.max() >= map_config.instance_capacity):
+                raise ValueError(f"map state array {key} holds ids outside [-1, {map_config.instance_capacity})")
+            value = value.astype(spec.dtype)  # a map saved before ids were stored in 16 bits
         if value.shape != spec.shape or value.dtype != spec.dtype:
             raise ValueError(
                 f"map state array {key} is {value.dtype}{list(value.shape)}, the config needs {spec.dtype}{list(spec.shape)}"

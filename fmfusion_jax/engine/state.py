@@ -26,7 +26,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.config import MAX_INSTANCE_CAPACITY, MapConfig
+
+#: Storage of the voxels' instance ids: 16 bits (tables of up to `MAX_INSTANCE_CAPACITY` rows) halve the bytes
+#: the merge's census reads on every detection frame and a sixth of the pool. Every computation on ids
+#: widens them to int32 first (pair keys `a * K + b` do not fit 16 bits).
+INSTANCE_ID_DTYPE = jnp.int16
+assert MAX_INSTANCE_CAPACITY <= np.iinfo(np.int16).max
 
 #: Storage of the voxels' mean colour: half precision (0.06-0.125 steps between 128 and 255), a sixth of the
 #: pool's bytes instead of a third; colour only feeds the mesh and the pictures, never a decision.
@@ -46,7 +52,7 @@ class VoxelBlocks(NamedTuple):
     tsdf: jax.Array  # float32[B, V]: truncated signed distance / sdf_trunc, in [-1, 1] (1 = unobserved/free)
     weight: jax.Array  # float32[B, V]: TSDF integration weight (observations, capped at config.max_weight)
     color: jax.Array  # float16[B, V, 3]: weighted mean RGB in [0, 255] (to 1/16 at 255: colour is only drawn)
-    instance_id: jax.Array  # int32[B, V, S]: instance ids seen at the voxel, -1 = empty slot
+    instance_id: jax.Array  # int16[B, V, S]: instance ids seen at the voxel, -1 = empty slot (see INSTANCE_ID_DTYPE)
     instance_weight: jax.Array  # float32[B, V, S]: evidence per slot (pixel hits, see instance_volume)
     dropped_blocks: jax.Array  # int32[]: blocks that needed a slot when the pool was full (cumulative)
     out_of_bounds: jax.Array  # int32[]: sampled depth points outside the block index (cumulative)
@@ -128,7 +134,7 @@ def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
         tsdf=jnp.ones((b, v), jnp.float32),
         weight=jnp.zeros((b, v), jnp.float32),
         color=jnp.zeros((b, v, 3), COLOR_DTYPE),
-        instance_id=jnp.full((b, v, s), -1, jnp.int32),
+        instance_id=jnp.full((b, v, s), -1, INSTANCE_ID_DTYPE),
         instance_weight=jnp.zeros((b, v, s), jnp.float32),
         dropped_blocks=zero(),
         out_of_bounds=zero(),
