@@ -3,9 +3,9 @@
     python examples/mapper_memory.py ../shared/data/scannet/scene0000_00 --frames 3
 
 Each case runs in a process of its own and reports its peak resident memory (RSS) and the map state's
-device bytes: (a) a growing `Mapper` fed the first N frames, (b) the same frames into a Mapper sized for the
-whole scene's bounds with the config's capacities (what `fmfusion run` allocates), (c) the growing Mapper
-over every frame of the scene. No detections: geometry only (the instance table is small either way).
+device bytes: (a) a growing `Mapper` fed the first N frames, (b) the same frames into the Mapper `fmfusion run`
+makes (`runner.mapper_for_scene`: the whole scene's bounds, the pool sized from a sample of its depth), (c) the
+growing Mapper over every frame of the scene. No detections: geometry only (the instance table is small either way).
 """
 
 from __future__ import annotations
@@ -19,10 +19,16 @@ import sys
 
 def measure(scene_dir: str, frames: int | None, sized: bool, config: str) -> dict:
     from fmfusion_jax import Mapper, load_config, open_scene
+    from fmfusion_jax.runner import mapper_for_scene
 
-    dataset = load_config(config).dataset
+    pipeline_config = load_config(config)
+    dataset = pipeline_config.dataset
     scene = open_scene(scene_dir, layout=dataset.layout, depth_max=dataset.depth_max, max_frames=frames)
-    mapper = Mapper(config, bounds=scene.bounds() if sized else None)
+    if sized:  # sized from the whole scene, fed its first frames
+        whole = open_scene(scene_dir, layout=dataset.layout, depth_max=dataset.depth_max)
+        mapper = mapper_for_scene(whole, pipeline_config)
+    else:
+        mapper = Mapper(config)
     for frame in scene.frames():
         mapper.integrate(frame)
     return {

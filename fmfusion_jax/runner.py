@@ -103,8 +103,7 @@ class SceneFusion:
     ):
         """`observer(position, frame, detections or None, mapper)` is called after each frame is fused (e.g. a
         `viz.live.RerunView`)."""
-        from fmfusion_jax.mapper import Mapper, sample_block_count
-        from fmfusion_jax.pipeline import build_map_config
+        from fmfusion_jax.mapper import Mapper
 
         if on_error not in ON_ERROR_POLICIES:
             raise UserError(f"on_error {on_error!r}: expected one of {ON_ERROR_POLICIES}")
@@ -137,11 +136,7 @@ class SceneFusion:
         else:
             sample = scene.sample_depth(max_frames=60)
             check_depth_units(scene, sample)
-            bounds = scene.bounds(sample=sample)
-            # the pool starts at what the sampled frames allocate (it doubles if the others show more)
-            layout = build_map_config(config, *bounds, scene.intrinsics.height, scene.intrinsics.width)
-            expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
-            self.mapper = Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages)
+            self.mapper = mapper_for_scene(scene, config, sample, time_stages=time_stages)
 
     #: Frames read and decoded ahead, in a background thread, while the device fuses the current one.
     READ_AHEAD = 2
@@ -214,6 +209,20 @@ class SceneFusion:
             raise UserError(f"{reason} (frame {name}; --on-error skip would skip it)")
         log.warning("%s %s: %s", action, name, reason)
         self.skipped.append((name, reason))
+
+
+def mapper_for_scene(scene: Scene, config: PipelineConfig, sample: DepthSample | None = None, time_stages: bool = False):
+    """The `Mapper` `fmfusion run` fuses `scene` into: its block index over the scene's bounds, its pool
+    starting at the blocks the sampled frames allocate (`sample`: a `Scene.sample_depth`, default 60 frames)
+    and doubling if the others show more."""
+    from fmfusion_jax.mapper import Mapper, sample_block_count
+    from fmfusion_jax.pipeline import build_map_config
+
+    sample = sample or scene.sample_depth(max_frames=60)
+    bounds = scene.bounds(sample=sample)
+    layout = build_map_config(config, *bounds, scene.intrinsics.height, scene.intrinsics.width)
+    expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
+    return Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages)
 
 
 def fuse_scene(
