@@ -98,19 +98,13 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     import jax.numpy as jnp
 
     from fmfusion_jax.bench.stages import FrameTimer
-    from fmfusion_jax.bench.worker import _frames_with_detections, _open, device_description, peak_rss_mb
+    from fmfusion_jax.bench.worker import _frames_with_detections, _open, device_description, peak_rss_mb, scene_map_config
     from fmfusion_jax.labels import load_label_sets, load_likelihood
-    from fmfusion_jax.mapper import initial_pool_blocks, sample_block_count
-    from fmfusion_jax.pipeline import MapBuilder, build_map_config
+    from fmfusion_jax.pipeline import MapBuilder
 
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
-    whole = _open(scene, None)[1]  # the map of the ours worker (all the scene's frames)
-    sample = whole.sample_depth(max_frames=60)
-    bounds_min, bounds_max = whole.bounds(sample=sample)
-    map_config = build_map_config(config, bounds_min, bounds_max, opened.intrinsics.height, opened.intrinsics.width)
-    expected = sample_block_count(sample.points_world, sample.ray_origins, map_config)
-    map_config = dataclasses.replace(map_config, block_capacity=initial_pool_blocks(expected, map_config.block_capacity))
+    map_config = scene_map_config(config, _open(scene, None)[1])  # the map of the ours worker (all the scene's frames)
     label_sets = load_label_sets()
     likelihood = jnp.asarray(load_likelihood(config.label_fusion.likelihood), jnp.float32)
     open_labels, det = label_sets.open_labels, config.detections

@@ -107,24 +107,30 @@ def _device_memory_mb() -> float | None:
     return None if peak is None else peak / 2**20
 
 
+def scene_map_config(config, opened):
+    """The map `fmfusion run` makes for the opened scene: its bounds and the pool it starts with, from a
+    60-frame depth sample (the bench's builders do not grow: a pool too small is reported as dropped blocks)."""
+    from fmfusion_jax.mapper import initial_pool_blocks, sample_block_count
+    from fmfusion_jax.pipeline import build_map_config
+
+    sample = opened.sample_depth(max_frames=60)
+    layout = build_map_config(config, *opened.bounds(sample=sample), opened.intrinsics.height, opened.intrinsics.width)
+    expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
+    return dataclasses.replace(layout, block_capacity=initial_pool_blocks(expected, layout.block_capacity))
+
+
 def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """Our engine: the fused pass (`frames`: stage name -> ms per frame, from `MapBuilder`'s timer: `fusion`,
     `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`)."""
     from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
     from fmfusion_jax.compile_cache import enable_compile_cache
-    from fmfusion_jax.mapper import initial_pool_blocks, sample_block_count
-    from fmfusion_jax.pipeline import MapBuilder, build_map_config
+    from fmfusion_jax.pipeline import MapBuilder
 
     cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)
     cache_entries = sum(1 for _ in cache.iterdir()) if cache else None
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
-    sample = opened.sample_depth(max_frames=60)
-    bounds_min, bounds_max = opened.bounds(sample=sample)
-    map_config = build_map_config(config, bounds_min, bounds_max, opened.intrinsics.height, opened.intrinsics.width)
-    # the pool `fmfusion run` starts with (the bench's builder does not grow: a pool too small is reported)
-    expected = sample_block_count(sample.points_world, sample.ray_origins, map_config)
-    map_config = dataclasses.replace(map_config, block_capacity=initial_pool_blocks(expected, map_config.block_capacity))
+    map_config = scene_map_config(config, opened)
     device = device_description()
     print(
         f"ours on {scene.name}: {len(opened)} frames, device {device['device_kind']} ({device['platform']}), "

@@ -25,8 +25,8 @@ def _host_blocks(state_or_blocks) -> dict[str, np.ndarray]:
         "coords": np.asarray(blocks.block_coords)[:n],
         "tsdf": np.asarray(blocks.tsdf)[:n],
         "weight": np.asarray(blocks.weight)[:n],
-        "color": np.asarray(blocks.color)[:n].astype(np.float32),
-        "instance_id": np.asarray(blocks.instance_id)[:n].astype(np.int32),
+        "color": np.asarray(blocks.color)[:n],  # half precision: widened chunk by chunk (`_chunks`' volumes)
+        "instance_id": np.asarray(blocks.instance_id)[:n],
         "instance_weight": np.asarray(blocks.instance_weight)[:n],
     }
 
