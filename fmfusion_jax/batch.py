@@ -14,6 +14,7 @@ the matches of all scenes; it is not a mean of per-scene APs).
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import csv
 import dataclasses
 import io
@@ -162,7 +163,8 @@ def _run_child(
                 process.kill()
                 process.wait()
                 return stopped
-            time.sleep(0.5)
+            with contextlib.suppress(subprocess.TimeoutExpired):  # returns as soon as the child ends
+                process.wait(timeout=0.5)
         stderr_file.seek(0)
         stderr = stderr_file.read()
     lines = [line for line in stderr.splitlines() if line.strip() and not line.startswith("WARNING")]
