@@ -9,7 +9,7 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from oracles import reference as ref
 
@@ -485,6 +485,8 @@ def test_prefix_sum_and_compaction():
 
 @settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**31 - 1))
+@example(seed=0)  # rooms with cells of more than 4 kept ids (most seeds; not all: seed 121785 has none)
+@example(seed=2)
 def test_census_without_removed_ids_matches_the_reference_after_removal(seed):
     """`_census(..., keep)` counts as if the ids outside `keep` had been deleted from the voxels first."""
     grid = random_instance_field(seed)
@@ -506,7 +508,8 @@ def test_census_without_removed_ids_matches_the_reference_after_removal(seed):
         census = run_census(blocks, CONFIG, overlap, jnp.asarray(keep))
         expected = oc.instance_overlap_counts(after, CONFIG, True)
         np.testing.assert_array_equal(np.asarray(census.overlap), np.asarray(expected.counts))
-        assert int(census.overfull + census.dropped_cells) == int(expected.dropped_cells) > 0
+        assert int(census.overfull + census.dropped_cells) == int(expected.dropped_cells)
+        assert seed not in (0, 2) or int(expected.dropped_cells) > 0  # the pinned rooms test the crowded cells
 
 
 @settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
