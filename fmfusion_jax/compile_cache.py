@@ -3,9 +3,9 @@
 The engine's steps take seconds each to compile on a CPU, and compiling costs memory (LLVM's working set
 stays in the process's resident memory). With the cache on, a process whose steps were compiled before,
 by any earlier process with the same map layout, JAX and device, loads them instead: `fmfusion run` again
-on a scene, or on another scene of the same layout, starts at once. The layout is the whole `MapConfig`,
-the block index's origin and shape among it (they are compiled in as constants): scenes of different
-bounds still compile their own steps (docs/compile-sharing.md says how to share them). Entries are keyed
+on a scene, or on another scene of the same layout, starts at once. The layout is `MapConfig.compiled_layout()`:
+image size, capacities and the block index's shape (rounded up to buckets), not where the index lies (the
+state holds that, docs/compile-sharing.md), so rooms of similar size share their steps. Entries are keyed
 by the program, the compile options, the JAX version and the device, so a stale entry is never used.
 
 The `fmfusion` commands turn it on (`enable_compile_cache()`); the Python API leaves it to the caller.

@@ -344,7 +344,7 @@ class Mapper:
         builder = self._require_builder()
         state = jax.tree.map(jnp.copy, builder.state)  # finalize donates its input: never the live map
         if self.config.refinement.enabled:
-            state, _ = step.finalize(state, builder.map_config, builder.fusion_config)
+            state, _ = step.finalize(state, builder.step_config, builder.fusion_config)
         return builder.snapshot(state)
 
     def instances(self, postprocess: bool = True) -> list[MapInstance]:
@@ -575,6 +575,7 @@ class MapperBatch:
         self._bounds = (np.asarray(bounds[0], float), np.asarray(bounds[1], float))
         height, width = image_shape
         self.map_config = build_map_config(self.config, *self._bounds, height, width)
+        self._step_config = self.map_config.compiled_layout()  # the steps' static config (the states hold the origin)
         single = init_map_state(self.map_config)
         self.states = jax.tree.map(lambda leaf: jnp.stack([leaf] * batch_size), single)
         # one builder per map keeps its counts, refinement schedule and capacity warnings; the maps' states
@@ -627,7 +628,7 @@ class MapperBatch:
             self._likelihood,
             np.array(has_frame),
             np.array(due),
-            self.map_config,
+            self._step_config,
             self.fusion_config,
         )
         stats = jax.device_get(stats)
@@ -642,13 +643,13 @@ class MapperBatch:
                 self._schedules[i].fused(frame.T_world_camera)
                 merge_due[i], geometry_due[i] = builder.record_detection_frame(jax.tree.map(lambda x, i=i: x[i], stats))
         if merge_due.any():
-            self.states, refine_stats = _batch_refinement(self.states, merge_due, self.map_config, self.fusion_config, "refine")
+            self.states, refine_stats = _batch_refinement(self.states, merge_due, self._step_config, self.fusion_config, "refine")
             refine_stats = jax.device_get(refine_stats)
             for i, frame in enumerate(frames):
                 if merge_due[i] and frame is not None:
                     self._builders[i]._count_refinement(frame.name, jax.tree.map(lambda x, i=i: x[i], refine_stats))
         if geometry_due.any():
-            self.states, _ = _batch_refinement(self.states, geometry_due, self.map_config, self.fusion_config, "geometry")
+            self.states, _ = _batch_refinement(self.states, geometry_due, self._step_config, self.fusion_config, "geometry")
         # the overflow counters of every map in one small transfer (not each map's state sliced out)
         counts = jax.device_get(CapacityMonitor.counts_of(self.states))
         for i, frame in enumerate(frames):
@@ -663,7 +664,7 @@ class MapperBatch:
         if self._results is None:
             if self.config.refinement.enabled:
                 everyone = np.ones(self.batch_size, bool)
-                self.states, stats = _batch_refinement(self.states, everyone, self.map_config, self.fusion_config, "finalize")
+                self.states, stats = _batch_refinement(self.states, everyone, self._step_config, self.fusion_config, "finalize")
                 stats = jax.device_get(stats)
                 for i, builder in enumerate(self._builders):
                     builder._count_refinement("final", jax.tree.map(lambda x, i=i: x[i], stats))

@@ -297,6 +297,12 @@ class MapBuilder:
     #: Frames between two reads of the capacity counters (each read waits for the device).
     CAPACITY_CHECK_EVERY = 16
 
+    @property
+    def step_config(self) -> MapConfig:
+        """The config the engine steps are called with: `map_config.compiled_layout()`, so that maps whose block
+        index lies elsewhere share the compiled steps (the state carries the origin)."""
+        return self.map_config.compiled_layout()
+
     def add_frame(self, frame: RGBDFrame, detections: FrameDetections | None) -> None:
         """Integrates a frame; fuses its detections when given (the caller applies the detection schedule,
         e.g. `scheduled_detections`).
@@ -309,19 +315,19 @@ class MapBuilder:
         adapter = self.adapter
         inputs = adapter.frame(frame)
         if detections is None:
-            self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.map_config)
+            self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.step_config)
         else:
             batch = adapter.detections(detections)
             self.state, stats = self.timer.run(
-                "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.map_config, self.fusion_config
+                "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.step_config, self.fusion_config
             )
             merge_due, geometry_due = self.count_detection_frame()
             refine_stats = None
             if merge_due:
-                self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.map_config, self.fusion_config)
+                self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.step_config, self.fusion_config)
             if geometry_due:
                 self.state = self.timer.run(
-                    "geometry_fusion", step.fuse_geometry, self.state, self.map_config, self.fusion_config
+                    "geometry_fusion", step.fuse_geometry, self.state, self.step_config, self.fusion_config
                 )
             self._pending = (frame.name, stats, refine_stats)
         self.frames_integrated += 1
@@ -411,7 +417,7 @@ class MapBuilder:
         self.flush()
         self.monitor.check(self.state, self.map_config, self.frames_integrated)
         if self.config.refinement.enabled:
-            self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.map_config, self.fusion_config)
+            self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.step_config, self.fusion_config)
             self._count_refinement("final", stats)
         return self.snapshot(self.state)
 

@@ -68,10 +68,19 @@ def lattice_floor(x, origin: float, step: float):
     return jnp.floor((x - origin) / step).astype(jnp.int32)
 
 
-def world_to_voxel(x, y, z, config: MapConfig):
-    """Integer global voxel coordinates of world points (floor; see `lattice_floor`)."""
-    o, vs = config.grid_origin, config.voxel_size
-    return lattice_floor(x, o[0], vs), lattice_floor(y, o[1], vs), lattice_floor(z, o[2], vs)
+def index_floor(coords, config: MapConfig, origin_block, step: float):
+    """int32 `floor((c - origin) / step)` for the three world coordinates `coords` against the block index's
+    origin: the state's `origin_block` (int32[3], whole blocks) when `config.origin_on_lattice` (the compiled
+    step then holds no origin), else the config's (compiled in). `step` is the voxel or the block length."""
+    if config.origin_on_lattice:
+        per_block = int(round(config.block_length / step))
+        return tuple(jnp.floor(c / step).astype(jnp.int32) - origin_block[a] * per_block for a, c in enumerate(coords))
+    return tuple(lattice_floor(c, config.grid_origin[a], step) for a, c in enumerate(coords))
+
+
+def world_to_voxel(x, y, z, config: MapConfig, origin_block):
+    """Integer global voxel coordinates of world points (floor; see `index_floor`)."""
+    return index_floor((x, y, z), config, origin_block, config.voxel_size)
 
 
 def locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):

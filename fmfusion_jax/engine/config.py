@@ -9,9 +9,13 @@ every overflow is counted in the state instead.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 
 import numpy as np
+
+#: `MapConfig.for_bounds` rounds the block index's shape up to a multiple of this many blocks per axis.
+GRID_SHAPE_BUCKET = 8
 
 #: Most rows an instance table may have: the voxels store instance ids in 16 bits (`state.INSTANCE_ID_DTYPE`).
 MAX_INSTANCE_CAPACITY = 32767
@@ -32,7 +36,8 @@ class MapConfig:
     depth_min: float = 0.1  # depth readings below this (metres) are ignored
     depth_max: float = 4.0  # depth readings above this (metres) are ignored
     max_weight: float = 255.0  # cap of the per-voxel TSDF weight; beyond it the average keeps moving
-    grid_origin: tuple[float, float, float] = (-6.0, -6.0, -2.0)  # world xyz of the block index's min corner
+    # world xyz of the block index's min corner; on the block lattice it is the state's (`compiled_layout`)
+    grid_origin: tuple[float, float, float] = (-6.0, -6.0, -2.0)
     grid_shape: tuple[int, int, int] = (96, 96, 32)  # dense block index size, in blocks per axis
     block_capacity: int = 32768  # B: pool slots, the last one a scratch slot never allocated
     max_touched_blocks: int = 8192  # M: touched-block list length per frame (more are counted, not integrated)
@@ -106,6 +111,25 @@ class MapConfig:
         return self.block_size * self.voxel_size
 
     @property
+    def origin_on_lattice(self) -> bool:
+        """Whether `grid_origin` is a whole number of blocks (as `for_bounds` and growth make it): then the state
+        carries the origin (`VoxelBlocks.origin_block`) and the compiled steps do not depend on it."""
+        cells = np.asarray(self.grid_origin) / self.block_length
+        return bool(np.all(np.abs(cells - np.round(cells)) < 1e-9))
+
+    @property
+    def origin_block(self) -> tuple[int, int, int]:
+        """`grid_origin` in whole blocks (rounded; exact when `origin_on_lattice`)."""
+        x, y, z = (int(round(o / self.block_length)) for o in self.grid_origin)
+        return x, y, z
+
+    def compiled_layout(self) -> "MapConfig":
+        """The config the jitted engine steps are compiled for: this one with an on-lattice origin replaced by
+        zeros (the steps read the origin from the state), so that maps that differ only in where their block
+        index lies share one compiled program. An off-lattice origin stays (it is compiled in)."""
+        return _compiled_layout(self)
+
+    @property
     def num_grid_blocks(self) -> int:
         """Entries of the dense block index."""
         return int(np.prod(self.grid_shape))
@@ -145,8 +169,9 @@ class MapConfig:
         """A config whose block index covers `[bounds_min, bounds_max]` (world metres) plus a margin.
 
         The origin is snapped to the block lattice (a multiple of the block length), so that the same
-        bounds always give the same voxel lattice. `margin` defaults to one block plus the truncation
-        distance; every other field can be passed as a keyword.
+        bounds always give the same voxel lattice, and the shape is rounded up to whole `GRID_SHAPE_BUCKET`s
+        of blocks, so that rooms of similar size share their compiled steps. `margin` defaults to one block
+        plus the truncation distance; every other field can be passed as a keyword.
         """
         probe = cls(**kw)
         length = probe.block_length
@@ -158,6 +183,9 @@ class MapConfig:
             raise ValueError(f"bounds must be two xyz points with min < max, got {bounds_min}, {bounds_max}")
         origin = np.floor(lo / length) * length
         shape = np.maximum(1, np.ceil((hi - origin) / length - 1e-9)).astype(int)
+        # rounded up to whole buckets: scenes of similar size get the same index shape, hence the same compiled
+        # steps (the origin is the state's, see `compiled_layout`); 4 bytes per extra index cell
+        shape = -(-shape // GRID_SHAPE_BUCKET) * GRID_SHAPE_BUCKET
         return dataclasses.replace(probe, grid_origin=tuple(origin.tolist()), grid_shape=tuple(shape.tolist()))
 
     def memory_bytes(self) -> int:
@@ -180,4 +208,11 @@ class MapConfig:
         )
 
 
-__all__ = ["MapConfig"]
+@functools.lru_cache(maxsize=64)
+def _compiled_layout(config: MapConfig) -> MapConfig:
+    if not config.origin_on_lattice or config.grid_origin == (0.0, 0.0, 0.0):
+        return config
+    return dataclasses.replace(config, grid_origin=(0.0, 0.0, 0.0))
+
+
+__all__ = ["MapConfig", "GRID_SHAPE_BUCKET"]

@@ -55,7 +55,7 @@ from fmfusion_jax.engine.state import VoxelBlocks
 # array per slot or probe) rather than as a small trailing axis: XLA vectorises over the long axis.
 
 
-def _subsampled_points(depth, T, K, config: MapConfig, offset_voxels: float):
+def _subsampled_points(depth, T, K, config: MapConfig, offset_voxels: float, origin_block):
     """Valid flag and global voxel of each subsampled pixel's depth point moved `offset_voxels` along the ray."""
     s = config.pixel_stride
     d = depth[::s, ::s]
@@ -65,7 +65,7 @@ def _subsampled_points(depth, T, K, config: MapConfig, offset_voxels: float):
         # A distance offset along the ray changes z by offset / |(xn, yn, 1)|.
         d = d + offset_voxels * config.voxel_size / jnp.sqrt(xn * xn + yn * yn + 1.0)
     x, y, z = geo.camera_to_world(T, xn * d, yn * d, d)
-    return ok, geo.world_to_voxel(x, y, z, config)
+    return ok, geo.world_to_voxel(x, y, z, config, origin_block)
 
 
 def _locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):
@@ -108,7 +108,7 @@ def _pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, con
     num_slots = blocks.instance_id.shape[-1]
     ids, weights = [], []
     for offset in config.instance_lookup_offsets:
-        ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, offset)
+        ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, offset, blocks.origin_block)
         slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
         i, w = _slot_entries(blocks, jnp.where(ok, slot, -1), v)
         ids += i
@@ -267,7 +267,7 @@ def _integrate_instances(
     pixel_instance = jnp.asarray(pixel_instance, jnp.int32)
     if pixel_instance.shape != config.subsampled_shape:
         raise ValueError(f"pixel_instance has shape {pixel_instance.shape}, expected {config.subsampled_shape}")
-    ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, 0.0)
+    ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, 0.0, blocks.origin_block)
     slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
     return _apply_instance_hits(blocks, jnp.where(ok, slot, -1), v, pixel_instance, config, detected, neutral, contrary_weight)
 

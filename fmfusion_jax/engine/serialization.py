@@ -134,6 +134,8 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
     leaves: dict[str, np.ndarray] = {}
     for key in _keys():
         spec = _leaf(expected, key)
+        if key == "blocks.origin_block" and key not in arrays:  # a map saved before the state carried its origin
+            arrays = {**arrays, key: np.asarray(map_config.origin_block, np.int32)}
         if key not in arrays:
             raise ValueError(f"map state array {key} is missing")
         value = np.asarray(arrays[key])

@@ -57,6 +57,9 @@ class VoxelBlocks(NamedTuple):
     dropped_blocks: jax.Array  # int32[]: blocks that needed a slot when the pool was full (cumulative)
     out_of_bounds: jax.Array  # int32[]: sampled depth points outside the block index (cumulative)
     touched_overflow: jax.Array  # int32[]: touched blocks beyond max_touched_blocks, not integrated (cumulative)
+    # int32[3]: the block index's origin in whole blocks of the world lattice (`config.grid_origin / block_length`).
+    # Data, not a compiled constant: maps of different bounds share one compiled step (`MapConfig.compiled_layout`).
+    origin_block: jax.Array
 
 
 class InstanceTable(NamedTuple):
@@ -139,6 +142,7 @@ def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
         dropped_blocks=zero(),
         out_of_bounds=zero(),
         touched_overflow=zero(),
+        origin_block=jnp.asarray(config.origin_block, jnp.int32),
     )
 
 

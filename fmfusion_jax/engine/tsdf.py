@@ -59,7 +59,6 @@ def _find_touched_blocks(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
     num_grid = config.num_grid_blocks
     sx, sy, sz = config.grid_shape
     length = config.block_length
-    origin = config.grid_origin
 
     d = depth[::stride, ::stride]
     xn, yn = geo.subsampled_rays(K, config, stride)
@@ -68,7 +67,7 @@ def _find_touched_blocks(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
     offsets = np.linspace(-config.sdf_trunc, config.sdf_trunc, n) if n > 1 else np.zeros(1)
     z = d[None] + jnp.asarray(offsets, jnp.float32)[:, None, None]  # (n, Ha, Wa)
     x, y, z = geo.camera_to_world(T, xn[None] * z, yn[None] * z, z)
-    bx, by, bz = (geo.lattice_floor(c, origin[a], length) for a, c in enumerate((x, y, z)))
+    bx, by, bz = geo.index_floor((x, y, z), config, blocks.origin_block, length)
     inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
     use = ok_pixel[None] & inside
     flat = jnp.where(use, (bx * sy + by) * sz + bz, num_grid).reshape(-1)
@@ -115,10 +114,15 @@ def block_voxel_centres(blocks: VoxelBlocks, slots, config: MapConfig):
     offsets = voxel_offsets(config.block_size)
     base = blocks.block_coords[slots] * config.block_size  # (M, 3)
     vs = config.voxel_size
-    o = config.grid_origin
-    # (world voxel + 0.5) * vs with the origin's whole voxels added first (exact integers in float32): the
-    # same centre whatever the index's origin (see geo.lattice_floor)
-    return tuple((base[:, a : a + 1] + jnp.asarray(offsets[:, a] + 0.5, jnp.float32)[None] + o[a] / vs) * vs for a in range(3))
+    origin_voxels: list  # the origin's whole voxels: from the state (exact integers in float32) or the config
+    if config.origin_on_lattice:
+        origin_voxels = [(blocks.origin_block[a] * config.block_size).astype(jnp.float32) for a in range(3)]
+    else:
+        origin_voxels = [o / vs for o in config.grid_origin]
+    # (world voxel + 0.5) * vs with the origin's whole voxels added first: the same centre whatever the
+    # index's origin (see geo.lattice_floor)
+    centre = [jnp.asarray(offsets[:, a] + 0.5, jnp.float32)[None] for a in range(3)]
+    return tuple((base[:, a : a + 1] + centre[a] + origin_voxels[a]) * vs for a in range(3))
 
 
 def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: MapConfig):
