@@ -99,7 +99,7 @@ def grow_state(state: MapState, old: MapConfig, new: MapConfig) -> MapState:
 
 def bounds_block_range(config: MapConfig) -> tuple[np.ndarray, np.ndarray]:
     """`(lo, hi)` int[3] block coordinates on the world lattice (origin 0) that the index covers, hi exclusive."""
-    lo = np.round(np.asarray(config.grid_origin) / config.block_length).astype(np.int64)
+    lo = np.asarray(config.origin_block, np.int64)
     return lo, lo + np.asarray(config.grid_shape, np.int64)
 
 
