@@ -536,7 +536,7 @@ def test_renaming_derives_the_new_counts_from_the_census(seed):
         census = run_census(blocks, config, "inflated", list_cells=True)
         listed = (census.cells, census.tags, census.occupied, census.occupied <= config.cell_list_capacity)
         assert bool(listed[-1]) == (capacity > 10)
-        out, gained = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), config, active=jnp.bool_(True), listed=listed)
+        out, gained, _ = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), config, active=jnp.bool_(True), listed=listed)
         check_slot_invariants(out)
         got = ref.blocks_to_dense(out, CONFIG)
         np.testing.assert_array_equal(got.instance_id, expected.instance_id)
@@ -544,7 +544,7 @@ def test_renaming_derives_the_new_counts_from_the_census(seed):
         counts = np.where(changed, 0, np.asarray(census.counts)) + np.asarray(gained)
         np.testing.assert_array_equal(counts, expected_counts)
     # inactive: nothing happens
-    out, gained = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), CONFIG, active=jnp.bool_(False))
+    out, gained, _ = _remap_cells(blocks, jnp.asarray(new_id, jnp.int32), CONFIG, active=jnp.bool_(False))
     np.testing.assert_array_equal(np.asarray(out.instance_id), np.asarray(blocks.instance_id))
     assert not np.asarray(gained).any()
 

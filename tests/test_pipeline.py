@@ -235,6 +235,77 @@ def sequential_merge(state, map_config, fusion, final: bool):
     return apply(state, merged.rows, merged.new_id)
 
 
+#: Fields the steps keep for themselves (the merge's kept census and its scratch), which `sequential_merge` does not.
+KEPT_FIELDS = {"census_counts", "census_overlap", "census_overfull", "census_valid", "cell_owner"}
+
+
+def assert_same_map(got, expected):
+    """The maps are equal, field by field, apart from `KEPT_FIELDS`."""
+    for part in ("blocks", "instances"):
+        a, b = getattr(got, part), getattr(expected, part)
+        for name in a._fields:
+            if name not in KEPT_FIELDS:
+                np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), err_msg=name)
+    np.testing.assert_array_equal(np.asarray(got.frame_index), np.asarray(expected.frame_index))
+
+
+def assert_kept_census_is_a_recount(state, map_config):
+    """A valid kept census equals a full inflated census of the voxels, exactly; the scratch is clear."""
+    from fmfusion_jax.engine import occupied_cells as oc
+
+    table = state.instances
+    if bool(table.census_valid):
+        full = oc.census(jax.tree.map(jax.numpy.asarray, state.blocks), map_config, "inflated")
+        np.testing.assert_array_equal(np.asarray(table.census_counts), np.asarray(full.counts))
+        np.testing.assert_array_equal(np.asarray(table.census_overlap), np.asarray(full.overlap))
+        assert int(table.census_overfull) == int(full.overfull)
+    assert (np.asarray(state.blocks.cell_owner) == -1).all()
+    # every id a block holds has its bit set (the renaming visits only those blocks)
+    ids = np.asarray(state.blocks.instance_id).astype(np.int64)
+    bits = np.asarray(state.blocks.instance_bits)
+    block, voxel, slot = np.nonzero(ids >= 0)
+    assert bits[block, ids[block, voxel, slot] % bits.shape[1]].all()
+
+
+def test_kept_census_equals_a_recount_after_every_step(room_frames):
+    """Votes, removals, merges and geometry fusion all keep the merge's census exactly (re-segmented and
+    noisy detections, loose merge thresholds, geometry fusion every other frame)."""
+    room, frames = room_frames
+    config = small_config(
+        **{
+            "refinement.merge_similarity": 0.02,
+            "refinement.merge_overlap": 0.1,
+            "refinement.remove_missed": 1,
+            "refinement.remove_min_voxels": 100000,
+            "refinement.geometry_fusion_every": 2,
+        }
+    )
+    builder = build(config, room)
+    rng = np.random.default_rng(5)
+
+    def detections(frame):
+        det = clean_detections(frame)
+        keep = rng.random(len(det.masks)) < 0.8  # missed now and then: removals
+        masks = [m for m, k in zip(det.masks, keep) if k]
+        masks += [m & (np.arange(W) < W // 2 + 10 * frame.index) for m in det.masks[:3]]  # fragments
+        labels = [lab for lab, k in zip(det.labels, keep) if k] + det.labels[:3]
+        boxes = np.concatenate([det.boxes[keep], det.boxes[:3]])
+        return FrameDetections(det.frame_name, np.array(masks), labels, boxes)
+
+    for i, frame in enumerate(frames):
+        builder.add_frame(frame, detections(frame))
+        builder.flush()
+        state = jax.device_get(builder.state)
+        assert_kept_census_is_a_recount(state, builder.map_config)
+        assert bool(state.instances.census_valid) or i == 0  # the first merge step counted it; kept since
+        # the renaming (by the blocks' instance bits) left no merged-away or removed id in a voxel
+        held = np.unique(state.blocks.instance_id[state.blocks.instance_id >= 0])
+        assert state.instances.valid[held].all(), held[~state.instances.valid[held]]
+    counters = builder.counters
+    merged, removed = counters.get("merged", 0), counters.get("removed", 0)
+    assert merged > 0 and removed > 0, counters
+
+
 @pytest.mark.parametrize("ids_per_cell, separate", [(1, 0), (4, 0), (4, 2)])
 def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, ids_per_cell, separate):
     import dataclasses
@@ -280,13 +351,14 @@ def test_refine_and_finalize_decide_as_the_sequential_refinement(room_frames, id
     assert int(stats.removed) > 0 and (int(stats.merged) > 0 or ids_per_cell == 1)
     if ids_per_cell == 1:  # cells beyond it exist: the removal then makes refine count the overlaps again
         assert int(stats.dropped_cells) > 0
-    for leaf_got, leaf_expected in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
-        np.testing.assert_array_equal(np.asarray(leaf_got), np.asarray(leaf_expected))
+    assert_same_map(got, expected)
+    assert_kept_census_is_a_recount(got, builder.map_config)
+    assert bool(got.instances.census_valid) == (ids_per_cell > 1)  # one id per cell: not a sum of cells, not kept
     got, stats = step.finalize(jax.tree.map(jax.numpy.asarray, jax.device_get(got)), builder.map_config, fusion)
     expected = sequential_merge(expected, builder.map_config, fusion, final=True)
     assert int(stats.merged) > 0 or ids_per_cell == 1 or separate  # the split halves are kept apart with it
-    for leaf_got, leaf_expected in zip(jax.tree.leaves(got), jax.tree.leaves(expected)):
-        np.testing.assert_array_equal(np.asarray(leaf_got), np.asarray(leaf_expected))
+    assert_same_map(got, expected)
+    assert_kept_census_is_a_recount(got, builder.map_config)
 
 
 def _walk(steps: int, metres_per_step: float, degrees_per_step: float) -> list[np.ndarray]:

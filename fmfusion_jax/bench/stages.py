@@ -27,7 +27,9 @@ project_instances = jax.jit(step.project_instances, static_argnames=("config",))
 associate = jax.jit(step.associate, static_argnames=("config",))
 # the table and the pool are updated in place, as inside the fused step (no copy of the voxel pool)
 fuse_table = jax.jit(step.fuse_table, static_argnames=("config",), donate_argnames=("table",))
-integrate_instance_votes = jax.jit(step.integrate_instance_votes, static_argnames=("config",), donate_argnames=("blocks",))
+integrate_instance_votes = jax.jit(
+    step.integrate_instance_votes, static_argnames=("config",), donate_argnames=("blocks", "table")
+)
 frame_stats = jax.jit(step.frame_stats)
 
 
@@ -58,10 +60,11 @@ def staged_fuse_detections(timer: StageTimer):
             config,
             fusion,
         )
-        blocks = timer.run(
+        blocks, table = timer.run(
             "integration",
             integrate_instance_votes,
             state.blocks,
+            table,
             frame,
             det_image,
             matches.assignment.instance_for_detection,

@@ -191,9 +191,11 @@ class MapConfig:
     def memory_bytes(self) -> int:
         """Approximate bytes of one `MapState` for this config (device arrays only)."""
         b, v, s, k = self.block_capacity, self.voxels_per_block, self.instance_slots, self.instance_capacity
-        pool = b * v * (4 + 4 + 6 + 6 * s)  # tsdf, weight, colour (f16 x 3), instance id (i16) + weight per slot
+        # tsdf, weight, colour (f16 x 3), instance id (i16) + weight per slot; a scratch int32 per 2x2x2 cell and
+        # 128 bits (bytes) of instance ids per block
+        pool = b * v * (4 + 4 + 6 + 6 * s) + b * (v // 8) * 4 + b * 128
         index = self.num_grid_blocks * 4 + b * 12
-        table = k * (1 + 4 * (self.num_classes + self.num_open_labels) + 6 * 4 + 8 * k)
+        table = k * (1 + 4 * (self.num_classes + self.num_open_labels) + 7 * 4 + 12 * k)
         return int(pool + index + table)
 
     def describe(self) -> str:

@@ -73,6 +73,8 @@ def grow_state(state: MapState, old: MapConfig, new: MapConfig) -> MapState:
         color=pool("color"),
         instance_id=pool("instance_id"),
         instance_weight=pool("instance_weight"),
+        instance_bits=pool("instance_bits"),
+        cell_owner=pool("cell_owner"),
         dropped_blocks=blocks.dropped_blocks,
         out_of_bounds=blocks.out_of_bounds,
         touched_overflow=blocks.touched_overflow,
@@ -90,10 +92,15 @@ def grow_state(state: MapState, old: MapConfig, new: MapConfig) -> MapState:
             "voxel_count",
             "created_frame",
             "last_seen_frame",
+            "census_counts",
         )
     }
-    pairs = {name: getattr(empty, name).at[:k_old, :k_old].set(getattr(table, name)) for name in ("covered", "separated")}
-    grown_table = empty._replace(**rows, **pairs, overflow=table.overflow)
+    pairs = {
+        name: getattr(empty, name).at[:k_old, :k_old].set(getattr(table, name))
+        for name in ("covered", "separated", "census_overlap")
+    }
+    scalars = {name: getattr(table, name) for name in ("overflow", "census_overfull", "census_valid")}
+    grown_table = empty._replace(**rows, **pairs, **scalars)
     return MapState(grown_blocks, grown_table, state.frame_index)
 
 

@@ -158,7 +158,15 @@ def pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, conf
 
 
 def _apply_instance_hits(
-    blocks: VoxelBlocks, slot, voxel, instance, config: MapConfig, detected=None, neutral=None, contrary_weight: float = 0.0
+    blocks: VoxelBlocks,
+    slot,
+    voxel,
+    instance,
+    config: MapConfig,
+    detected=None,
+    neutral=None,
+    contrary_weight: float = 0.0,
+    cell_entries=None,
 ) -> VoxelBlocks:
     num_blocks, v_per_block, num_slots = blocks.instance_id.shape
     n_entries = num_blocks * v_per_block * num_slots
@@ -168,6 +176,11 @@ def _apply_instance_hits(
     seen = (slot >= 0) & (slot < config.dummy_slot)  # the pixel observes an allocated voxel
     valid = seen & (instance >= 0)
     ids, weights = _slot_entries(blocks, jnp.where(seen, slot, -1), voxel)  # the state before the frame
+    if cell_entries is not None:
+        # the ids read from the vote's cell row (`pixel_cells`) instead: the same values, and the writes below
+        # then depend on that read, so XLA reads the row before writing in place rather than copy the pool
+        at = (voxel % 8) * num_slots
+        ids = [jnp.where(seen, jnp.take_along_axis(cell_entries, (at + s)[:, None], axis=1)[:, 0], -1) for s in range(num_slots)]
 
     # Target slot: the instance's own slot, else the first empty one, else the weakest.
     has_match = jnp.zeros(instance.shape, bool)
@@ -261,6 +274,7 @@ def _integrate_instances(
     detected=None,
     neutral=None,
     contrary_weight: float = 0.0,
+    cell_entries=None,
 ):
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     depth = jnp.asarray(depth, jnp.float32)
@@ -269,7 +283,19 @@ def _integrate_instances(
         raise ValueError(f"pixel_instance has shape {pixel_instance.shape}, expected {config.subsampled_shape}")
     ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, 0.0, blocks.origin_block)
     slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
-    return _apply_instance_hits(blocks, jnp.where(ok, slot, -1), v, pixel_instance, config, detected, neutral, contrary_weight)
+    return _apply_instance_hits(
+        blocks, jnp.where(ok, slot, -1), v, pixel_instance, config, detected, neutral, contrary_weight, cell_entries
+    )
+
+
+def pixel_cells(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig) -> jax.Array:
+    """int32[Hs * Ws]: the pool's 2x2x2 cell (flat index, `slot * V / 8 + voxel // 8`) of the voxel that each
+    subsampled pixel votes into in `integrate_instances`, -1 where it casts no vote."""
+    T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
+    ok, (gx, gy, gz) = _subsampled_points(jnp.asarray(depth, jnp.float32), T, K, config, 0.0, blocks.origin_block)
+    slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
+    seen = ok & (slot >= 0) & (slot < config.dummy_slot)
+    return jnp.where(seen, slot * (config.voxels_per_block // 8) + v // 8, -1).reshape(-1)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "contrary_weight"))
@@ -283,6 +309,7 @@ def integrate_instances(
     detected=None,
     neutral=None,
     contrary_weight: float = 0.0,
+    cell_entries=None,
 ) -> VoxelBlocks:
     """Vote each subsampled pixel's instance into its surface voxel.
 
@@ -297,13 +324,15 @@ def integrate_instances(
       detected: bool `(K,)` instances detected in this frame; their slots take contrary votes.
       neutral: bool `(Hs, Ws)` pixels that cast no contrary vote (inside a mask, cut by its depth filter).
       contrary_weight: static; weight of one contrary vote (0: none, the plain slot rule).
+      cell_entries: optional int32 `(Hs * Ws, 8S)`: the ids of each pixel's cell (`pixel_cells`) as read
+        before the votes, by a caller that needs them too (the votes then read their ids there).
 
     Returns:
       The pool after the slot update rule of the module docstring (scatters of `Hs * Ws` updates, 1 + 3S of them
       with contrary votes).
     """
     return _integrate_instances(
-        blocks, depth, T_world_camera, intrinsics, pixel_instance, config, detected, neutral, contrary_weight
+        blocks, depth, T_world_camera, intrinsics, pixel_instance, config, detected, neutral, contrary_weight, cell_entries
     )
 
 

@@ -89,8 +89,11 @@ def _gather_cells(rows: jax.Array, index: jax.Array, ok: jax.Array, fill) -> jax
     return jnp.where(ok[:, None], got, jnp.asarray(fill, rows.dtype))
 
 
-def _fold_occupied(ids_of, num_blocks, config: MapConfig, cell_step, flagged_step, carry, capacity=None, record: int = 0):
-    """Runs over the occupied cells (any instance slot set) of the allocated blocks, in pool order.
+def _fold_occupied(
+    ids_of, num_blocks, config: MapConfig, cell_step, flagged_step, carry, capacity=None, record: int = 0, block_list=None
+):
+    """Runs over the occupied cells (any instance slot set) of the allocated blocks, in pool order (or of the
+    blocks `block_list`: int32[L], the first `num_blocks` of them, when given).
 
     Args:
       ids_of: `carry -> int32[B, V, S]`, the instance ids to scan (from the carry when the steps edit them).
@@ -111,7 +114,10 @@ def _fold_occupied(ids_of, num_blocks, config: MapConfig, cell_step, flagged_ste
     """
     pool_blocks, v_per_block, num_slots = ids_of(carry).shape
     cells_per_block = v_per_block // 8
-    chunk = max(1, min(config.pool_chunk_blocks, pool_blocks))
+    if block_list is None:
+        chunk = max(1, min(config.pool_chunk_blocks, pool_blocks))
+    else:  # a short list: steps of one cell chunk's blocks
+        chunk = max(1, min(config.cell_chunk // cells_per_block, block_list.shape[0]))
     span = chunk * cells_per_block
     sub = max(1, min(config.cell_chunk, span))
     # flagged cells are a small share of the occupied ones: shorter steps waste less on padding
@@ -136,9 +142,15 @@ def _fold_occupied(ids_of, num_blocks, config: MapConfig, cell_step, flagged_ste
 
     def outer(start, fresh, state):
         occupied_list, flagged_list, tags, seen, carry, listed = state
-        ids = jax.lax.dynamic_slice_in_dim(ids_of(carry), start, chunk)
+        if block_list is None:
+            ids = jax.lax.dynamic_slice_in_dim(ids_of(carry), start, chunk)
+            first_cells = start * cells_per_block + local
+        else:
+            here = jax.lax.dynamic_slice_in_dim(block_list, start, chunk)
+            ids = jnp.take(ids_of(carry), jnp.where(fresh, here, 0), axis=0, mode="clip")
+            first_cells = (here[:, None] * cells_per_block + jnp.arange(cells_per_block, dtype=jnp.int32)).reshape(-1)
         occupied = jnp.any(ids.reshape(chunk, cells_per_block, 8 * num_slots) >= 0, axis=-1) & fresh[:, None]
-        occupied_list, found = _compact(occupied_list, 0, occupied, start * cells_per_block + local)
+        occupied_list, found = _compact(occupied_list, 0, occupied, first_cells)
         visit = found if capacity is None else jnp.clip(capacity - seen, 0, found)
         carry, flagged_list, flagged, tags = inner(occupied_list, visit, first_step, (carry, flagged_list, jnp.int32(0), tags))
         if flagged_step is not None:
@@ -155,7 +167,8 @@ def _fold_occupied(ids_of, num_blocks, config: MapConfig, cell_step, flagged_ste
     size = record + span if record else 1
     listed = (jnp.full((size,), -1, jnp.int32), jnp.zeros((size,), jnp.int32))
     state = (empty, empty, jnp.zeros((span if record else 1,), jnp.int32), jnp.zeros((), jnp.int32), carry, listed)
-    _, _, _, seen, carry, listed = geo.fold_chunks(num_blocks, chunk, pool_blocks, outer, state)
+    total = pool_blocks if block_list is None else block_list.shape[0]
+    _, _, _, seen, carry, listed = geo.fold_chunks(num_blocks, chunk, total, outer, state)
     return carry, seen, (listed if record else None)
 
 
@@ -410,6 +423,141 @@ def census(blocks: VoxelBlocks, config: MapConfig, overlap=None, keep=None, list
     )
 
 
+# --------------------------------------------------------------------------------------------------
+# The kept census. The online merge needs the inflated census on every detection frame, but a frame
+# changes the ids of a few thousand cells while the pass visits every occupied one (173k at the end of
+# scene0000_00). The census is a sum over cells, so it is kept in the instance table and brought up to
+# date by the steps that change ids: each takes the changed cells' contributions out as they were and
+# puts them back as they are (the formulas of the pass, so the kept census equals a recount exactly).
+
+
+class KeptCensus(NamedTuple):
+    """The inflated census as kept in the instance table (fields `census_*` of `InstanceTable`)."""
+
+    counts: jax.Array  # int32[K]: voxels holding each id
+    overlap: jax.Array  # int32[K, K]: inflated overlap counts (`census(..., "inflated").overlap`)
+    overfull: jax.Array  # int32[]: cells with more than `overlap_ids_per_cell` distinct ids
+    valid: jax.Array  # bool[]: the fields above are those of the pool (else the next merge step recounts)
+
+    @classmethod
+    def of(cls, table) -> "KeptCensus":
+        return cls(table.census_counts, table.census_overlap, table.census_overfull, table.census_valid)
+
+    def fields(self) -> dict:
+        """The `InstanceTable` fields, for `table._replace(**kept.fields())`."""
+        return {f"census_{name}": value for name, value in self._asdict().items()}
+
+
+def census_can_be_kept(config: MapConfig) -> bool:
+    """Static: the inflated census is a plain sum of per-cell contributions (every cell counted, at least
+    two ids per cell kept, pair keys within int32), so that it can be kept from step to step."""
+    k = config.instance_capacity
+    return (
+        config.cell_capacity >= config.block_capacity * config.voxels_per_block // 8
+        and min(config.overlap_ids_per_cell, 8 * config.instance_slots) >= 2
+        and k * k < 2**31
+    )
+
+
+def _cell_contributions(entries: jax.Array, ok: jax.Array, k: int, d_max: int):
+    """What the cells (`entries int32[C, 8S]`, rows with `ok`) add to the inflated census: `(counts
+    int32[K + 1] (index K: nothing), pair int32[C * d * d] flat index into the K x K overlaps (K * K:
+    none), value int32[C * d * d], overfull int32[])`. The pass's two formulas agree on cells of at most
+    two ids, so one (the crowded cells') serves every cell."""
+    entries = jnp.where(ok[:, None], entries, -1)
+    pair, value, distinct = _inflated_cell_pairs(entries, k, d_max)
+    return _segment_count(entries, k), pair, value, jnp.sum(ok & (distinct > d_max), dtype=jnp.int32)
+
+
+def update_kept_census(kept: KeptCensus, old_entries, new_entries, ok, config: MapConfig) -> KeptCensus:
+    """`kept` after the cells `ok` changed their ids from `old_entries` to `new_entries` (int32[C, 8S]
+    each, distinct cells): their old contributions out, their new ones in."""
+    k = config.instance_capacity
+    d_max = min(config.overlap_ids_per_cell, old_entries.shape[1])
+    old_counts, old_pair, old_value, old_overfull = _cell_contributions(old_entries, ok, k, d_max)
+    new_counts, new_pair, new_value, new_overfull = _cell_contributions(new_entries, ok, k, d_max)
+    flat = kept.overlap.reshape(-1)  # two scatters: concatenating them made XLA fuse them slowly
+    flat = flat.at[old_pair].add(-old_value, mode="drop").at[new_pair].add(new_value, mode="drop")
+    return kept._replace(
+        counts=kept.counts + (new_counts - old_counts)[:k],
+        overlap=flat.reshape(kept.overlap.shape),
+        overfull=kept.overfull + new_overfull - old_overfull,
+    )
+
+
+def pool_cell_ids(blocks: VoxelBlocks) -> jax.Array:
+    """The pool's instance ids as one row per 2x2x2 cell: int16[B * V / 8, 8S] (a free reshape)."""
+    return _cell_rows(blocks.instance_id)
+
+
+def gather_cell_ids(cell_ids: jax.Array, cells: jax.Array) -> jax.Array:
+    """int32[N, 8S]: the ids of the cells `cells int32[N]` (rows of `pool_cell_ids`; -1 rows for cells < 0)."""
+    return _gather_cells(cell_ids, cells, cells >= 0, -1).astype(jnp.int32)
+
+
+def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries, new_entries, config: MapConfig):
+    """`kept` and `blocks` after a frame's votes: the census brought up to date (when valid), the voted ids
+    set in `blocks.instance_bits`, the scratch `blocks.cell_owner` returned as it came (all -1).
+
+    Args:
+      kept: the census before the votes.
+      blocks: the pool after the votes.
+      cells: int32[N]: the pool cell (flat index) of each vote's voxel, -1 for none.
+      old_entries, new_entries: int32[N, 8S]: that cell's ids before and after the votes.
+
+    A cell seen by several votes counts once: the scratch names one vote per changed cell (the largest
+    index, a scatter-max), and is reset by a second scatter. Only the changed cells are visited: O(N) work,
+    whatever the size of the map.
+    """
+    n = cells.shape[0]
+    cells_per_block = config.voxels_per_block // 8
+    vote = jnp.arange(n, dtype=jnp.int32)
+    changed = (cells >= 0) & jnp.any(old_entries != new_entries, axis=1)
+    owner = blocks.cell_owner.reshape(-1)
+    target = jnp.where(changed, cells, owner.shape[0])
+    owner = owner.at[target].max(vote, mode="drop")
+    got = owner.at[jnp.where(changed, cells, 0)].get(mode="clip")
+    first = changed & (got == vote)
+    # the reset depends on the read (`got >= -1` always holds), so XLA reads before writing in place
+    owner = owner.at[jnp.where(changed & (got >= -1), cells, owner.shape[0])].set(-1, mode="drop")
+    listed, count = _compact(jnp.full((n,), -1, jnp.int32), jnp.int32(0), first, vote)
+    chunk = max(1, min(config.cell_chunk // 4, n))
+
+    def body(start, fresh, carry):
+        kept, bits = carry
+        at = jax.lax.dynamic_slice_in_dim(listed, start, chunk)
+        ok = fresh & (at >= 0)
+        at = jnp.where(ok, at, 0)
+        new = new_entries[at]
+        bits = set_instance_bits(bits, cells[at] // cells_per_block, new, ok)
+        return update_kept_census(kept, old_entries[at], new, ok, config), bits
+
+    kept, bits = geo.fold_chunks(count, chunk, n, body, (kept, blocks.instance_bits))
+    return kept, blocks._replace(instance_bits=bits, cell_owner=owner.reshape(blocks.cell_owner.shape))
+
+
+def set_instance_bits(bits: jax.Array, block: jax.Array, entries: jax.Array, ok: jax.Array) -> jax.Array:
+    """`bits` (`VoxelBlocks.instance_bits`, bool[B, W]) with the ids `entries int32[C, 8S]` set in their
+    blocks `block int32[C]` (rows with `ok`)."""
+    pool_blocks, width = bits.shape
+    known = ok[:, None] & (entries >= 0)
+    flat = jnp.where(known, block[:, None] * width + entries % width, pool_blocks * width)
+    return bits.reshape(-1).at[flat.reshape(-1)].set(True, mode="drop").reshape(bits.shape)
+
+
+def blocks_holding(bits: jax.Array, wanted: jax.Array, num_blocks) -> jax.Array:
+    """bool[B]: the allocated blocks whose bits may hold an id flagged in `wanted` (bool[K])."""
+    pool_blocks, width = bits.shape
+    k = wanted.shape[0]
+    wanted_bits = jnp.zeros((width,), bool).at[jnp.arange(k) % width].max(wanted)
+    return jnp.any(bits & wanted_bits[None, :], axis=1) & (jnp.arange(pool_blocks) < num_blocks)
+
+
+def kept_from_census(result: "Census", valid) -> KeptCensus:
+    """The kept census of a full inflated `census` (valid when `valid` and nothing was dropped)."""
+    return KeptCensus(result.counts, result.overlap, result.overfull, jnp.asarray(valid, bool) & (result.dropped_cells == 0))
+
+
 def _instance_voxel_counts(blocks: VoxelBlocks, config: MapConfig) -> InstanceCounts:
     result = census(blocks, config)
     return InstanceCounts(result.counts, result.dropped_cells)
@@ -474,7 +622,7 @@ def _remap_rows(ids, weights, new_id):
     return jnp.stack(id_list, axis=-1), jnp.stack(w_list, axis=-1)
 
 
-def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, active=None, listed=None):
+def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, active=None, listed=None, kept=None, wanted=None):
     """Rewrites the instance slots of the occupied cells that `changes` flags.
 
     `changes(ids int32[C, 8S], index) -> bool[C]`; `edit(ids int32[C, 8, S], weights float32[C, 8, S],
@@ -484,41 +632,69 @@ def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, ac
     `listed` (optional `(cells int32[L], tags int32[L], count, valid bool[], flag_of)`): when `valid`,
     the cells to rewrite are those of the list whose tags pass `flag_of(tags) -> bool[C]`, found without
     reading the pool (both loops are compiled, one runs).
-    Returns `(blocks, extra)`.
+    `kept` (optional `KeptCensus`): brought up to date with the rewritten cells.
+    `wanted` (optional bool[K]): only cells holding a flagged id change; the pass then visits only the
+    blocks whose `instance_bits` may hold one. The ids written are set in `instance_bits` either way.
+    Returns `(blocks, extra, kept)`.
     """
     shape = blocks.instance_id.shape
     num_slots = shape[-1]
+    cells_per_block = shape[1] // 8
 
     def cell_step(index, ok, carry):  # ids widened to int32 for `changes` and `edit`, stored narrow
-        return carry, changes(_gather_cells(_cell_rows(carry[0]), index, ok, -1).astype(jnp.int32), index), None
+        entries = _gather_cells(_cell_rows(carry[0]), index, ok, -1).astype(jnp.int32)
+        flag = changes(entries, index)
+        if wanted is not None:  # the visited blocks' bits are set again: from the cells that stay as they are
+            ids, weights, bits, extra, kept = carry
+            bits = set_instance_bits(bits, jnp.where(ok, index, 0) // cells_per_block, entries, ok & ~flag)
+            carry = (ids, weights, bits, extra, kept)
+        return carry, flag, None
 
     def flagged_step(index, ok, carry):
-        ids, weights, extra = carry
+        ids, weights, bits, extra, kept = carry
         id_rows, w_rows = _cell_rows(ids), _cell_rows(weights)
         old_ids = _gather_cells(id_rows, index, ok, -1).astype(jnp.int32).reshape(-1, 8, num_slots)
         old_w = _gather_cells(w_rows, index, ok, 0.0).reshape(-1, 8, num_slots)
         new_ids, new_w, extra = edit(old_ids, old_w, index, extra)
+        rows = old_ids.shape[0]
+        if kept is not None:
+            kept = update_kept_census(kept, old_ids.reshape(rows, -1), new_ids.reshape(rows, -1), ok, config)
+        bits = set_instance_bits(bits, jnp.where(ok, index, 0) // cells_per_block, new_ids.reshape(rows, -1), ok)
         target = jnp.where(ok, index, id_rows.shape[0])
         id_rows = id_rows.at[target].set(new_ids.reshape(-1, id_rows.shape[1]).astype(id_rows.dtype), mode="drop")
         w_rows = w_rows.at[target].set(new_w.reshape(-1, w_rows.shape[1]), mode="drop")
-        return id_rows.reshape(shape), w_rows.reshape(shape), extra
+        return id_rows.reshape(shape), w_rows.reshape(shape), bits, extra, kept
 
     active = jnp.asarray(True) if active is None else active
-    carry = (blocks.instance_id, blocks.instance_weight, extra)
+    carry = (blocks.instance_id, blocks.instance_weight, blocks.instance_bits, extra, kept)
     scan = active
     if listed is not None:
         cells, tags, count, valid, flag_of = listed
         carry = _fold_listed(cells, tags, jnp.where(active & valid, count, 0), config, flag_of, flagged_step, carry)
         scan = active & ~valid
-    num_blocks = jnp.where(scan, blocks.num_blocks, 0)
-    (ids, weights, extra), _, _ = _fold_occupied(lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry)
-    return blocks._replace(instance_id=ids, instance_weight=weights), extra
+    if wanted is None:
+        num_blocks, block_list = jnp.where(scan, blocks.num_blocks, 0), None
+    else:  # the blocks that may hold a wanted id, listed in pool order, their bits cleared (then set again
+        # from the ids they hold: bits of ids gone from a block do not flag it forever)
+        flagged = blocks_holding(blocks.instance_bits, wanted, blocks.num_blocks) & scan
+        empty = jnp.full((shape[0],), -1, jnp.int32)
+        block_list, num_blocks = _compact(empty, jnp.int32(0), flagged, jnp.arange(shape[0], dtype=jnp.int32))
+        ids, weights, bits, extra, kept = carry
+        bits = bits.at[jnp.where(block_list >= 0, block_list, shape[0])].set(False, mode="drop")
+        carry = (ids, weights, bits, extra, kept)
+    folded = _fold_occupied(lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry, block_list=block_list)
+    ids, weights, bits, extra, kept = folded[0]
+    return blocks._replace(instance_id=ids, instance_weight=weights, instance_bits=bits), extra, kept
 
 
-def remap_cells(blocks: VoxelBlocks, new_id, config: MapConfig, active=None, listed=None):
+def remap_cells(blocks: VoxelBlocks, new_id, config: MapConfig, active=None, listed=None, kept=None, held=None):
     """`remap_instances`, also returning int32[K]: per id, the voxels where it appeared (a representative
-    taking over a merged instance's voxel that it did not hold), for updating voxel counts. `active`,
-    `listed`: see `_edit_cells`."""
+    taking over a merged instance's voxel that it did not hold), for updating voxel counts, and `kept`
+    (a `KeptCensus` or None) brought up to date. `active`, `listed`: see `_edit_cells`. `held` (bool[K],
+    optional: the ids that voxels hold, e.g. from the census' counts): without a list, visit only the
+    blocks whose `instance_bits` name a renamed id that is held (for pools whose bits the steps kept; a
+    pool written otherwise may lack them).
+    Returns `(blocks, gained, kept)`."""
     new_id = jnp.asarray(new_id, jnp.int32)
     k = new_id.shape[0]
     changed = new_id != jnp.arange(k, dtype=jnp.int32)
@@ -539,8 +715,10 @@ def remap_cells(blocks: VoxelBlocks, new_id, config: MapConfig, active=None, lis
             gained = gained + _segment_count(jnp.where(appeared, new_ids[..., s], -1), k)
         return new_ids, new_w, gained
 
-    blocks, gained = _edit_cells(blocks, config, changes, edit, jnp.zeros((k + 1,), jnp.int32), active, listed)
-    return blocks, gained[:k]
+    gained = jnp.zeros((k + 1,), jnp.int32)
+    wanted = None if held is None else changed & held
+    blocks, gained, kept = _edit_cells(blocks, config, changes, edit, gained, active, listed, kept, wanted)
+    return blocks, gained[:k], kept
 
 
 def _remap_instances(blocks: VoxelBlocks, new_id, config: MapConfig | None = None) -> VoxelBlocks:
@@ -564,7 +742,7 @@ def remap_instances(blocks: VoxelBlocks, new_id, config: MapConfig | None = None
     return _remap_instances(blocks, new_id, config)
 
 
-def _fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band) -> VoxelBlocks:
+def _fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band, kept=None):
     num_slots = blocks.instance_id.shape[-1]
     band = jnp.asarray(surface_band, jnp.float32) / config.sdf_trunc  # in stored (normalised) units
     tsdf_rows, weight_rows = _cell_rows(blocks.tsdf), _cell_rows(blocks.weight)
@@ -583,12 +761,17 @@ def _fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band
         keep = supported(index).reshape(ids.shape)
         return jnp.where(keep, ids, -1), jnp.where(keep, weights, 0.0), extra
 
-    blocks, _ = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32))
-    return blocks
+    blocks, _, kept = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32), kept=kept)
+    return blocks, kept
+
+
+def fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, kept: KeptCensus, surface_band=None):
+    """`fuse_instance_geometry`, also returning `kept` brought up to date: `(blocks, kept)`."""
+    return _fuse_cells(blocks, config, min_weight, config.voxel_size if surface_band is None else surface_band, kept)
 
 
 def _fuse_instance_geometry(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band) -> VoxelBlocks:
-    return _fuse_cells(blocks, config, min_weight, surface_band)
+    return _fuse_cells(blocks, config, min_weight, surface_band)[0]
 
 
 @functools.partial(jax.jit, static_argnames=("config",))

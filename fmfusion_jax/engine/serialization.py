@@ -25,10 +25,20 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks, init_map_state
 
 #: Arrays of the pool whose leading axis is the pool slot (saved as allocated rows + scratch row).
-POOL_FIELDS = ("block_coords", "tsdf", "weight", "color", "instance_id", "instance_weight")
+POOL_FIELDS = ("block_coords", "tsdf", "weight", "color", "instance_id", "instance_weight", "instance_bits")
 
 #: Suffix of the key holding the scratch row of a pool array saved in part.
 SCRATCH_SUFFIX = "@scratch"
+
+#: Arrays not saved, with their value on loading: scratch space of the steps (the same between steps) and the
+#: merge's kept census (recounted by the next merge step when not valid); older files lack them too.
+UNSAVED_FILL = {
+    "blocks.cell_owner": -1,
+    "instances.census_counts": 0,
+    "instances.census_overlap": 0,
+    "instances.census_overfull": 0,
+    "instances.census_valid": False,
+}
 
 
 def _keys() -> list[str]:
@@ -94,6 +104,8 @@ def state_to_arrays(
     initial = _initial_rows(map_config)
     arrays: dict[str, np.ndarray] = {}
     for key in _keys():
+        if key in UNSAVED_FILL:
+            continue
         value = np.asarray(jax.device_get(_leaf(state, key)))
         name = key.split(".")[-1]
         if key.startswith("blocks.") and name in POOL_FIELDS:
@@ -108,6 +120,15 @@ def state_to_arrays(
         else:
             arrays[key] = value.copy()
     return arrays
+
+
+def _instance_bits(arrays: dict, n: int, shape) -> np.ndarray:
+    """`VoxelBlocks.instance_bits` of the saved ids (the allocated rows `[0, n)`; nothing else holds ids)."""
+    ids = np.asarray(arrays["blocks.instance_id"])[:n].reshape(n, -1).astype(np.int64)
+    bits = np.zeros(shape, bool)
+    block, at = np.nonzero(ids >= 0)
+    bits[block, ids[block, at] % shape[1]] = True
+    return bits
 
 
 def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, device: bool = True) -> MapState:
@@ -136,6 +157,10 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
         spec = _leaf(expected, key)
         if key == "blocks.origin_block" and key not in arrays:  # a map saved before the state carried its origin
             arrays = {**arrays, key: np.asarray(map_config.origin_block, np.int32)}
+        if key in UNSAVED_FILL:
+            arrays = {**arrays, key: np.full(spec.shape, UNSAVED_FILL[key], spec.dtype)}
+        if key == "blocks.instance_bits" and key not in arrays:  # a map saved before the blocks kept them
+            arrays = {**arrays, key: _instance_bits(arrays, n, spec.shape)}
         if key not in arrays:
             raise ValueError(f"map state array {key} is missing")
         value = np.asarray(arrays[key])

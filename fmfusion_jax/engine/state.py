@@ -34,6 +34,9 @@ from fmfusion_jax.engine.config import MAX_INSTANCE_CAPACITY, MapConfig
 INSTANCE_ID_DTYPE = jnp.int16
 assert MAX_INSTANCE_CAPACITY <= np.iinfo(np.int16).max
 
+#: Bits per block of `VoxelBlocks.instance_bits` (a Bloom filter of the ids the block holds).
+INSTANCE_BITS = 128
+
 #: Storage of the voxels' mean colour: half precision (0.06-0.125 steps between 128 and 255), a sixth of the
 #: pool's bytes instead of a third; colour only feeds the mesh and the pictures, never a decision.
 COLOR_DTYPE = jnp.float16
@@ -60,6 +63,12 @@ class VoxelBlocks(NamedTuple):
     # int32[3]: the block index's origin in whole blocks of the world lattice (`config.grid_origin / block_length`).
     # Data, not a compiled constant: maps of different bounds share one compiled step (`MapConfig.compiled_layout`).
     origin_block: jax.Array
+    # bool[B, INSTANCE_BITS]: bit `id % INSTANCE_BITS` is set in a block that holds (or held) id: the renaming
+    # visits only the blocks whose bits name a renamed id (set by every step that writes an id, never cleared)
+    instance_bits: jax.Array
+    # int32[B, V / 8]: scratch of the steps that keep the merge's census (one entry per 2x2x2 cell, -1 between
+    # steps; see `occupied_cells.census_after_votes`); not saved in map files
+    cell_owner: jax.Array
 
 
 class InstanceTable(NamedTuple):
@@ -81,6 +90,12 @@ class InstanceTable(NamedTuple):
     # detector saw two objects: evidence against merging them); zero in the rows and columns of invalid ones
     separated: jax.Array
     overflow: jax.Array  # int32[]: detections that found no free row (cumulative)
+    # The online merge's inflated census of the voxels, kept up to date by the steps that change ids
+    # (`occupied_cells.KeptCensus`); when `census_valid` is false, the next merge step counts it again.
+    census_counts: jax.Array  # int32[K]: voxels holding each id
+    census_overlap: jax.Array  # int32[K, K]: inflated overlap counts (`occupied_cells.census`)
+    census_overfull: jax.Array  # int32[]: cells with more distinct ids than the overlap keeps
+    census_valid: jax.Array  # bool[]
 
 
 class MapState(NamedTuple):
@@ -143,6 +158,8 @@ def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
         out_of_bounds=zero(),
         touched_overflow=zero(),
         origin_block=jnp.asarray(config.origin_block, jnp.int32),
+        instance_bits=jnp.zeros((b, INSTANCE_BITS), bool),
+        cell_owner=jnp.full((b, v // 8), -1, jnp.int32),
     )
 
 
@@ -166,6 +183,10 @@ def init_instance_table(config: MapConfig) -> InstanceTable:
         covered=jnp.zeros((k, k), jnp.int32),
         separated=jnp.zeros((k, k), jnp.int32),
         overflow=jnp.zeros((), jnp.int32),
+        census_counts=zeros_k(),
+        census_overlap=jnp.zeros((k, k), jnp.int32),
+        census_overfull=jnp.zeros((), jnp.int32),
+        census_valid=jnp.zeros((), bool),
     )
 
 
@@ -179,6 +200,7 @@ def init_map_state(config: MapConfig) -> MapState:
 
 
 __all__ = [
+    "INSTANCE_BITS",
     "VoxelBlocks",
     "InstanceTable",
     "MapState",

@@ -27,12 +27,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from fmfusion_jax.engine import association, detections, label_fusion, maintenance, merge
+from fmfusion_jax.engine import association, detections, label_fusion, maintenance, merge, occupied_cells
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
-from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_instances
+from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_cells, pixel_instances
 from fmfusion_jax.engine.occupied_cells import census as occupied_census
-from fmfusion_jax.engine.occupied_cells import fuse_instance_geometry, remap_cells
+from fmfusion_jax.engine.occupied_cells import remap_cells
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
@@ -147,7 +147,9 @@ def fuse_detections(
     seen = project_instances(state.blocks, frame, config)
     matches = associate(det_image, seen, batch.valid, state.instances.valid, config, fusion)
     table, update = fuse_table(state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config, fusion)
-    blocks = integrate_instance_votes(state.blocks, frame, det_image, matches.assignment.instance_for_detection, config, fusion)
+    blocks, table = integrate_instance_votes(
+        state.blocks, table, frame, det_image, matches.assignment.instance_for_detection, config, fusion
+    )
     return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
 
 
@@ -283,19 +285,27 @@ def count_covered(covered: jax.Array, matches: Matches, fused: jax.Array, candid
 
 def integrate_instance_votes(
     blocks: VoxelBlocks,
+    table: InstanceTable,
     frame: FrameInputs,
     det_image: jax.Array,
     instance_for_detection: jax.Array,
     config: MapConfig,
     fusion: FusionConfig,
-) -> VoxelBlocks:
+) -> tuple[VoxelBlocks, InstanceTable]:
     """Instance volumes: every detection pixel votes for its row (`instance_for_detection int32[N]`) in the
     voxel it sees; with `fusion.contrary_vote_weight`, every pixel also votes against the instances detected
-    in this frame whose voxel it sees outside their mask."""
+    in this frame whose voxel it sees outside their mask.
+
+    The table's kept census (`occupied_cells.KeptCensus`) and the blocks' `instance_bits` follow the votes:
+    the cells they touch are read before and after, and those that changed are counted out and in (a census
+    that cannot be kept is never valid: its update is wasted, but cheap). Returns `(blocks, table)`.
+    """
     pixel_instance = association.instance_pixel_image(det_image, instance_for_detection)
     k = config.instance_capacity
     detected = jnp.zeros((k + 1,), bool).at[jnp.where(instance_for_detection >= 0, instance_for_detection, k)].set(True)[:k]
-    return integrate_instances(
+    cells = pixel_cells(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
+    old_entries = occupied_cells.gather_cell_ids(occupied_cells.pool_cell_ids(blocks), cells)
+    blocks = integrate_instances(
         blocks,
         frame.depth,
         frame.T_world_camera,
@@ -305,7 +315,13 @@ def integrate_instance_votes(
         detected,
         det_image == FILTERED_PIXEL,
         fusion.contrary_vote_weight,
+        old_entries,  # the votes read their ids there: XLA then reads the cells before writing in place
     )
+    new_entries = occupied_cells.gather_cell_ids(occupied_cells.pool_cell_ids(blocks), cells)
+    kept, blocks = occupied_cells.census_after_votes(
+        occupied_cells.KeptCensus.of(table), blocks, cells, old_entries, new_entries, config
+    )
+    return blocks, table._replace(**kept.fields())
 
 
 def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:
@@ -320,30 +336,36 @@ def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:
     )
 
 
-def _apply_new_ids(blocks, census, new_id: jax.Array, config: MapConfig):
-    """Renames the instance ids in the voxels (`remap_instances`) and returns `(blocks, voxel counts)`.
+def _apply_new_ids(blocks, census, new_id: jax.Array, config: MapConfig, counts, kept, listed_ok):
+    """Renames the instance ids in the voxels (`remap_instances`); returns `(blocks, voxel counts, kept)`.
 
-    `census` is the pool's census before the renaming (its counts are complete when `dropped_cells` is
-    0). The pass costs nothing when no id held by a voxel changes (its loops run zero times), half of
-    the refinements on scene0000_00; otherwise it rewrites only the cells holding a changed id, and
-    derives the new counts from the old ones: changed ids drop to 0, and a representative gains the
-    voxels of its merged instances that it did not hold. With an incomplete census (cell capacity
-    exceeded) the counts are recounted instead, as the old recount did.
+    `counts` are the voxel counts before the renaming (complete when `census.dropped_cells` is 0), and
+    `census` the pass that counted them, whose list of the occupied cells is used when `listed_ok`. The pass
+    costs nothing when no id held by a voxel changes (its loops run zero times), half of the refinements
+    on scene0000_00; otherwise it rewrites only the cells holding a changed id, brings the kept census
+    up to date, and derives the new counts from the old ones: changed ids drop to 0, and a
+    representative gains the voxels of its merged instances that it did not hold. With an incomplete
+    census (cell capacity exceeded) the counts are recounted instead, as the old recount did.
     """
     k = new_id.shape[0]
-    counts = census.counts
     changed = new_id != jnp.arange(k, dtype=new_id.dtype)
     can_drop = config.cell_capacity < blocks.instance_id.shape[0] * blocks.instance_id.shape[1] // 8  # static
     complete = (census.dropped_cells == 0) if can_drop else jnp.asarray(True)
     needed = jnp.any(changed & (counts > 0)) | ~complete
     listed = None
     if census.cells.shape[0]:  # the census' list of the occupied cells, unless there were too many
-        listed = (census.cells, census.tags, census.occupied, (census.occupied <= config.cell_list_capacity) & complete)
-    blocks, gained = remap_cells(blocks, new_id, config, active=needed, listed=listed)  # no-op unless needed
+        listed = (
+            census.cells,
+            census.tags,
+            census.occupied,
+            (census.occupied <= config.cell_list_capacity) & complete & listed_ok,
+        )
+    # a no-op unless needed; without the census' list, it visits the blocks whose bits name a changed id
+    blocks, gained, kept = remap_cells(blocks, new_id, config, active=needed, listed=listed, kept=kept, held=counts > 0)
     updated = jnp.where(changed, 0, counts) + gained
     if can_drop:
         updated = jax.lax.cond(complete, lambda: updated, lambda: occupied_census(blocks, config).counts)
-    return blocks, updated
+    return blocks, updated, kept
 
 
 class _MergeParams(NamedTuple):
@@ -365,10 +387,17 @@ def _merge_step(
 ) -> tuple[MapState, RefineStats]:
     """Removal and merge (online, or the final post-processing merge), see `refine` and `finalize`.
 
-    One pass over the voxels gives the voxel counts and the overlaps; the removal and the merge are then
-    decided on the table and applied to the voxels together, in one renaming that only runs when an id
-    held by a voxel changes. This decides exactly as removing (rename and recount), then counting the
-    overlaps and merging (rename and recount) would:
+    Online, the voxel counts and overlaps are the census kept in the table (`occupied_cells.KeptCensus`),
+    which the steps that change ids keep up to date; the removal is applied to the voxels first (a renaming
+    that visits the removed instances' blocks and updates the census), then the merge is decided on the
+    census after it and applied by a second renaming. Each renaming only runs when an id held by a voxel
+    changes, and visits the blocks whose `instance_bits` name a changed id.
+
+    Without a valid kept census (the first merge step, a loaded map, and the final merge, which needs plain
+    overlaps), one pass over the voxels counts them (online: the census then kept); the removal and the
+    merge are then decided on the table and applied to the voxels together, in one renaming. This decides
+    exactly as removing (rename and recount), then counting the overlaps and merging (rename and recount)
+    would:
     - the removal renames no kept id, so the kept ids' counts are unchanged and the removed ids' are 0;
     - the overlaps after the removal are those of the census except in the removed ids' rows and
       columns (which the pair tests ignore: the rows are invalid) and in (inflated) cells with more than
@@ -382,9 +411,15 @@ def _merge_step(
     """
     blocks = state.blocks
     final = jnp.asarray(params.final, bool)
-    # plain overlaps for the final merge, inflated online; the occupied cells listed for the renaming
-    census = occupied_census(blocks, config, final, list_cells=True)
-    counts = census.counts
+    k = config.instance_capacity
+    keep_census = occupied_cells.census_can_be_kept(config)  # static
+    kept = occupied_cells.KeptCensus.of(state.instances) if keep_census else None
+    # the online merge reads the kept census when it is valid; otherwise (and for the final merge, which
+    # needs plain overlaps) one pass over the voxels counts it, the occupied cells listed for the renaming
+    use_kept = (kept.valid & ~final) if keep_census else jnp.asarray(False)
+    counted = blocks._replace(num_blocks=jnp.where(use_kept, 0, blocks.num_blocks))  # zero trips when kept
+    census = occupied_census(counted, config, final, list_cells=True)
+    counts = jnp.where(use_kept, kept.counts, census.counts) if keep_census else census.counts
     rows = maintenance.TableRows.of(state.instances)
     remove = (
         maintenance.instances_to_remove(rows.missed, counts, rows.valid, params.remove_missed, params.remove_min_voxels) & ~final
@@ -392,15 +427,32 @@ def _merge_step(
     rows = maintenance.remove_instances(rows._replace(voxel_count=counts), remove).rows
     keep = rows.valid  # the ids that stay in the voxels (the renaming deletes every other id)
     rows = rows._replace(voxel_count=jnp.where(keep, counts, 0))
+    removes_voxels = jnp.any((counts > 0) & ~keep)
+    if keep_census:
+        # With the kept census the removal is applied first (a renaming of the removed instances' blocks):
+        # the census is then exactly that of the voxels after the removal, as the merge test needs.
+        removal_id = jnp.where(keep, jnp.arange(k, dtype=jnp.int32), -1)
+        active = use_kept & removes_voxels
+        blocks, _, kept = remap_cells(blocks, removal_id, config, active=active, kept=kept, held=counts > 0)
+        counts = jnp.where(use_kept, kept.counts, counts)
+        census_overlap = jnp.where(use_kept, kept.overlap, census.overlap)
+        census_overfull = jnp.where(use_kept, kept.overfull, census.overfull)
+        # kept as it was, or (online) the census just counted; the final merge leaves an invalid one invalid
+        counted_now = occupied_cells.kept_from_census(census, True)
+        kept = jax.tree_util.tree_map(lambda a, b: jnp.where(use_kept | final, a, b), kept, counted_now)
+    else:
+        census_overlap, census_overfull = census.overlap, census.overfull
 
     def recount():
         again = occupied_census(blocks, config, final, keep)
         return again.overlap, again.overfull
 
     def as_counted():  # the removed ids' rows and columns are left in: the pair tests mask invalid rows
-        return census.overlap, census.overfull
+        return census_overlap, census_overfull
 
-    redo = jnp.any((counts > 0) & ~keep) & (census.overfull > 0)
+    # Counted by the pass: the overlaps after the removal are the census' except in cells with more ids than
+    # the overlap keeps, where a removed id may have been among those kept: then they are counted again.
+    redo = ~use_kept & removes_voxels & (census_overfull > 0)
     overlap, overfull = jax.lax.cond(redo, recount, as_counted)
 
     similarity = merge.semantic_similarity(label_fusion.class_distribution(rows.label_evidence, label_mode))
@@ -413,10 +465,12 @@ def _merge_step(
     representative = merge.merge_groups(pairs, rows.valid, rows.voxel_count)
     merged = merge.merge_instance_table(rows, representative, label_mode)
     # merged.new_id is -1 for the removed rows too: one renaming applies the removal and the merge
-    blocks, voxel_count = _apply_new_ids(blocks, census, merged.new_id, config)
+    blocks, voxel_count, kept = _apply_new_ids(blocks, census, merged.new_id, config, counts, kept, ~use_kept)
     covered = merge.fold_pair_counts(table.covered, merged.new_id, table.valid)
     separated = merge.fold_pair_counts(table.separated, merged.new_id, table.valid) if veto else table.separated
     table = table._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered, separated=separated)
+    if keep_census:
+        table = table._replace(**kept.fields())
     stats = RefineStats(
         removed=jnp.sum(remove).astype(jnp.int32),
         merged=(jnp.sum(rows.valid) - jnp.sum(table.valid)).astype(jnp.int32),
@@ -455,8 +509,12 @@ def fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> M
     The table's `voxel_count` is left as it was: the next merge step (`refine`, or `finalize` right
     after this) counts the voxels itself before deciding anything, and nothing else reads it.
     """
-    blocks = fuse_instance_geometry(state.blocks, config, fusion.geometry_min_weight)
-    return state._replace(blocks=blocks)
+    blocks, kept = occupied_cells.fuse_cells(
+        state.blocks, config, fusion.geometry_min_weight, occupied_cells.KeptCensus.of(state.instances)
+    )
+    if not occupied_cells.census_can_be_kept(config):
+        return state._replace(blocks=blocks)
+    return state._replace(blocks=blocks, instances=state.instances._replace(**kept.fields()))
 
 
 def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[MapState, RefineStats]:
