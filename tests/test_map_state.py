@@ -127,6 +127,31 @@ def test_continuing_from_a_saved_map_equals_fusing_without_a_break(room_frames, 
     _assert_same_state(_fuse(builder, frames[3:]).result().state, straight.state)
 
 
+def test_a_map_saved_before_the_kept_census_loads_and_continues_to_the_same_map(room_frames):
+    """Older files lack the blocks' instance bits and the merge's kept census: the bits are rebuilt from the ids
+    and the census loads as not valid (the next merge step counts it); fusion then goes on to the same map."""
+    from test_pipeline import assert_same_map
+
+    room, frames = room_frames
+    config = small_config()
+    straight = _fuse(build(config, room), frames).result()
+    first = _result(_fuse(build(config, room), frames[:3]))  # as it stands after 3 frames (not finalized)
+    arrays = state_to_arrays(first.state, first.map_config)
+    assert bool(arrays["instances.census_valid"]) and "blocks.cell_owner" not in arrays
+    old = {k: v for k, v in arrays.items() if not k.startswith(("instances.census_", "blocks.instance_bits"))}
+    loaded = state_from_arrays(old, first.map_config)
+    assert not bool(loaded.instances.census_valid)
+    bits, ids = np.asarray(loaded.blocks.instance_bits), np.asarray(loaded.blocks.instance_id).astype(np.int64)
+    block, voxel, slot = np.nonzero(ids >= 0)
+    assert bits[block, ids[block, voxel, slot] % bits.shape[1]].all()
+    assert bits.sum() == len({(b, i % bits.shape[1]) for b, i in zip(block, ids[block, voxel, slot])})  # exactly those
+    builder = MapBuilder(config, first.map_config, state=loaded)
+    builder.frames_integrated, builder.detection_frames = 3, 3
+    continued = _fuse(builder, frames[3:]).result().state
+    assert_same_map(continued, straight.state)
+    assert bool(continued.instances.census_valid)
+
+
 def test_bad_state_files_are_data_errors(tmp_path, room_frames):
     with pytest.raises(DataError, match="no such file"):
         load_map(tmp_path / "missing.npz")

@@ -463,7 +463,9 @@ def _cell_contributions(entries: jax.Array, ok: jax.Array, k: int, d_max: int):
     """What the cells (`entries int32[C, 8S]`, rows with `ok`) add to the inflated census: `(counts
     int32[K + 1] (index K: nothing), pair int32[C * d * d] flat index into the K x K overlaps (K * K:
     none), value int32[C * d * d], overfull int32[])`. The pass's two formulas agree on cells of at most
-    two ids, so one (the crowded cells') serves every cell."""
+    two ids, so one (the crowded cells') serves every cell. (Splitting the cells as the pass does, simple
+    ones by their summary and the crowded ones in a loop of their own, was not faster here and raised the
+    peak memory by ~80 MB on scene0000_00.)"""
     entries = jnp.where(ok[:, None], entries, -1)
     pair, value, distinct = _inflated_cell_pairs(entries, k, d_max)
     return _segment_count(entries, k), pair, value, jnp.sum(ok & (distinct > d_max), dtype=jnp.int32)
@@ -471,7 +473,8 @@ def _cell_contributions(entries: jax.Array, ok: jax.Array, k: int, d_max: int):
 
 def update_kept_census(kept: KeptCensus, old_entries, new_entries, ok, config: MapConfig) -> KeptCensus:
     """`kept` after the cells `ok` changed their ids from `old_entries` to `new_entries` (int32[C, 8S]
-    each, distinct cells): their old contributions out, their new ones in."""
+    each, distinct cells): their old contributions out, their new ones in (the formulas of the pass: the
+    kept census stays equal to a recount)."""
     k = config.instance_capacity
     d_max = min(config.overlap_ids_per_cell, old_entries.shape[1])
     old_counts, old_pair, old_value, old_overfull = _cell_contributions(old_entries, ok, k, d_max)

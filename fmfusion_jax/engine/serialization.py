@@ -30,10 +30,12 @@ POOL_FIELDS = ("block_coords", "tsdf", "weight", "color", "instance_id", "instan
 #: Suffix of the key holding the scratch row of a pool array saved in part.
 SCRATCH_SUFFIX = "@scratch"
 
-#: Arrays not saved, with their value on loading: scratch space of the steps (the same between steps) and the
-#: merge's kept census (recounted by the next merge step when not valid); older files lack them too.
-UNSAVED_FILL = {
-    "blocks.cell_owner": -1,
+#: Arrays not saved, with their value on loading: scratch space of the steps (the same between steps).
+UNSAVED_FILL = {"blocks.cell_owner": -1}
+
+#: Arrays that maps saved by older versions lack, with the value they load with: the merge's kept census,
+#: not valid (the next merge step counts it).
+MISSING_FILL = {
     "instances.census_counts": 0,
     "instances.census_overlap": 0,
     "instances.census_overfull": 0,
@@ -157,8 +159,9 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
         spec = _leaf(expected, key)
         if key == "blocks.origin_block" and key not in arrays:  # a map saved before the state carried its origin
             arrays = {**arrays, key: np.asarray(map_config.origin_block, np.int32)}
-        if key in UNSAVED_FILL:
-            arrays = {**arrays, key: np.full(spec.shape, UNSAVED_FILL[key], spec.dtype)}
+        if key in UNSAVED_FILL or (key in MISSING_FILL and key not in arrays):
+            fill = UNSAVED_FILL[key] if key in UNSAVED_FILL else MISSING_FILL[key]
+            arrays = {**arrays, key: np.full(spec.shape, fill, spec.dtype)}
         if key == "blocks.instance_bits" and key not in arrays:  # a map saved before the blocks kept them
             arrays = {**arrays, key: _instance_bits(arrays, n, spec.shape)}
         if key not in arrays:
