@@ -412,14 +412,14 @@ def _merge_step(
     blocks = state.blocks
     final = jnp.asarray(params.final, bool)
     k = config.instance_capacity
-    keep_census = occupied_cells.census_can_be_kept(config)  # static
-    kept = occupied_cells.KeptCensus.of(state.instances) if keep_census else None
-    # the online merge reads the kept census when it is valid; otherwise (and for the final merge, which
-    # needs plain overlaps) one pass over the voxels counts it, the occupied cells listed for the renaming
-    use_kept = (kept.valid & ~final) if keep_census else jnp.asarray(False)
+    # The online merge reads the kept census when it is valid; otherwise (and for the final merge, which
+    # needs plain overlaps) one pass over the voxels counts it, the occupied cells listed for the renaming.
+    # A census that cannot be kept (`census_can_be_kept`, static) is never made valid.
+    kept = occupied_cells.KeptCensus.of(state.instances)
+    use_kept = kept.valid & ~final
     counted = blocks._replace(num_blocks=jnp.where(use_kept, 0, blocks.num_blocks))  # zero trips when kept
     census = occupied_census(counted, config, final, list_cells=True)
-    counts = jnp.where(use_kept, kept.counts, census.counts) if keep_census else census.counts
+    counts = jnp.where(use_kept, kept.counts, census.counts)
     rows = maintenance.TableRows.of(state.instances)
     remove = (
         maintenance.instances_to_remove(rows.missed, counts, rows.valid, params.remove_missed, params.remove_min_voxels) & ~final
@@ -428,20 +428,16 @@ def _merge_step(
     keep = rows.valid  # the ids that stay in the voxels (the renaming deletes every other id)
     rows = rows._replace(voxel_count=jnp.where(keep, counts, 0))
     removes_voxels = jnp.any((counts > 0) & ~keep)
-    if keep_census:
-        # With the kept census the removal is applied first (a renaming of the removed instances' blocks):
-        # the census is then exactly that of the voxels after the removal, as the merge test needs.
-        removal_id = jnp.where(keep, jnp.arange(k, dtype=jnp.int32), -1)
-        active = use_kept & removes_voxels
-        blocks, _, kept = remap_cells(blocks, removal_id, config, active=active, kept=kept, held=counts > 0)
-        counts = jnp.where(use_kept, kept.counts, counts)
-        census_overlap = jnp.where(use_kept, kept.overlap, census.overlap)
-        census_overfull = jnp.where(use_kept, kept.overfull, census.overfull)
-        # kept as it was, or (online) the census just counted; the final merge leaves an invalid one invalid
-        counted_now = occupied_cells.kept_from_census(census, True)
-        kept = jax.tree_util.tree_map(lambda a, b: jnp.where(use_kept | final, a, b), kept, counted_now)
-    else:
-        census_overlap, census_overfull = census.overlap, census.overfull
+    # With the kept census the removal is applied first (a renaming of the removed instances' blocks): the
+    # census is then exactly that of the voxels after the removal, as the merge test needs.
+    removal_id = jnp.where(keep, jnp.arange(k, dtype=jnp.int32), -1)
+    blocks, _, kept = remap_cells(blocks, removal_id, config, active=use_kept & removes_voxels, kept=kept, held=counts > 0)
+    counts = jnp.where(use_kept, kept.counts, counts)
+    census_overlap = jnp.where(use_kept, kept.overlap, census.overlap)
+    census_overfull = jnp.where(use_kept, kept.overfull, census.overfull)
+    # kept as it was, or (online) the census just counted; the final merge leaves an invalid one invalid
+    counted_now = occupied_cells.kept_from_census(census, occupied_cells.census_can_be_kept(config))
+    kept = jax.tree_util.tree_map(lambda a, b: jnp.where(use_kept | final, a, b), kept, counted_now)
 
     def recount():
         again = occupied_census(blocks, config, final, keep)
@@ -468,9 +464,9 @@ def _merge_step(
     blocks, voxel_count, kept = _apply_new_ids(blocks, census, merged.new_id, config, counts, kept, ~use_kept)
     covered = merge.fold_pair_counts(table.covered, merged.new_id, table.valid)
     separated = merge.fold_pair_counts(table.separated, merged.new_id, table.valid) if veto else table.separated
-    table = table._replace(**merged.rows._replace(voxel_count=voxel_count)._asdict(), covered=covered, separated=separated)
-    if keep_census:
-        table = table._replace(**kept.fields())
+    table = table._replace(
+        **merged.rows._replace(voxel_count=voxel_count)._asdict(), **kept.fields(), covered=covered, separated=separated
+    )
     stats = RefineStats(
         removed=jnp.sum(remove).astype(jnp.int32),
         merged=(jnp.sum(rows.valid) - jnp.sum(table.valid)).astype(jnp.int32),
@@ -506,14 +502,12 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
 def fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> MapState:
     """Instance-geometry fusion: drop instance voxels the global surface does not support.
 
-    The table's `voxel_count` is left as it was: the next merge step (`refine`, or `finalize` right
-    after this) counts the voxels itself before deciding anything, and nothing else reads it.
+    The kept census follows the emptied slots; the table's `voxel_count` is left as it was: the next merge
+    step (`refine`, or `finalize` right after this) reads the census before deciding anything, and nothing
+    else reads it.
     """
-    blocks, kept = occupied_cells.fuse_cells(
-        state.blocks, config, fusion.geometry_min_weight, occupied_cells.KeptCensus.of(state.instances)
-    )
-    if not occupied_cells.census_can_be_kept(config):
-        return state._replace(blocks=blocks)
+    kept = occupied_cells.KeptCensus.of(state.instances)
+    blocks, kept = occupied_cells.fuse_cells(state.blocks, config, fusion.geometry_min_weight, kept)
     return state._replace(blocks=blocks, instances=state.instances._replace(**kept.fields()))
 
 
