@@ -499,8 +499,8 @@ def gather_cell_ids(cell_ids: jax.Array, cells: jax.Array) -> jax.Array:
 
 
 def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries, new_entries, config: MapConfig):
-    """`kept` and `blocks` after a frame's votes: the census brought up to date (when valid), the voted ids
-    set in `blocks.instance_bits`, the scratch `blocks.cell_owner` returned as it came (all -1).
+    """`kept` and `blocks` after a frame's votes: the census brought up to date (meaningless while not valid),
+    the voted ids set in `blocks.instance_bits`, the scratch `blocks.cell_owner` returned as it came (all -1).
 
     Args:
       kept: the census before the votes.
