@@ -11,8 +11,10 @@ Without `bounds`, the map grows as the camera explores: the block index, the vox
 table start small and are enlarged (by doubling, so a handful of recompiles per run, each logged) before a
 frame that would not fit. The voxel lattice is fixed (origins on whole blocks), so a grown map equals one
 allocated at its final size. With `bounds` (as `fmfusion run` passes the scene's), the index is fixed; the pool
-starts at `expected_blocks` (the config's capacity when not given) and grows the same way. The config's
-capacities are the ceiling of growth.
+starts at `expected_blocks` (the config's capacity when not given) and grows the same way, and so does the
+instance table (from `INITIAL_INSTANCE_ROWS`: its pairwise merge tests cost K^2, so a table sized to the
+map's instances rather than to the ceiling makes the merge several times faster, with the same map). The
+config's capacities are the ceiling of growth.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -52,9 +54,11 @@ log = logging.getLogger(__name__)
 
 #: Blocks (12.5 cm at the default voxel) of free index kept around what the frames have shown, on each side.
 INDEX_PAD_BLOCKS = 8
-#: Smallest voxel-block pool a growing map starts with, and smallest instance table.
+#: Smallest voxel-block pool a growing map starts with.
 MIN_POOL_BLOCKS = 1024
-MIN_INSTANCE_ROWS = 64
+#: Rows the instance table starts with (with or without bounds): a room's live instances fit (scene0000_00
+#: peaks under 200), so a typical run never recompiles for the table; it doubles when a frame might not fit.
+INITIAL_INSTANCE_ROWS = 256
 
 
 def as_config(config: "str | Path | Mapping[str, Any] | PipelineConfig | None") -> PipelineConfig:
@@ -208,6 +212,12 @@ def _next_power_of_two(n: int) -> int:
     return 1 << max(0, int(np.ceil(np.log2(max(n, 1)))))
 
 
+def initial_instance_rows(max_detections: int, ceiling: int) -> int:
+    """The instance table a map starts with: `INITIAL_INSTANCE_ROWS`, or the power of two above two frames'
+    detections if more, at most `ceiling` (the config's `instances.capacity`)."""
+    return min(ceiling, max(INITIAL_INSTANCE_ROWS, _next_power_of_two(2 * max_detections)))
+
+
 def initial_pool_blocks(expected_blocks: int, ceiling: int) -> int:
     """The pool a map expected to use `expected_blocks` starts with: the power of two above 1.25x that (a
     sample of the frames sees most of a room, not all), at least `MIN_POOL_BLOCKS`, at most `ceiling`."""
@@ -230,6 +240,8 @@ class Mapper:
       label_sets, likelihood: the label sets and the `(O, C)` likelihood (default: the config's).
       time_stages: time every engine step (waits for the device after each, so reading the next frame no
         longer overlaps the device's work); the medians are in `finalize().timings`.
+      timer, fuse_detections: hooks of the `MapBuilder` inside (`fmfusion_jax.bench` passes its per-frame
+        timer and the stage-by-stage twin of the detection step); `timer` overrides `time_stages`.
     """
 
     def __init__(
@@ -242,9 +254,13 @@ class Mapper:
         label_sets: LabelSets | None = None,
         likelihood: np.ndarray | None = None,
         time_stages: bool = False,
+        timer: StageTimer | None = None,
+        fuse_detections: Callable[..., Any] = step.fuse_detections,
     ):
         self.config = as_config(config)
         self.time_stages = time_stages
+        self._timer = timer
+        self._fuse_detections = fuse_detections
         self.label_sets = label_sets or load_label_sets()
         self._likelihood = likelihood
         self._intrinsics = intrinsics
@@ -326,6 +342,11 @@ class Mapper:
     def detection_frames(self) -> int:
         """Frames whose detections were fused."""
         return 0 if self._builder is None else self._builder.detection_frames
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Instances created, matched, merged and removed, and detections fused, so far."""
+        return {} if self._builder is None else dict(self._builder.counters)
 
     @property
     def map_config(self) -> MapConfig | None:
@@ -426,8 +447,9 @@ class Mapper:
         # the config's capacities for these frames: a fixed map's sizes, a growing map's ceiling
         layout = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
         self._ceiling = layout
+        rows = initial_instance_rows(self.config.detections.max_detections, layout.instance_capacity)
         if self._bounds is not None:
-            map_config = build_map_config(self.config, *self._bounds, height, width)
+            map_config = dataclasses.replace(build_map_config(self.config, *self._bounds, height, width), instance_capacity=rows)
             if self._expected_blocks is not None:  # at least what the first frame needs
                 first = len(frame_block_keys(frame, map_config))
                 pool = initial_pool_blocks(max(self._expected_blocks, first), layout.block_capacity)
@@ -439,13 +461,15 @@ class Mapper:
             map_config = dataclasses.replace(
                 growth.config_for_block_range(layout, lo, hi),
                 block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * len(keys) + 1))),
-                instance_capacity=min(
-                    layout.instance_capacity,
-                    max(MIN_INSTANCE_ROWS, _next_power_of_two(2 * self.config.detections.max_detections)),
-                ),
+                instance_capacity=rows,
             )
         self._builder = MapBuilder(
-            self.config, map_config, self.label_sets, self._likelihood, timer=StageTimer(enabled=self.time_stages)
+            self.config,
+            map_config,
+            self.label_sets,
+            self._likelihood,
+            timer=self._timer or StageTimer(enabled=self.time_stages),
+            fuse_detections=self._fuse_detections,
         )
         self._blocks_bound = self._rows_bound = None  # read after the first frame
         log.info("map: %s", map_config.describe())
@@ -497,6 +521,7 @@ class Mapper:
         new = dataclasses.replace(growth.config_for_block_range(old, new_lo, new_hi), block_capacity=pool, instance_capacity=rows)
         builder.state = growth.grow_state(builder.state, old, new)
         builder.map_config = new
+        builder.timer.new_layout()  # the steps recompile for the new shapes
         self.growths += 1
         log.info("%s: the map grew (the steps recompile): %s", frame.name, new.describe())
 

@@ -137,27 +137,39 @@ class HostAdapter:
 
 @dataclasses.dataclass
 class StageTimer:
-    """Wall time per named stage (milliseconds per call), with the first (compiling) call kept apart.
+    """Wall time per named stage (milliseconds per call), with the calls that compiled kept apart.
 
     Timing a stage waits for its result, so the host cannot work ahead of the device; `enabled=False`
-    runs the stages without waiting and records nothing.
+    runs the stages without waiting and records nothing. The first call of a stage compiles; after
+    `new_layout()` (a map that grew: the steps recompile for its shapes) the next call of each stage does
+    again. `first_ms` keeps each stage's first call, `samples_ms` the calls that did not compile.
     """
 
     first_ms: dict[str, float] = dataclasses.field(default_factory=dict)
     samples_ms: dict[str, list[float]] = dataclasses.field(default_factory=dict)
     enabled: bool = True
+    #: the stages called since the last layout change (their next call does not compile)
+    warm: set[str] = dataclasses.field(default_factory=set)
 
     def run(self, name: str, fn, *args):
         if not self.enabled:
             return fn(*args)
         start = time.perf_counter()
         out = jax.block_until_ready(fn(*args))
-        elapsed = (time.perf_counter() - start) * 1e3
-        if name not in self.first_ms:
-            self.first_ms[name] = elapsed
-        else:
-            self.samples_ms.setdefault(name, []).append(elapsed)
+        self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
         return out
+
+    def record(self, name: str, elapsed_ms: float, compiled: bool) -> None:
+        """Keeps one call's time: apart when it compiled (the first one in `first_ms`), else as a sample."""
+        self.warm.add(name)
+        if compiled:
+            self.first_ms.setdefault(name, elapsed_ms)
+        else:
+            self.samples_ms.setdefault(name, []).append(elapsed_ms)
+
+    def new_layout(self) -> None:
+        """The map's shapes changed: the next call of every stage compiles (it is not a sample)."""
+        self.warm.clear()
 
     def median_ms(self, name: str) -> float:
         samples = self.samples_ms.get(name) or [self.first_ms.get(name, float("nan"))]

@@ -211,10 +211,12 @@ class SceneFusion:
         self.skipped.append((name, reason))
 
 
-def mapper_for_scene(scene: Scene, config: PipelineConfig, sample: DepthSample | None = None, time_stages: bool = False):
+def mapper_for_scene(
+    scene: Scene, config: PipelineConfig, sample: DepthSample | None = None, time_stages: bool = False, **hooks: Any
+):
     """The `Mapper` `fmfusion run` fuses `scene` into: its block index over the scene's bounds, its pool
     starting at the blocks the sampled frames allocate (`sample`: a `Scene.sample_depth`, default 60 frames)
-    and doubling if the others show more."""
+    and doubling if the others show more. `hooks`: the Mapper's `timer` and `fuse_detections` (the benchmark's)."""
     from fmfusion_jax.mapper import Mapper, sample_block_count
     from fmfusion_jax.pipeline import build_map_config
 
@@ -222,7 +224,7 @@ def mapper_for_scene(scene: Scene, config: PipelineConfig, sample: DepthSample |
     bounds = scene.bounds(sample=sample)
     layout = build_map_config(config, *bounds, scene.intrinsics.height, scene.intrinsics.width)
     expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
-    return Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages)
+    return Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages, **hooks)
 
 
 def fuse_scene(

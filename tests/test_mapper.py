@@ -99,6 +99,33 @@ def test_a_bounded_map_grows_its_pool_from_the_expected_blocks_to_the_same_map(r
     assert _key(sized.instances()) == _key(fixed.instances())
 
 
+def test_a_bounded_map_grows_its_instance_table_to_the_same_map(room, monkeypatch):
+    """With bounds the instance table starts small too and doubles before a frame whose detections might not fit
+    (the merge's K^2 tests cost what the map holds, not the ceiling): the same instances as a table that never
+    grows, and the timer leaves the calls that recompiled after the growth out of its samples."""
+    import fmfusion_jax.mapper as mapper_module
+
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    config = config.model_copy(update={"detections": config.detections.model_copy(update={"max_detections": 4})})
+    frames = list(scene.frames())
+    big = Mapper(config, bounds=scene.bounds(), expected_blocks=6000)  # starts at 256 rows: never grows here
+    for frame in frames:
+        big.integrate(frame, folder.get(frame.name))
+    monkeypatch.setattr(mapper_module, "INITIAL_INSTANCE_ROWS", 8)
+    assert mapper_module.initial_instance_rows(4, 1024) == 8
+    small = Mapper(config, bounds=scene.bounds(), expected_blocks=6000, time_stages=True)
+    for frame in frames:
+        small.integrate(frame, folder.get(frame.name))
+    assert big.growths == 0 and big.map_config.instance_capacity == 256
+    assert small.growths >= 1 and small.map_config.instance_capacity > 8
+    assert len(big.instances()) >= 2 and _key(small.instances()) == _key(big.instances())
+    timer = small.finalize().timings
+    fused = len(timer.samples_ms["fusion"])
+    assert fused == small.detection_frames - 1 - small.growths  # each growth's first fusion call compiled
+
+
 def test_sample_block_count_matches_the_frames_it_samples(room):
     """The runner's pool estimate from sampled depth: the blocks of the sampled frames, within the sampling's
     coarseness (every 8th pixel there, every 4th in the engine's block finder)."""

@@ -489,7 +489,8 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
         ours = main["ours"]
         lines += [
             "",
-            f"Geometry fusion runs every {ours.get('geometry_fusion_every')} frames. Map: {ours.get('map')}; "
+            f"Geometry fusion runs every {ours.get('geometry_fusion_every')} frames. Map (as `fmfusion run` sizes and "
+            f"grows it; {ours.get('growths', 0)} growth(s), their recompiling calls left out): {ours.get('map')}; "
             f"{ours.get('blocks_used')} of {ours.get('block_capacity')} blocks used; counters "
             f"{ours.get('counters')}.",
             "",

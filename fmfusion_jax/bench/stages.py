@@ -81,7 +81,7 @@ class FrameTimer(StageTimer):
     """A `StageTimer` that also keeps each frame's stage times, to compare pipelines frame by frame.
 
     `frames[i]` maps a stage name to its milliseconds in frame `i` (summed when it ran more than once);
-    the first call of a stage (which compiles) is kept apart, in `compiled[i]`.
+    the calls that compiled (a stage's first, and its first after the map grew) are kept apart, in `compiled[i]`.
     """
 
     frames: list[dict[str, float]] = dataclasses.field(default_factory=list)
@@ -91,12 +91,10 @@ class FrameTimer(StageTimer):
         self.frames.append({})
         self.compiled.append({})
 
-    def run(self, name: str, fn, *args):
-        first = name not in self.first_ms
-        out = super().run(name, fn, *args)
-        record = self.compiled[-1] if first else self.frames[-1]
-        record[name] = record.get(name, 0.0) + (self.first_ms[name] if first else self.samples_ms[name][-1])
-        return out
+    def record(self, name: str, elapsed_ms: float, compiled: bool) -> None:
+        super().record(name, elapsed_ms, compiled)
+        where = self.compiled[-1] if compiled else self.frames[-1]
+        where[name] = where.get(name, 0.0) + elapsed_ms
 
 
 __all__ = ["FUSION_STAGES", "FrameTimer", "staged_fuse_detections"]

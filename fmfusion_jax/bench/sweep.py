@@ -130,7 +130,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
 
     runs = {k: _new_run(k) for k in sweep}
     for group in groups:
-        timers = {k: FrameTimer(first_ms=dict(warm.first_ms)) for k in group}  # compiled already: all samples
+        timers = {k: FrameTimer(first_ms=dict(warm.first_ms), warm=set(warm.warm)) for k in group}  # compiled: all samples
         builders = {k: builder(timers[k]) for k in group}
         for position, (frame, detections) in enumerate(
             _frames_with_detections(opened, folder, config, progress, f"ours sweep {scene.name} k={','.join(map(str, group))}")

@@ -108,65 +108,76 @@ def _device_memory_mb() -> float | None:
 
 
 def scene_map_config(config, opened):
-    """The map `fmfusion run` makes for the opened scene: its bounds and the pool it starts with, from a
-    60-frame depth sample (the bench's builders do not grow: a pool too small is reported as dropped blocks)."""
-    from fmfusion_jax.mapper import initial_pool_blocks, sample_block_count
+    """The map `fmfusion run` starts with for the opened scene: its bounds, the pool from a 60-frame depth sample
+    and the first instance table (`Mapper`'s sizing). The sweep's builders keep it (they do not grow)."""
+    from fmfusion_jax.mapper import initial_instance_rows, initial_pool_blocks, sample_block_count
     from fmfusion_jax.pipeline import build_map_config
 
     sample = opened.sample_depth(max_frames=60)
     layout = build_map_config(config, *opened.bounds(sample=sample), opened.intrinsics.height, opened.intrinsics.width)
     expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
-    return dataclasses.replace(layout, block_capacity=initial_pool_blocks(expected, layout.block_capacity))
+    return dataclasses.replace(
+        layout,
+        block_capacity=initial_pool_blocks(expected, layout.block_capacity),
+        instance_capacity=initial_instance_rows(config.detections.max_detections, layout.instance_capacity),
+    )
 
 
 def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """Our engine: the fused pass (`frames`: stage name -> ms per frame, from `MapBuilder`'s timer: `fusion`,
-    `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`)."""
+    `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`).
+
+    The map is `fmfusion run`'s (`runner.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
+    doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
     from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
     from fmfusion_jax.compile_cache import enable_compile_cache
-    from fmfusion_jax.pipeline import MapBuilder
+    from fmfusion_jax.mapper import Mapper
+    from fmfusion_jax.runner import mapper_for_scene
 
     cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)
     cache_entries = sum(1 for _ in cache.iterdir()) if cache else None
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
-    map_config = scene_map_config(config, opened)
+    sample = opened.sample_depth(max_frames=60)
     device = device_description()
     print(
         f"ours on {scene.name}: {len(opened)} frames, device {device['device_kind']} ({device['platform']}), "
-        f"{device['cpus']} CPUs; map {map_config.describe()}",
+        f"{device['cpus']} CPUs",
         file=sys.stderr,
         flush=True,
     )
 
-    def fuse(staged: bool) -> tuple[MapBuilder, FrameTimer, dict]:
+    def fuse(staged: bool) -> tuple[Mapper, FrameTimer, dict]:
         timer = FrameTimer()
         step_hook = {"fuse_detections": staged_fuse_detections(timer)} if staged else {}
-        builder = MapBuilder(config, map_config, timer=timer, **step_hook)
+        mapper = mapper_for_scene(opened, config, sample, timer=timer, **step_hook)
         counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
         for frame, detections in _frames_with_detections(
             opened, folder, config, progress, f"ours {'staged' if staged else 'fused'} {scene.name}"
         ):
             timer.start_frame()
-            builder.add_frame(frame, detections)
+            mapper.integrate(frame, detections)
             counts["detections_in"].append(0 if detections is None else detections.num_detections)
-            counts["live_instances"].append(int(builder.state.instances.valid.sum()))
-        return builder, timer, counts
+            counts["live_instances"].append(int(mapper.state.instances.valid.sum()))
+        return mapper, timer, counts
 
     start = time.perf_counter()
-    builder, timer, counts = fuse(staged=False)
+    mapper, timer, counts = fuse(staged=False)
+    map_config = mapper.map_config
+    assert map_config is not None  # the scene has frames
     result = {
         "pipeline": "ours",
         "device": device,
         "map": map_config.describe(),
         "map_state_mb": map_config.memory_bytes() / 2**20,
+        "growths": mapper.growths,
         "frames": timer.frames,
         "compiled": timer.compiled,
         "compile_ms": _compile_ms(timer),
-        "counters": dict(builder.counters),
+        "counters": mapper.counters,
         **counts,
-        "blocks_used": int(builder.state.blocks.num_blocks),
-        "dropped_blocks": int(builder.state.blocks.dropped_blocks),
+        "blocks_used": int(mapper.state.blocks.num_blocks),
+        "dropped_blocks": int(mapper.state.blocks.dropped_blocks),
         "compile_cache": {"dir": str(cache) if cache else None, "entries_before": cache_entries},
         "block_capacity": map_config.block_capacity,
         "peak_rss_mb": peak_rss_mb(),
@@ -175,10 +186,10 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
         "geometry_fusion_every": config.refinement.geometry_fusion_every,
         "seconds_fused": time.perf_counter() - start,
     }
-    fused_digest = state_digest(builder.state)
-    del builder  # frees the map before the second pass
-    staged_builder, staged_timer, _ = fuse(staged=True)
-    if state_digest(staged_builder.state) != fused_digest:  # the stages composed must make the same map
+    fused_digest = state_digest(mapper.state)
+    del mapper  # frees the map before the second pass
+    staged_mapper, staged_timer, _ = fuse(staged=True)
+    if state_digest(staged_mapper.state) != fused_digest:  # the stages composed must make the same map
         result["staged_mismatch"] = "the stages jitted apart made a different map than the fused step"
     result.update(stage_frames=staged_timer.frames, stage_compiled=staged_timer.compiled)
     result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items() if k in FUSION_STAGES})
