@@ -128,3 +128,16 @@ def fold_chunks(count, chunk: int, total: int, body, carry):
         return body(start, (index >= begin) & (index < count), carry)
 
     return jax.lax.fori_loop(0, num_chunks, step, carry)
+
+
+def materialize(x: jax.Array) -> jax.Array:
+    """`x`, computed once into a buffer of its own (an identity scatter, which XLA never fuses away).
+
+    XLA's CPU fusion inlines an elementwise producer into each consumer; a producer that is costly per
+    element (gathers, long select chains) and read several times, or through a concatenate (`jnp.stack`
+    evaluates each operand's whole chain per output element), is then computed several times over. The
+    scatter costs one pass over `x`.
+    """
+    flat = x.reshape(-1)
+    at = jnp.arange(flat.shape[0], dtype=jnp.int32)
+    return jnp.zeros_like(flat).at[at].set(flat, unique_indices=True, indices_are_sorted=True).reshape(x.shape)

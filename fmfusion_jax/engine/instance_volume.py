@@ -135,7 +135,20 @@ def _pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, con
             best_at = jnp.where(better, a, best_at)
         out.append(jnp.where(best >= 0.0, best_id, -1))
         scores = [jnp.where(best_at == a, -1.0, sc) for a, sc in enumerate(scores)]
-    return jnp.stack(out, axis=-1).astype(jnp.int32)
+    return jnp.stack(_computed_once(out), axis=-1)
+
+
+def _computed_once(ids: list) -> list:
+    """The int32 id arrays `ids` (values in [-1, 2^16 - 1)), each computed once: two to a uint32 word, each word
+    materialized, then split. Stacked as they were, XLA evaluated the whole lookup once per output slot and
+    the ranking once more for the second (3.3x slower on the CPU)."""
+    out = []
+    for first in range(0, len(ids), 2):
+        pair = ids[first : first + 2]
+        word = functools.reduce(jnp.bitwise_or, [(i + 1).astype(jnp.uint32) << (16 * j) for j, i in enumerate(pair)])
+        word = geo.materialize(word)
+        out += [((word >> (16 * j)) & 0xFFFF).astype(jnp.int32) - 1 for j in range(len(pair))]
+    return out
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -181,6 +194,9 @@ def _apply_instance_hits(
         # then depend on that read, so XLA reads the row before writing in place rather than copy the pool
         at = (voxel % 8) * num_slots
         ids = [jnp.where(seen, jnp.take_along_axis(cell_entries, (at + s)[:, None], axis=1)[:, 0], -1) for s in range(num_slots)]
+    # read by every scatter below: each computed once (else each consumer redoes the gathers)
+    ids = _computed_once(ids)
+    weights = [geo.materialize(w) for w in weights]
 
     # Target slot: the instance's own slot, else the first empty one, else the weakest.
     has_match = jnp.zeros(instance.shape, bool)
@@ -275,27 +291,38 @@ def _integrate_instances(
     neutral=None,
     contrary_weight: float = 0.0,
     cell_entries=None,
+    voxels=None,
 ):
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     depth = jnp.asarray(depth, jnp.float32)
     pixel_instance = jnp.asarray(pixel_instance, jnp.int32)
     if pixel_instance.shape != config.subsampled_shape:
         raise ValueError(f"pixel_instance has shape {pixel_instance.shape}, expected {config.subsampled_shape}")
-    ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, 0.0, blocks.origin_block)
-    slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
+    if voxels is None:
+        voxels = pixel_voxels(blocks, depth, T, K, config)
+    v_per_block = config.voxels_per_block
+    slot = jnp.where(voxels >= 0, voxels // v_per_block, -1)
     return _apply_instance_hits(
-        blocks, jnp.where(ok, slot, -1), v, pixel_instance, config, detected, neutral, contrary_weight, cell_entries
+        blocks, slot, voxels % v_per_block, pixel_instance, config, detected, neutral, contrary_weight, cell_entries
     )
 
 
-def pixel_cells(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig) -> jax.Array:
-    """int32[Hs * Ws]: the pool's 2x2x2 cell (flat index, `slot * V / 8 + voxel // 8`) of the voxel that each
-    subsampled pixel votes into in `integrate_instances`, -1 where it casts no vote."""
+def pixel_voxels(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig) -> jax.Array:
+    """int32[Hs * Ws]: the pool voxel (flat index, `slot * V + voxel`) that each subsampled pixel votes into in
+    `integrate_instances` (its surface voxel, in an allocated block), -1 where it casts no vote. Computed once
+    into a buffer (`_geometry.materialize`): every gather and scatter of the votes reads it, and XLA would
+    otherwise redo the back-projection and block lookup in each of them."""
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     ok, (gx, gy, gz) = _subsampled_points(jnp.asarray(depth, jnp.float32), T, K, config, 0.0, blocks.origin_block)
     slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
     seen = ok & (slot >= 0) & (slot < config.dummy_slot)
-    return jnp.where(seen, slot * (config.voxels_per_block // 8) + v // 8, -1).reshape(-1)
+    return geo.materialize(jnp.where(seen, slot * config.voxels_per_block + v, -1).reshape(-1))
+
+
+def pixel_cells(voxels: jax.Array) -> jax.Array:
+    """int32[N]: the pool's 2x2x2 cell (flat index, `slot * V / 8 + voxel // 8`) of each pool voxel of `voxels`
+    (`pixel_voxels`), -1 where none."""
+    return jnp.where(voxels >= 0, voxels // 8, -1)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "contrary_weight"))
@@ -310,6 +337,7 @@ def integrate_instances(
     neutral=None,
     contrary_weight: float = 0.0,
     cell_entries=None,
+    voxels=None,
 ) -> VoxelBlocks:
     """Vote each subsampled pixel's instance into its surface voxel.
 
@@ -326,14 +354,25 @@ def integrate_instances(
       contrary_weight: static; weight of one contrary vote (0: none, the plain slot rule).
       cell_entries: optional int32 `(Hs * Ws, 8S)`: the ids of each pixel's cell (`pixel_cells`) as read
         before the votes, by a caller that needs them too (the votes then read their ids there).
+      voxels: optional int32 `(Hs * Ws,)`: `pixel_voxels` of the same frame, by a caller that needs them too.
 
     Returns:
       The pool after the slot update rule of the module docstring (scatters of `Hs * Ws` updates, 1 + 3S of them
       with contrary votes).
     """
     return _integrate_instances(
-        blocks, depth, T_world_camera, intrinsics, pixel_instance, config, detected, neutral, contrary_weight, cell_entries
+        blocks,
+        depth,
+        T_world_camera,
+        intrinsics,
+        pixel_instance,
+        config,
+        detected,
+        neutral,
+        contrary_weight,
+        cell_entries,
+        voxels,
     )
 
 
-__all__ = ["pixel_instances", "integrate_instances", "apply_instance_hits"]
+__all__ = ["pixel_instances", "pixel_voxels", "pixel_cells", "integrate_instances", "apply_instance_hits"]

@@ -30,7 +30,7 @@ from jax.typing import ArrayLike
 from fmfusion_jax.engine import association, detections, label_fusion, maintenance, merge, occupied_cells
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
-from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_cells, pixel_instances
+from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_cells, pixel_instances, pixel_voxels
 from fmfusion_jax.engine.occupied_cells import census as occupied_census
 from fmfusion_jax.engine.occupied_cells import remap_cells
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
@@ -303,7 +303,8 @@ def integrate_instance_votes(
     pixel_instance = association.instance_pixel_image(det_image, instance_for_detection)
     k = config.instance_capacity
     detected = jnp.zeros((k + 1,), bool).at[jnp.where(instance_for_detection >= 0, instance_for_detection, k)].set(True)[:k]
-    cells = pixel_cells(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
+    voxels = pixel_voxels(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
+    cells = pixel_cells(voxels)
     old_entries = occupied_cells.gather_cell_ids(occupied_cells.pool_cell_ids(blocks), cells)
     blocks = integrate_instances(
         blocks,
@@ -316,6 +317,7 @@ def integrate_instance_votes(
         det_image == FILTERED_PIXEL,
         fusion.contrary_vote_weight,
         old_entries,  # the votes read their ids there: XLA then reads the cells before writing in place
+        voxels,
     )
     new_entries = occupied_cells.gather_cell_ids(occupied_cells.pool_cell_ids(blocks), cells)
     kept, blocks = occupied_cells.census_after_votes(
