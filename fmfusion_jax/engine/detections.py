@@ -133,12 +133,23 @@ def detection_pixel_image(masks: jax.Array, valid: jax.Array, stride: int) -> ja
     """
     n = masks.shape[0]
     sub = masks[:, ::stride, ::stride] & valid[:, None, None]
-    area = jnp.sum(sub, axis=(1, 2), dtype=jnp.int32)
+    area = mask_areas(sub)
     order = jnp.argsort(area, stable=True)  # smallest first, ties by index
     rank_dtype = jnp.int16 if n < 2**15 else jnp.int32  # a narrow key: the per-pixel min is the cost
     rank = jnp.zeros((n,), rank_dtype).at[order].set(jnp.arange(n, dtype=rank_dtype))
     best = jnp.min(jnp.where(sub, rank[:, None, None], jnp.asarray(n, rank_dtype)), axis=0).astype(jnp.int32)
     return jnp.where(best < n, order.astype(jnp.int32)[jnp.minimum(best, n - 1)], -1)
+
+
+def mask_areas(masks: jax.Array) -> jax.Array:
+    """int32[N]: the pixels of each mask `bool[N, h, w]`. Counted four flags to a word (a population count of the
+    mask bytes read as uint32): on the CPU, XLA summed the bools through a materialized int32 copy, 3x slower."""
+    n = masks.shape[0]
+    pixels = math.prod(masks.shape[1:])
+    if pixels % 4:
+        return jnp.sum(masks.reshape(n, -1), axis=1, dtype=jnp.int32)
+    words = jax.lax.bitcast_convert_type(masks.astype(jnp.uint8).reshape(n, pixels // 4, 4), jnp.uint32)
+    return jnp.sum(jax.lax.population_count(words), axis=1, dtype=jnp.int32)
 
 
 def depth_bin_count(depth_max: float, bin_size: float) -> int:

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from fmfusion_jax.engine import association, detections, label_fusion, maintenance, merge, occupied_cells
+from fmfusion_jax.engine import _geometry, association, detections, label_fusion, maintenance, merge, occupied_cells
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_cells, pixel_instances, pixel_voxels
@@ -178,7 +178,8 @@ def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig
         fusion.depth_high,
         depth_max=config.depth_max,
     )
-    return jnp.where((raw >= 0) & (kept < 0), FILTERED_PIXEL, kept)
+    # computed once: association, the pixel instance image and the votes all read it
+    return _geometry.materialize(jnp.where((raw >= 0) & (kept < 0), FILTERED_PIXEL, kept))
 
 
 def project_instances(blocks: VoxelBlocks, frame: FrameInputs, config: MapConfig) -> jax.Array:

@@ -146,7 +146,7 @@ def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: Map
     observed = jnp.minimum(sdf / config.sdf_trunc, 1.0)
     inv = 1.0 / (w_old + 1.0)
     t_new = jnp.where(update, jnp.clip((t_old * w_old + observed) * inv, -1.0, 1.0), t_old)
-    rgb = color.reshape(-1, 3)[pixel]  # (C, V, 3)
+    rgb = color.reshape(-1, 3)[pixel].astype(jnp.float32)  # (C, V, 3); converted once gathered, not the image
     c_new = jnp.where(update[..., None], (c_old * w_old[..., None] + rgb) * inv[..., None], c_old).astype(blocks.color.dtype)
     w_new = jnp.where(update, jnp.minimum(w_old + 1.0, config.max_weight), w_old)
     return t_new, w_new, c_new
@@ -154,7 +154,7 @@ def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: Map
 
 def _integrate_tsdf(blocks: VoxelBlocks, depth, color, T_world_camera, intrinsics, config: MapConfig) -> VoxelBlocks:
     depth = jnp.asarray(depth, jnp.float32)
-    color = jnp.asarray(color).astype(jnp.float32)
+    color = jnp.asarray(color)
     h, w = config.image_height, config.image_width
     if depth.shape != (h, w) or color.shape != (h, w, 3):
         raise ValueError(f"depth {depth.shape} / color {color.shape} do not match the config's {h}x{w} image")
