@@ -74,6 +74,7 @@ def grow_state(state: MapState, old: MapConfig, new: MapConfig) -> MapState:
         instance_id=pool("instance_id"),
         instance_weight=pool("instance_weight"),
         instance_bits=pool("instance_bits"),
+        geometry_stale=pool("geometry_stale"),
         cell_owner=pool("cell_owner"),
         dropped_blocks=blocks.dropped_blocks,
         out_of_bounds=blocks.out_of_bounds,

@@ -251,9 +251,12 @@ def _apply_instance_hits(
         cleared_entry = jnp.where(lowered & (w_flat[jnp.minimum(entries, n_entries - 1)] <= 0.0), entries, n_entries)
         ids_flat = ids_flat.at[cleared_entry].set(jnp.asarray(-1, id_dtype), mode="drop")
         w_flat = w_flat.at[cleared_entry].set(0.0, mode="drop")
+    # a claim adds an id to its voxel: the next geometry fusion visits the block
+    stale = blocks.geometry_stale.at[jnp.where(claim, slot, num_blocks)].set(True, mode="drop")
     return blocks._replace(
         instance_id=ids_flat.reshape(blocks.instance_id.shape),
         instance_weight=w_flat.reshape(blocks.instance_weight.shape),
+        geometry_stale=stale,
     )
 
 

@@ -90,7 +90,16 @@ def _gather_cells(rows: jax.Array, index: jax.Array, ok: jax.Array, fill) -> jax
 
 
 def _fold_occupied(
-    ids_of, num_blocks, config: MapConfig, cell_step, flagged_step, carry, capacity=None, record: int = 0, block_list=None
+    ids_of,
+    num_blocks,
+    config: MapConfig,
+    cell_step,
+    flagged_step,
+    carry,
+    capacity=None,
+    record: int = 0,
+    block_list=None,
+    long_list: bool = False,
 ):
     """Runs over the occupied cells (any instance slot set) of the allocated blocks, in pool order (or of the
     blocks `block_list`: int32[L], the first `num_blocks` of them, when given).
@@ -106,6 +115,7 @@ def _fold_occupied(
       carry: the state threaded through the steps.
       capacity: only the first `capacity` occupied cells of the pool are visited (None: all).
       record: static: also list the visited cells and their tags, for up to `record` cells.
+      long_list: static: `block_list` may list many blocks: steps of `pool_chunk_blocks` blocks, as the pool's.
 
     Returns:
       `(carry, occupied, listed)`: the final carry, the number of occupied cells found (all of them)
@@ -116,8 +126,8 @@ def _fold_occupied(
     cells_per_block = v_per_block // 8
     if block_list is None:
         chunk = max(1, min(config.pool_chunk_blocks, pool_blocks))
-    else:  # a short list: steps of one cell chunk's blocks
-        chunk = max(1, min(config.cell_chunk // cells_per_block, block_list.shape[0]))
+    else:  # a short list: steps of one cell chunk's blocks (a long one: of the pool's)
+        chunk = max(1, min(config.pool_chunk_blocks if long_list else config.cell_chunk // cells_per_block, block_list.shape[0]))
     span = chunk * cells_per_block
     sub = max(1, min(config.cell_chunk, span))
     # flagged cells are a small share of the occupied ones: shorter steps waste less on padding
@@ -631,7 +641,9 @@ def _remap_rows(ids, weights, new_id):
     return jnp.stack(id_list, axis=-1), jnp.stack(w_list, axis=-1)
 
 
-def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, active=None, listed=None, kept=None, wanted=None):
+def _edit_cells(
+    blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, active=None, listed=None, kept=None, wanted=None, visit=None
+):
     """Rewrites the instance slots of the occupied cells that `changes` flags.
 
     `changes(ids int32[C, 8S], index) -> bool[C]`; `edit(ids int32[C, 8, S], weights float32[C, 8, S],
@@ -644,6 +656,7 @@ def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, ac
     `kept` (optional `KeptCensus`): brought up to date with the rewritten cells.
     `wanted` (optional bool[K]): only cells holding a flagged id change; the pass then visits only the
     blocks whose `instance_bits` may hold one. The ids written are set in `instance_bits` either way.
+    `visit` (optional bool[B], without `wanted`): only the cells of these blocks may change; only they are visited.
     Returns `(blocks, extra, kept)`.
     """
     shape = blocks.instance_id.shape
@@ -681,17 +694,27 @@ def _edit_cells(blocks: VoxelBlocks, config: MapConfig, changes, edit, extra, ac
         cells, tags, count, valid, flag_of = listed
         carry = _fold_listed(cells, tags, jnp.where(active & valid, count, 0), config, flag_of, flagged_step, carry)
         scan = active & ~valid
-    if wanted is None:
+    if wanted is None and visit is None:
         num_blocks, block_list = jnp.where(scan, blocks.num_blocks, 0), None
-    else:  # the blocks that may hold a wanted id, listed in pool order, their bits cleared (then set again
-        # from the ids they hold: bits of ids gone from a block do not flag it forever)
-        flagged = blocks_holding(blocks.instance_bits, wanted, blocks.num_blocks) & scan
+    else:  # the blocks to visit, listed in pool order
+        if wanted is not None:  # those that may hold a wanted id (most steps rename no held id: then none)
+            flagged = jax.lax.cond(
+                jnp.any(wanted) & scan,
+                lambda: blocks_holding(blocks.instance_bits, wanted, blocks.num_blocks),
+                lambda: jnp.zeros((shape[0],), bool),
+            )
+        else:
+            flagged = visit & scan & (jnp.arange(shape[0]) < blocks.num_blocks)
         empty = jnp.full((shape[0],), -1, jnp.int32)
         block_list, num_blocks = _compact(empty, jnp.int32(0), flagged, jnp.arange(shape[0], dtype=jnp.int32))
-        ids, weights, bits, extra, kept = carry
-        bits = bits & ~flagged[:, None]  # (a row scatter of False built a pool-sized update array)
-        carry = (ids, weights, bits, extra, kept)
-    folded = _fold_occupied(lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry, block_list=block_list)
+        if wanted is not None:  # their bits cleared, then set again from the ids they hold (bits of ids gone
+            # from a block do not flag it forever)
+            ids, weights, bits, extra, kept = carry
+            bits = jax.lax.cond(num_blocks > 0, lambda b: b & ~flagged[:, None], lambda b: b, bits)
+            carry = (ids, weights, bits, extra, kept)
+    folded = _fold_occupied(
+        lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry, block_list=block_list, long_list=visit is not None
+    )
     ids, weights, bits, extra, kept = folded[0]
     return blocks._replace(instance_id=ids, instance_weight=weights, instance_bits=bits), extra, kept
 
@@ -751,7 +774,7 @@ def remap_instances(blocks: VoxelBlocks, new_id, config: MapConfig | None = None
     return _remap_instances(blocks, new_id, config)
 
 
-def _fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band, kept=None):
+def _fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band, kept=None, only_stale: bool = False):
     num_slots = blocks.instance_id.shape[-1]
     band = jnp.asarray(surface_band, jnp.float32) / config.sdf_trunc  # in stored (normalised) units
     tsdf_rows, weight_rows = _cell_rows(blocks.tsdf), _cell_rows(blocks.weight)
@@ -770,13 +793,21 @@ def _fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band
         keep = supported(index).reshape(ids.shape)
         return jnp.where(keep, ids, -1), jnp.where(keep, weights, 0.0), extra
 
-    blocks, _, kept = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32), kept=kept)
-    return blocks, kept
+    if not only_stale:
+        blocks, _, kept = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32), kept=kept)
+        return blocks, kept
+    # only the stale blocks: elsewhere every id was supported at the last pass, and neither the TSDF nor the
+    # ids have changed since (a renaming moves ids between instances in the same voxels)
+    blocks, _, kept = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32), kept=kept, visit=blocks.geometry_stale)
+    return blocks._replace(geometry_stale=jnp.zeros_like(blocks.geometry_stale)), kept
 
 
 def fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, kept: KeptCensus, surface_band=None):
-    """`fuse_instance_geometry`, also returning `kept` brought up to date: `(blocks, kept)`."""
-    return _fuse_cells(blocks, config, min_weight, config.voxel_size if surface_band is None else surface_band, kept)
+    """`fuse_instance_geometry` of the blocks marked `geometry_stale` (then none is), also returning `kept` brought
+    up to date: `(blocks, kept)`. The map's own pass: exact when every call has the same thresholds (as the
+    steps' do), since a block that is not stale holds only ids that were supported at the last call."""
+    band = config.voxel_size if surface_band is None else surface_band
+    return _fuse_cells(blocks, config, min_weight, band, kept, only_stale=True)
 
 
 def _fuse_instance_geometry(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band) -> VoxelBlocks:

@@ -25,7 +25,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks, init_map_state
 
 #: Arrays of the pool whose leading axis is the pool slot (saved as allocated rows + scratch row).
-POOL_FIELDS = ("block_coords", "tsdf", "weight", "color", "instance_id", "instance_weight", "instance_bits")
+POOL_FIELDS = ("block_coords", "tsdf", "weight", "color", "instance_id", "instance_weight", "instance_bits", "geometry_stale")
 
 #: Suffix of the key holding the scratch row of a pool array saved in part.
 SCRATCH_SUFFIX = "@scratch"
@@ -34,8 +34,9 @@ SCRATCH_SUFFIX = "@scratch"
 UNSAVED_FILL = {"blocks.cell_owner": -1}
 
 #: Arrays that maps saved by older versions lack, with the value they load with: the merge's kept census,
-#: not valid (the next merge step counts it).
+#: not valid (the next merge step counts it), and every block stale (the next geometry fusion visits all).
 MISSING_FILL = {
+    "blocks.geometry_stale": True,
     "instances.census_counts": 0,
     "instances.census_overlap": 0,
     "instances.census_overfull": 0,

@@ -66,6 +66,9 @@ class VoxelBlocks(NamedTuple):
     # bool[B, INSTANCE_BITS]: bit `id % INSTANCE_BITS` is set in a block that holds (or held) id: the renaming
     # visits only the blocks whose bits name a renamed id (set by every step that writes an id, never cleared)
     instance_bits: jax.Array
+    # bool[B]: the block's TSDF changed, or one of its voxels took a new instance id, since the last geometry
+    # fusion (which visits only these blocks: elsewhere every id it holds was supported then and still is)
+    geometry_stale: jax.Array
     # int32[B, V / 8]: scratch of the steps that keep the merge's census (one entry per 2x2x2 cell, -1 between
     # steps; see `occupied_cells.census_after_votes`); not saved in map files
     cell_owner: jax.Array
@@ -159,6 +162,7 @@ def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
         touched_overflow=zero(),
         origin_block=jnp.asarray(config.origin_block, jnp.int32),
         instance_bits=jnp.zeros((b, INSTANCE_BITS), bool),
+        geometry_stale=jnp.zeros((b,), bool),
         cell_owner=jnp.full((b, v // 8), -1, jnp.int32),
     )
 

@@ -178,7 +178,9 @@ def _integrate_tsdf(blocks: VoxelBlocks, depth, color, T_world_camera, intrinsic
             color=pool.color.at[slots].set(jnp.where(keep[..., None], c_new, pool.color[slots])),
         )
 
-    return geo.fold_chunks(touched.count, chunk, total, body, touched.blocks)
+    blocks = geo.fold_chunks(touched.count, chunk, total, body, touched.blocks)
+    stale = blocks.geometry_stale.at[jnp.where(touched.valid, touched.slots, config.block_capacity)].set(True, mode="drop")
+    return blocks._replace(geometry_stale=stale)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
