@@ -193,7 +193,10 @@ def _apply_instance_hits(
         # the ids read from the vote's cell row (`pixel_cells`) instead: the same values, and the writes below
         # then depend on that read, so XLA reads the row before writing in place rather than copy the pool
         at = (voxel % 8) * num_slots
-        ids = [jnp.where(seen, jnp.take_along_axis(cell_entries, (at + s)[:, None], axis=1)[:, 0], -1) for s in range(num_slots)]
+        ids = [
+            jnp.where(seen, jnp.take_along_axis(cell_entries, (at + s)[:, None], axis=1)[:, 0].astype(jnp.int32), -1)
+            for s in range(num_slots)
+        ]
     # read by every scatter below: each computed once (else each consumer redoes the gathers)
     ids = _computed_once(ids)
     weights = [geo.materialize(w) for w in weights]
@@ -355,7 +358,7 @@ def integrate_instances(
       detected: bool `(K,)` instances detected in this frame; their slots take contrary votes.
       neutral: bool `(Hs, Ws)` pixels that cast no contrary vote (inside a mask, cut by its depth filter).
       contrary_weight: static; weight of one contrary vote (0: none, the plain slot rule).
-      cell_entries: optional int32 `(Hs * Ws, 8S)`: the ids of each pixel's cell (`pixel_cells`) as read
+      cell_entries: optional int16 (or int32) `(Hs * Ws, 8S)`: the ids of each pixel's cell (`pixel_cells`) as read
         before the votes, by a caller that needs them too (the votes then read their ids there).
       voxels: optional int32 `(Hs * Ws,)`: `pixel_voxels` of the same frame, by a caller that needs them too.
 

@@ -504,8 +504,21 @@ def pool_cell_ids(blocks: VoxelBlocks) -> jax.Array:
 
 
 def gather_cell_ids(cell_ids: jax.Array, cells: jax.Array) -> jax.Array:
-    """int32[N, 8S]: the ids of the cells `cells int32[N]` (rows of `pool_cell_ids`; -1 rows for cells < 0)."""
-    return _gather_cells(cell_ids, cells, cells >= 0, -1).astype(jnp.int32)
+    """The ids of the cells `cells int32[N]` (rows of `pool_cell_ids`, -1 rows for cells < 0), as stored:
+    int16[N, 8S] (`state.INSTANCE_ID_DTYPE`; widen them before computing keys)."""
+    return _gather_cells(cell_ids, cells, cells >= 0, -1)
+
+
+def _rows_differ(a: jax.Array, b: jax.Array) -> jax.Array:
+    """bool[N]: rows of `a` and `b` (int16[N, W], W even) that differ, compared two ids to a 32-bit word."""
+    n, width = a.shape
+    if width % 2 or a.dtype.itemsize != 2:
+        return jnp.any(a != b, axis=1)
+
+    def words(x):
+        return jax.lax.bitcast_convert_type(x.reshape(n, width // 2, 2), jnp.uint32)
+
+    return jnp.any(words(a) != words(b), axis=1)
 
 
 def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries, new_entries, config: MapConfig):
@@ -516,7 +529,7 @@ def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries
       kept: the census before the votes.
       blocks: the pool after the votes.
       cells: int32[N]: the pool cell (flat index) of each vote's voxel, -1 for none.
-      old_entries, new_entries: int32[N, 8S]: that cell's ids before and after the votes.
+      old_entries, new_entries: int16[N, 8S]: that cell's ids before and after the votes (`gather_cell_ids`).
 
     A cell seen by several votes counts once: the scratch names one vote per changed cell (the largest
     index, a scatter-max), and is reset by a second scatter. Only the changed cells are visited: O(N) work,
@@ -525,7 +538,7 @@ def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries
     n = cells.shape[0]
     cells_per_block = config.voxels_per_block // 8
     vote = jnp.arange(n, dtype=jnp.int32)
-    changed = (cells >= 0) & jnp.any(old_entries != new_entries, axis=1)
+    changed = (cells >= 0) & _rows_differ(old_entries, new_entries)
     owner = blocks.cell_owner.reshape(-1)
     target = jnp.where(changed, cells, owner.shape[0])
     owner = owner.at[target].max(vote, mode="drop")
@@ -541,9 +554,9 @@ def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries
         at = jax.lax.dynamic_slice_in_dim(listed, start, chunk)
         ok = fresh & (at >= 0)
         at = jnp.where(ok, at, 0)
-        new = new_entries[at]
+        new = new_entries[at].astype(jnp.int32)
         bits = set_instance_bits(bits, cells[at] // cells_per_block, new, ok)
-        return update_kept_census(kept, old_entries[at], new, ok, config), bits
+        return update_kept_census(kept, old_entries[at].astype(jnp.int32), new, ok, config), bits
 
     kept, bits = geo.fold_chunks(count, chunk, n, body, (kept, blocks.instance_bits))
     return kept, blocks._replace(instance_bits=bits, cell_owner=owner.reshape(blocks.cell_owner.shape))
@@ -712,8 +725,9 @@ def _edit_cells(
             ids, weights, bits, extra, kept = carry
             bits = jax.lax.cond(num_blocks > 0, lambda b: b & ~flagged[:, None], lambda b: b, bits)
             carry = (ids, weights, bits, extra, kept)
+    long_list = visit is not None
     folded = _fold_occupied(
-        lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry, block_list=block_list, long_list=visit is not None
+        lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry, block_list=block_list, long_list=long_list
     )
     ids, weights, bits, extra, kept = folded[0]
     return blocks._replace(instance_id=ids, instance_weight=weights, instance_bits=bits), extra, kept
