@@ -128,8 +128,9 @@ def test_continuing_from_a_saved_map_equals_fusing_without_a_break(room_frames, 
 
 
 def test_a_map_saved_before_the_kept_census_loads_and_continues_to_the_same_map(room_frames):
-    """Older files lack the blocks' instance bits and the merge's kept census: the bits are rebuilt from the ids
-    and the census loads as not valid (the next merge step counts it); fusion then goes on to the same map."""
+    """Older files lack the blocks' instance bits, their geometry-stale flags and the merge's kept census: the bits
+    are rebuilt from the ids, every block loads stale (the next geometry fusion visits all) and the census as not
+    valid (the next merge step counts it); fusion then goes on to the same map."""
     from test_pipeline import assert_same_map
 
     room, frames = room_frames
@@ -138,9 +139,11 @@ def test_a_map_saved_before_the_kept_census_loads_and_continues_to_the_same_map(
     first = _result(_fuse(build(config, room), frames[:3]))  # as it stands after 3 frames (not finalized)
     arrays = state_to_arrays(first.state, first.map_config)
     assert bool(arrays["instances.census_valid"]) and "blocks.cell_owner" not in arrays
-    old = {k: v for k, v in arrays.items() if not k.startswith(("instances.census_", "blocks.instance_bits"))}
+    assert "blocks.geometry_stale" in arrays
+    old_keys = ("instances.census_", "blocks.instance_bits", "blocks.geometry_stale")
+    old = {k: v for k, v in arrays.items() if not k.startswith(old_keys)}
     loaded = state_from_arrays(old, first.map_config)
-    assert not bool(loaded.instances.census_valid)
+    assert not bool(loaded.instances.census_valid) and np.asarray(loaded.blocks.geometry_stale).all()
     bits, ids = np.asarray(loaded.blocks.instance_bits), np.asarray(loaded.blocks.instance_id).astype(np.int64)
     block, voxel, slot = np.nonzero(ids >= 0)
     assert bits[block, ids[block, voxel, slot] % bits.shape[1]].all()

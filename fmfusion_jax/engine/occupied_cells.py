@@ -100,6 +100,7 @@ def _fold_occupied(
     record: int = 0,
     block_list=None,
     long_list: bool = False,
+    enter_blocks=None,
 ):
     """Runs over the occupied cells (any instance slot set) of the allocated blocks, in pool order (or of the
     blocks `block_list`: int32[L], the first `num_blocks` of them, when given).
@@ -116,6 +117,8 @@ def _fold_occupied(
       capacity: only the first `capacity` occupied cells of the pool are visited (None: all).
       record: static: also list the visited cells and their tags, for up to `record` cells.
       long_list: static: `block_list` may list many blocks: steps of `pool_chunk_blocks` blocks, as the pool's.
+      enter_blocks: optional `(blocks int32[chunk], ok bool[chunk], carry) -> carry`, with `block_list`: run on
+        each step's blocks before their cells (every cell of a block is visited in the same step).
 
     Returns:
       `(carry, occupied, listed)`: the final carry, the number of occupied cells found (all of them)
@@ -157,6 +160,8 @@ def _fold_occupied(
             first_cells = start * cells_per_block + local
         else:
             here = jax.lax.dynamic_slice_in_dim(block_list, start, chunk)
+            if enter_blocks is not None:
+                carry = enter_blocks(here, fresh & (here >= 0), carry)
             ids = jnp.take(ids_of(carry), jnp.where(fresh, here, 0), axis=0, mode="clip")
             first_cells = (here[:, None] * cells_per_block + jnp.arange(cells_per_block, dtype=jnp.int32)).reshape(-1)
         occupied = jnp.any(ids.reshape(chunk, cells_per_block, 8 * num_slots) >= 0, axis=-1) & fresh[:, None]
@@ -720,14 +725,23 @@ def _edit_cells(
             flagged = visit & scan & (jnp.arange(shape[0]) < blocks.num_blocks)
         empty = jnp.full((shape[0],), -1, jnp.int32)
         block_list, num_blocks = _compact(empty, jnp.int32(0), flagged, jnp.arange(shape[0], dtype=jnp.int32))
-        if wanted is not None:  # their bits cleared, then set again from the ids they hold (bits of ids gone
-            # from a block do not flag it forever)
-            ids, weights, bits, extra, kept = carry
-            bits = jax.lax.cond(num_blocks > 0, lambda b: b & ~flagged[:, None], lambda b: b, bits)
-            carry = (ids, weights, bits, extra, kept)
-    long_list = visit is not None
+
+    def clear_bits(here, ok, carry):  # the visited blocks' bits, set again from the ids they hold (bits of ids
+        # gone from a block do not flag it forever)
+        ids, weights, bits, extra, kept = carry
+        bits = bits.at[jnp.where(ok, here, shape[0])].set(False, mode="drop")
+        return ids, weights, bits, extra, kept
+
     folded = _fold_occupied(
-        lambda carry: carry[0], num_blocks, config, cell_step, flagged_step, carry, block_list=block_list, long_list=long_list
+        lambda carry: carry[0],
+        num_blocks,
+        config,
+        cell_step,
+        flagged_step,
+        carry,
+        block_list=block_list,
+        long_list=visit is not None,
+        enter_blocks=clear_bits if wanted is not None else None,
     )
     ids, weights, bits, extra, kept = folded[0]
     return blocks._replace(instance_id=ids, instance_weight=weights, instance_bits=bits), extra, kept
@@ -807,12 +821,10 @@ def _fuse_cells(blocks: VoxelBlocks, config: MapConfig, min_weight, surface_band
         keep = supported(index).reshape(ids.shape)
         return jnp.where(keep, ids, -1), jnp.where(keep, weights, 0.0), extra
 
-    if not only_stale:
-        blocks, _, kept = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32), kept=kept)
-        return blocks, kept
     # only the stale blocks: elsewhere every id was supported at the last pass, and neither the TSDF nor the
     # ids have changed since (a renaming moves ids between instances in the same voxels)
-    blocks, _, kept = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32), kept=kept, visit=blocks.geometry_stale)
+    visit = blocks.geometry_stale if only_stale else None
+    blocks, _, kept = _edit_cells(blocks, config, changes, edit, jnp.zeros((), jnp.int32), kept=kept, visit=visit)
     return blocks._replace(geometry_stale=jnp.zeros_like(blocks.geometry_stale)), kept
 
 
@@ -835,7 +847,8 @@ def fuse_instance_geometry(blocks: VoxelBlocks, config: MapConfig, min_weight=1.
     A voxel supports instances if its global TSDF weight is at least `min_weight` and its centre is
     within `surface_band` metres of the fused surface (`|tsdf| * sdf_trunc <= surface_band`; default
     one voxel: the zero crossing passes through or next to the voxel). Slots of other voxels are
-    emptied. Only the occupied cells are visited, and only those that change are rewritten.
+    emptied. Only the occupied cells are visited (of every block: after this pass none is `geometry_stale`),
+    and only those that change are rewritten.
     """
     if surface_band is None:
         surface_band = config.voxel_size
