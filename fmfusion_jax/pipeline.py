@@ -90,12 +90,13 @@ def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:
     if not np.all(np.isfinite(frame.T_world_camera)):
         raise UserError(f"{frame.name}: pose is not finite")
     k = frame.intrinsics
+    # host arrays (the step's call transfers them): a `jnp.asarray` that converts dispatches a jitted op each
     return step.FrameInputs(
-        depth=jnp.asarray(frame.depth, jnp.float32),
-        color=jnp.asarray(frame.color, jnp.uint8),
-        T_world_camera=jnp.asarray(frame.T_world_camera, jnp.float32),
-        intrinsics=jnp.asarray([k.fx, k.fy, k.cx, k.cy], jnp.float32),
-        frame_index=jnp.asarray(frame.index, jnp.int32),
+        depth=np.asarray(frame.depth, np.float32),
+        color=np.asarray(frame.color, np.uint8),
+        T_world_camera=np.asarray(frame.T_world_camera, np.float32),
+        intrinsics=np.asarray([k.fx, k.fy, k.cx, k.cy], np.float32),
+        frame_index=np.asarray(frame.index, np.int32),
     )
 
 

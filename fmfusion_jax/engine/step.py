@@ -95,13 +95,13 @@ class FusionConfig:
 
 
 class FrameInputs(NamedTuple):
-    """One frame as arrays (built on the host by `frame_inputs`)."""
+    """One frame as arrays (built on the host by `frame_inputs`: NumPy arrays, which the jitted step transfers)."""
 
-    depth: jax.Array  # float32[H, W] metres, 0 = invalid
-    color: jax.Array  # uint8[H, W, 3] RGB
-    T_world_camera: jax.Array  # float32[4, 4]
-    intrinsics: jax.Array  # float32[4]: fx, fy, cx, cy
-    frame_index: jax.Array  # int32[]
+    depth: jax.Array | np.ndarray  # float32[H, W] metres, 0 = invalid
+    color: jax.Array | np.ndarray  # uint8[H, W, 3] RGB
+    T_world_camera: jax.Array | np.ndarray  # float32[4, 4]
+    intrinsics: jax.Array | np.ndarray  # float32[4]: fx, fy, cx, cy
+    frame_index: jax.Array | np.ndarray  # int32[]
 
 
 class FrameStats(NamedTuple):
@@ -124,7 +124,7 @@ class RefineStats(NamedTuple):
 def integrate_frame(state: MapState, frame: FrameInputs, config: MapConfig) -> MapState:
     """Integrates one frame into the global TSDF (no detections)."""
     blocks = integrate_tsdf(state.blocks, frame.depth, frame.color, frame.T_world_camera, frame.intrinsics, config)
-    return state._replace(blocks=blocks, frame_index=frame.frame_index)
+    return state._replace(blocks=blocks, frame_index=jnp.asarray(frame.frame_index, jnp.int32))
 
 
 @functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
@@ -226,7 +226,7 @@ def fuse_table(
     matches: Matches,
     label_scores: jax.Array | np.ndarray,
     likelihood: jax.Array,
-    frame_index: jax.Array,
+    frame_index: jax.Array | np.ndarray,
     config: MapConfig,
     fusion: FusionConfig,
 ) -> tuple[InstanceTable, TableUpdate]:
@@ -478,6 +478,12 @@ def _merge_step(
     return state._replace(blocks=blocks, instances=table), stats
 
 
+def _scalar(value, dtype):
+    """A threshold as an argument of a jitted step: a NumPy scalar for a Python number (no dispatch on the
+    host, as `jnp.asarray` costs per call), itself when traced or already an array."""
+    return jnp.asarray(value, dtype) if isinstance(value, jax.Array) else np.asarray(value, dtype)
+
+
 def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[MapState, RefineStats]:
     """Online refinement: remove repeatedly missed small instances, then merge over-segmentation.
 
@@ -491,12 +497,12 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
     """
     params = _MergeParams(
         final=np.bool_(False),
-        remove_missed=jnp.asarray(fusion.remove_missed, jnp.int32),
-        remove_min_voxels=jnp.asarray(fusion.remove_min_voxels, jnp.int32),
-        similarity=jnp.asarray(fusion.merge_similarity, jnp.float32),
-        overlap=jnp.asarray(fusion.merge_overlap, jnp.float32),
-        reunite=jnp.asarray(fusion.reunite_min_frames, jnp.int32),
-        separate=jnp.asarray(fusion.separate_min_frames, jnp.int32),
+        remove_missed=_scalar(fusion.remove_missed, jnp.int32),
+        remove_min_voxels=_scalar(fusion.remove_min_voxels, jnp.int32),
+        similarity=_scalar(fusion.merge_similarity, jnp.float32),
+        overlap=_scalar(fusion.merge_overlap, jnp.float32),
+        reunite=_scalar(fusion.reunite_min_frames, jnp.int32),
+        separate=_scalar(fusion.separate_min_frames, jnp.int32),
     )
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
@@ -526,10 +532,10 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
         final=np.bool_(True),
         remove_missed=np.int32(np.iinfo(np.int32).max),
         remove_min_voxels=np.int32(0),
-        similarity=jnp.asarray(fusion.post_merge_similarity, jnp.float32),
-        overlap=jnp.asarray(fusion.post_merge_iou, jnp.float32),
-        reunite=jnp.asarray(fusion.reunite_min_frames, jnp.int32),
-        separate=jnp.asarray(fusion.separate_min_frames, jnp.int32),
+        similarity=_scalar(fusion.post_merge_similarity, jnp.float32),
+        overlap=_scalar(fusion.post_merge_iou, jnp.float32),
+        reunite=_scalar(fusion.reunite_min_frames, jnp.int32),
+        separate=_scalar(fusion.separate_min_frames, jnp.int32),
     )
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
