@@ -531,7 +531,7 @@ def test_renaming_derives_the_new_counts_from_the_census(seed):
     expected = reference_remap(grid, new_id)
     expected_counts = np.diag(ref.reference_overlap_counts(expected, NUM_INSTANCES, False))
     changed = new_id != np.arange(NUM_INSTANCES)
-    for capacity in (CONFIG.cell_list_capacity, 10):  # the census' list, or too many cells: found again
+    for capacity in (2**18, 10):  # the census' list, or too many cells: found again
         config = dataclasses.replace(CONFIG, cell_list_capacity=capacity)
         census = run_census(blocks, config, "inflated", list_cells=True)
         listed = (census.cells, census.tags, census.occupied, census.occupied <= config.cell_list_capacity)
@@ -552,7 +552,7 @@ def test_renaming_derives_the_new_counts_from_the_census(seed):
 def test_cell_tags_flag_every_cell_holding_a_wanted_id():
     grid = random_instance_field(4)
     blocks = ref.dense_to_blocks(grid, CONFIG)
-    result = run_census(blocks, CONFIG, list_cells=True)
+    result = run_census(blocks, dataclasses.replace(CONFIG, cell_list_capacity=2**18), list_cells=True)
     n = int(result.occupied)
     cells, tags = np.asarray(result.cells[:n]), result.tags[:n]
     rows = np.asarray(oc._cell_rows(blocks.instance_id))[cells]

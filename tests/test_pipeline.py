@@ -235,8 +235,10 @@ def sequential_merge(state, map_config, fusion, final: bool):
     return apply(state, merged.rows, merged.new_id)
 
 
-#: Fields the steps keep for themselves (the merge's kept census and its scratch), which `sequential_merge` does not.
-KEPT_FIELDS = {"census_counts", "census_overlap", "census_overfull", "census_valid", "cell_owner"}
+#: Fields the steps keep for themselves (the merge's kept census and its scratch), which `sequential_merge` does not,
+#: and the blocks' id filter, whose exact bits depend on the renaming's path (`assert_kept_census_is_a_recount`
+#: checks that it covers every id a block holds).
+KEPT_FIELDS = {"census_counts", "census_overlap", "census_overfull", "census_valid", "cell_owner", "instance_bits"}
 
 
 def assert_same_map(got, expected):

@@ -706,6 +706,8 @@ def _edit_cells(
         return id_rows.reshape(shape), w_rows.reshape(shape), bits, extra, kept
 
     active = jnp.asarray(True) if active is None else active
+    if listed is not None and listed[0].shape[0] == 0:  # an empty list (`cell_list_capacity` 0): no list
+        listed = None
     carry = (blocks.instance_id, blocks.instance_weight, blocks.instance_bits, extra, kept)
     scan = active
     if listed is not None:
