@@ -64,7 +64,8 @@ class VoxelBlocks(NamedTuple):
     # Data, not a compiled constant: maps of different bounds share one compiled step (`MapConfig.compiled_layout`).
     origin_block: jax.Array
     # bool[B, INSTANCE_BITS]: bit `id % INSTANCE_BITS` is set in a block that holds (or held) id: the renaming
-    # visits only the blocks whose bits name a renamed id (set by every step that writes an id, never cleared)
+    # visits only the blocks whose bits name a renamed id (set by every step that writes an id; a renaming clears
+    # the bits of the blocks it visits and sets them again from the ids they hold)
     instance_bits: jax.Array
     # bool[B]: the block's TSDF changed, or one of its voxels took a new instance id, since the last geometry
     # fusion (which visits only these blocks: elsewhere every id it holds was supported then and still is)
