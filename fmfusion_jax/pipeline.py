@@ -326,11 +326,12 @@ class MapBuilder:
         """
         self.flush()
         adapter = self.adapter
-        inputs = adapter.frame(frame)
+        # on the device before the step (a step given host arrays copies them in before it starts)
+        inputs = jax.device_put(adapter.frame(frame))
         if detections is None:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.step_config)
         else:
-            batch = adapter.detections(detections)
+            batch = jax.device_put(adapter.detections(detections))
             self.state, stats = self.timer.run(
                 "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.step_config, self.fusion_config
             )

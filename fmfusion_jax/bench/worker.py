@@ -13,7 +13,8 @@ per-frame stage times in milliseconds and the counts and memory figures the repo
   where the time goes. Both passes make the same map.
 - `peer`: the Open3D reference pipeline (a global ScalableTSDFVolume and one volume per instance).
 - `vbg`: Open3D's VoxelBlockGrid integration alone.
-Times exclude reading images and detection files, for every pipeline.
+Times exclude reading images and detection files, for every pipeline (and, for ours, putting the frame's
+arrays on the device, which `MapBuilder` does before each step).
 """
 
 from __future__ import annotations
