@@ -224,6 +224,17 @@ def initial_pool_blocks(expected_blocks: int, ceiling: int) -> int:
     return min(ceiling, max(MIN_POOL_BLOCKS, _next_power_of_two(int(np.ceil(1.25 * expected_blocks)))))
 
 
+def bounded_map_config(
+    config: PipelineConfig, bounds: tuple[ArrayLike, ArrayLike], height: int, width: int, expected_blocks: int | None
+) -> MapConfig:
+    """The map a `Mapper` with `bounds` starts with: its block index over the bounds, the first instance table
+    (`initial_instance_rows`) and the pool for `expected_blocks` (`initial_pool_blocks`; None: the config's)."""
+    layout = build_map_config(config, *bounds, height, width)
+    rows = initial_instance_rows(config.detections.max_detections, layout.instance_capacity)
+    pool = layout.block_capacity if expected_blocks is None else initial_pool_blocks(expected_blocks, layout.block_capacity)
+    return dataclasses.replace(layout, instance_capacity=rows, block_capacity=pool)
+
+
 class Mapper:
     """An instance-aware semantic map, fused frame by frame.
 
@@ -447,13 +458,12 @@ class Mapper:
         # the config's capacities for these frames: a fixed map's sizes, a growing map's ceiling
         layout = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
         self._ceiling = layout
-        rows = initial_instance_rows(self.config.detections.max_detections, layout.instance_capacity)
         if self._bounds is not None:
-            map_config = dataclasses.replace(build_map_config(self.config, *self._bounds, height, width), instance_capacity=rows)
-            if self._expected_blocks is not None:  # at least what the first frame needs
-                first = len(frame_block_keys(frame, map_config))
-                pool = initial_pool_blocks(max(self._expected_blocks, first), layout.block_capacity)
-                map_config = dataclasses.replace(map_config, block_capacity=pool)
+            expected = self._expected_blocks
+            if expected is not None:  # at least what the first frame needs
+                index = build_map_config(self.config, *self._bounds, height, width)
+                expected = max(expected, len(frame_block_keys(frame, index)))
+            map_config = bounded_map_config(self.config, self._bounds, height, width, expected)
         else:
             keys = frame_block_keys(frame, layout)
             lo = keys.min(axis=0) - INDEX_PAD_BLOCKS if len(keys) else -INDEX_PAD_BLOCKS * np.ones(3, np.int64)
@@ -461,7 +471,7 @@ class Mapper:
             map_config = dataclasses.replace(
                 growth.config_for_block_range(layout, lo, hi),
                 block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * len(keys) + 1))),
-                instance_capacity=rows,
+                instance_capacity=initial_instance_rows(self.config.detections.max_detections, layout.instance_capacity),
             )
         self._builder = MapBuilder(
             self.config,

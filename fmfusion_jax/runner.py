@@ -211,19 +211,27 @@ class SceneFusion:
         self.skipped.append((name, reason))
 
 
-def mapper_for_scene(
-    scene: Scene, config: PipelineConfig, sample: DepthSample | None = None, time_stages: bool = False, **hooks: Any
-):
-    """The `Mapper` `fmfusion run` fuses `scene` into: its block index over the scene's bounds, its pool
-    starting at the blocks the sampled frames allocate (`sample`: a `Scene.sample_depth`, default 60 frames)
-    and doubling if the others show more. `hooks`: the Mapper's `timer` and `fuse_detections` (the benchmark's)."""
-    from fmfusion_jax.mapper import Mapper, sample_block_count
+def scene_extent(scene: Scene, config: PipelineConfig, sample: DepthSample | None = None):
+    """`(bounds, expected_blocks)` of `scene` as `fmfusion run` sizes its map: the bounds of the sampled frames'
+    poses and depth (`sample`: a `Scene.sample_depth`, default 60 frames) and the blocks those frames allocate."""
+    from fmfusion_jax.mapper import sample_block_count
     from fmfusion_jax.pipeline import build_map_config
 
     sample = sample or scene.sample_depth(max_frames=60)
     bounds = scene.bounds(sample=sample)
     layout = build_map_config(config, *bounds, scene.intrinsics.height, scene.intrinsics.width)
-    expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
+    return bounds, sample_block_count(sample.points_world, sample.ray_origins, layout)
+
+
+def mapper_for_scene(
+    scene: Scene, config: PipelineConfig, sample: DepthSample | None = None, time_stages: bool = False, **hooks: Any
+):
+    """The `Mapper` `fmfusion run` fuses `scene` into: its block index over the scene's bounds, its pool
+    starting at the blocks the sampled frames allocate (`scene_extent`) and doubling if the others show more.
+    `hooks`: the Mapper's `timer` and `fuse_detections` (the benchmark's)."""
+    from fmfusion_jax.mapper import Mapper
+
+    bounds, expected = scene_extent(scene, config, sample)
     return Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages, **hooks)
 
 

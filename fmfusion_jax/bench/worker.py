@@ -19,7 +19,6 @@ arrays on the device, which `MapBuilder` does before each step).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import resource
@@ -109,19 +108,13 @@ def _device_memory_mb() -> float | None:
 
 
 def scene_map_config(config, opened):
-    """The map `fmfusion run` starts with for the opened scene: its bounds, the pool from a 60-frame depth sample
-    and the first instance table (`Mapper`'s sizing). The sweep's builders keep it (they do not grow)."""
-    from fmfusion_jax.mapper import initial_instance_rows, initial_pool_blocks, sample_block_count
-    from fmfusion_jax.pipeline import build_map_config
+    """The map `fmfusion run` starts with for the opened scene (`runner.scene_extent`, `mapper.bounded_map_config`).
+    The sweep's builders keep it (they do not grow)."""
+    from fmfusion_jax.mapper import bounded_map_config
+    from fmfusion_jax.runner import scene_extent
 
-    sample = opened.sample_depth(max_frames=60)
-    layout = build_map_config(config, *opened.bounds(sample=sample), opened.intrinsics.height, opened.intrinsics.width)
-    expected = sample_block_count(sample.points_world, sample.ray_origins, layout)
-    return dataclasses.replace(
-        layout,
-        block_capacity=initial_pool_blocks(expected, layout.block_capacity),
-        instance_capacity=initial_instance_rows(config.detections.max_detections, layout.instance_capacity),
-    )
+    bounds, expected = scene_extent(opened, config)
+    return bounded_map_config(config, bounds, opened.intrinsics.height, opened.intrinsics.width, expected)
 
 
 def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:

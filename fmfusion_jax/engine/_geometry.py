@@ -130,6 +130,18 @@ def fold_chunks(count, chunk: int, total: int, body, carry):
     return jax.lax.fori_loop(0, num_chunks, step, carry)
 
 
+def as_words(x: jax.Array) -> jax.Array | None:
+    """`x[..., W]` (1- or 2-byte elements, bools as bytes) read as uint32 words `[..., W * itemsize / 4]`, or None
+    when its rows are not whole words. On the CPU, XLA reduces and compares these 2-4x faster than the narrow
+    elements (a bool sum even went through a materialized int32 copy)."""
+    if x.dtype == jnp.bool_:
+        x = x.astype(jnp.uint8)
+    per_word = 4 // x.dtype.itemsize
+    if x.dtype.itemsize > 2 or x.shape[-1] % per_word:
+        return None
+    return jax.lax.bitcast_convert_type(x.reshape(*x.shape[:-1], x.shape[-1] // per_word, per_word), jnp.uint32)
+
+
 def materialize(x: jax.Array) -> jax.Array:
     """`x`, computed once into a buffer of its own (an identity scatter, which XLA never fuses away).
 

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fmfusion_jax.engine._geometry import as_words
 from fmfusion_jax.types import FrameDetections
 
 
@@ -144,11 +145,10 @@ def detection_pixel_image(masks: jax.Array, valid: jax.Array, stride: int) -> ja
 def mask_areas(masks: jax.Array) -> jax.Array:
     """int32[N]: the pixels of each mask `bool[N, h, w]`. Counted four flags to a word (a population count of the
     mask bytes read as uint32): on the CPU, XLA summed the bools through a materialized int32 copy, 3x slower."""
-    n = masks.shape[0]
-    pixels = math.prod(masks.shape[1:])
-    if pixels % 4:
-        return jnp.sum(masks.reshape(n, -1), axis=1, dtype=jnp.int32)
-    words = jax.lax.bitcast_convert_type(masks.astype(jnp.uint8).reshape(n, pixels // 4, 4), jnp.uint32)
+    flat = masks.reshape(masks.shape[0], -1)
+    words = as_words(flat)
+    if words is None:
+        return jnp.sum(flat, axis=1, dtype=jnp.int32)
     return jnp.sum(jax.lax.population_count(words), axis=1, dtype=jnp.int32)
 
 

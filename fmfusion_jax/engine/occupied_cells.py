@@ -515,15 +515,11 @@ def gather_cell_ids(cell_ids: jax.Array, cells: jax.Array) -> jax.Array:
 
 
 def _rows_differ(a: jax.Array, b: jax.Array) -> jax.Array:
-    """bool[N]: rows of `a` and `b` (int16[N, W], W even) that differ, compared two ids to a 32-bit word."""
-    n, width = a.shape
-    if width % 2 or a.dtype.itemsize != 2:
+    """bool[N]: rows of `a` and `b` (int16[N, W]) that differ, compared two ids to a 32-bit word."""
+    words_a, words_b = geo.as_words(a), geo.as_words(b)
+    if words_a is None or words_b is None:
         return jnp.any(a != b, axis=1)
-
-    def words(x):
-        return jax.lax.bitcast_convert_type(x.reshape(n, width // 2, 2), jnp.uint32)
-
-    return jnp.any(words(a) != words(b), axis=1)
+    return jnp.any(words_a != words_b, axis=1)
 
 
 def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries, new_entries, config: MapConfig):
@@ -581,11 +577,10 @@ def blocks_holding(bits: jax.Array, wanted: jax.Array, num_blocks) -> jax.Array:
     pool_blocks, width = bits.shape
     k = wanted.shape[0]
     wanted_bits = jnp.zeros((width,), bool).at[jnp.arange(k) % width].max(wanted)
-    if width % 4:
+    words, wanted_words = geo.as_words(bits), geo.as_words(wanted_bits)
+    if words is None or wanted_words is None:
         holds = jnp.any(bits & wanted_bits[None, :], axis=1)
     else:  # four flags to a word: 2.7x faster than the reduction over bools on the CPU
-        words = jax.lax.bitcast_convert_type(bits.astype(jnp.uint8).reshape(pool_blocks, width // 4, 4), jnp.uint32)
-        wanted_words = jax.lax.bitcast_convert_type(wanted_bits.astype(jnp.uint8).reshape(width // 4, 4), jnp.uint32)
         holds = jnp.any((words & wanted_words[None, :]) != 0, axis=1)
     return holds & (jnp.arange(pool_blocks) < num_blocks)
 

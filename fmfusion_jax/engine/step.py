@@ -95,7 +95,7 @@ class FusionConfig:
 
 
 class FrameInputs(NamedTuple):
-    """One frame as arrays (built on the host by `frame_inputs`: NumPy arrays, which the jitted step transfers)."""
+    """One frame as arrays (built on the host by `frame_inputs` as NumPy arrays; `MapBuilder` puts them on the device)."""
 
     depth: jax.Array | np.ndarray  # float32[H, W] metres, 0 = invalid
     color: jax.Array | np.ndarray  # uint8[H, W, 3] RGB
