@@ -70,7 +70,8 @@ def _find_touched_blocks(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
     bx, by, bz = geo.index_floor((x, y, z), config, blocks.origin_block, length)
     inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
     use = ok_pixel[None] & inside
-    flat = jnp.where(use, (bx * sy + by) * sz + bz, num_grid).reshape(-1)
+    # computed once: the scatter-min, the representative test and the compaction all read it
+    flat = geo.materialize(jnp.where(use, (bx * sy + by) * sz + bz, num_grid).reshape(-1))
 
     # Points outside the index: count each valid pixel whose measured point (the middle sample) is out.
     mid = n // 2
@@ -170,12 +171,12 @@ def _integrate_tsdf(blocks: VoxelBlocks, depth, color, T_world_camera, intrinsic
         ok = jax.lax.dynamic_slice_in_dim(touched.valid, start, size) & fresh
         slots = jnp.where(ok, slots, config.dummy_slot)  # rows of other chunks / padding: scratch slot
         t_new, w_new, c_new = _integrate_chunk(pool, slots, depth, color, T, K, config)
-        # The scratch slot may appear several times: its rows get identical (unchanged) values.
-        keep = ok[:, None]
+        # rows of padding (the scratch slot) are dropped, not written back: no second read of the old rows
+        rows = jnp.where(ok, slots, config.block_capacity)
         return pool._replace(
-            tsdf=pool.tsdf.at[slots].set(jnp.where(keep, t_new, pool.tsdf[slots])),
-            weight=pool.weight.at[slots].set(jnp.where(keep, w_new, pool.weight[slots])),
-            color=pool.color.at[slots].set(jnp.where(keep[..., None], c_new, pool.color[slots])),
+            tsdf=pool.tsdf.at[rows].set(t_new, mode="drop"),
+            weight=pool.weight.at[rows].set(w_new, mode="drop"),
+            color=pool.color.at[rows].set(c_new, mode="drop"),
         )
 
     blocks = geo.fold_chunks(touched.count, chunk, total, body, touched.blocks)
