@@ -103,8 +103,8 @@ def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:
 @dataclasses.dataclass(frozen=True)
 class HostAdapter:
     """The one joint between the host (readers, detectors, simulator: arrays of any size) and the engine
-    (fixed shapes): frames become `FrameInputs`, detections a padded `DetectionBatch` (masks at the fused
-    pixel stride), each checked once against the map's image size with an error that names the frame.
+    (fixed shapes): frames become `FrameInputs`, detections a padded `DetectionBatch` (their label image at the
+    fused pixel stride), each checked once against the map's image size with an error that names the frame.
     `MapBuilder` (so `Mapper` and the bench), `MapperBatch` and the Kimera baseline all go through it."""
 
     map_config: MapConfig
@@ -132,7 +132,12 @@ class HostAdapter:
                 f"{detections.frame_name}: detection masks are {detections.image_shape}, frames are {self.image_shape}"
             )
         return pack_detections(
-            detections, self.open_labels, self.max_detections, self.min_mask_pixels, stride=self.map_config.pixel_stride
+            detections,
+            self.open_labels,
+            self.max_detections,
+            self.min_mask_pixels,
+            stride=self.map_config.pixel_stride,
+            as_image=True,
         )
 
 
@@ -324,14 +329,16 @@ class MapBuilder:
         are read at the next call (or `flush`), so the caller may read and decode the next frame while the
         device works; the merge and geometry-fusion schedules count detection frames on the host.
         """
-        self.flush()
         adapter = self.adapter
-        # on the device before the step (a step given host arrays copies them in before it starts)
-        inputs = jax.device_put(adapter.frame(frame))
-        if detections is None:
+        # packed while the device may still run the previous step, then put on the device before this one
+        # (a step given host arrays copies them in before it starts)
+        inputs = adapter.frame(frame)
+        batch = None if detections is None else adapter.detections(detections)
+        self.flush()
+        inputs, batch = jax.device_put((inputs, batch))
+        if batch is None:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.step_config)
         else:
-            batch = jax.device_put(adapter.detections(detections))
             self.state, stats = self.timer.run(
                 "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.step_config, self.fusion_config
             )

@@ -95,6 +95,35 @@ def test_detection_pixel_image_matches_reference(seed):
     np.testing.assert_array_equal(got, R.detection_pixel_image(masks, valid, STRIDE))
 
 
+@CHECK
+@given(seeds, st.sampled_from([1, STRIDE, 3]))
+def test_the_host_label_image_is_the_engine_detection_image(seed, stride):
+    # what the host adapter sends (`pack_detections(..., as_image=True)`) is what the engine makes of the masks
+    rng = np.random.default_rng(seed)
+    masks, valid, _, _ = random_frame(rng)
+    masks[2] = masks[1]  # an exact tie: the lower index wins on both sides
+    labels = [{"chair": 0.5} if ok else {"banana": 0.9} for ok in valid]  # invalid rows: no open label, not packed
+    frame = _frame(masks, labels)
+    stack = D.pack_detections(frame, ["chair"], N + 2, 1, stride=stride)
+    image = D.pack_detections(frame, ["chair"], N + 2, 1, stride=stride, as_image=True)
+    assert image.masks is None and image.pixel_detection.dtype == np.int16
+    np.testing.assert_array_equal(image.valid, stack.valid)
+    np.testing.assert_array_equal(image.label_scores, stack.label_scores)
+    expected = np.asarray(D.detection_pixel_image(stack.masks, stack.valid, 1))
+    np.testing.assert_array_equal(image.pixel_detection, expected)
+    got = np.asarray(D.batch_pixel_image(image, (H, W), stride))
+    np.testing.assert_array_equal(got, np.asarray(D.batch_pixel_image(stack, (H, W), stride)))
+
+
+def test_an_empty_frame_packs_as_an_empty_label_image():
+    empty = D.pack_detections(FrameDetections.empty("f", 10, 10), ["chair"], 3, 1, stride=2, as_image=True)
+    assert empty.pixel_detection.shape == (5, 5) and (empty.pixel_detection == -1).all() and not empty.valid.any()
+    unusable = D.pack_detections(_frame(np.ones((2, 10, 10), bool), [{"banana": 0.9}] * 2), ["chair"], 3, 1, 2, as_image=True)
+    assert (unusable.pixel_detection == -1).all() and not unusable.valid.any()  # detections, none of them kept
+    with pytest.raises(ValueError, match="pixel_detection has shape"):
+        D.batch_pixel_image(empty, (10, 10), 1)
+
+
 def test_smallest_mask_wins_the_overlap():
     masks = np.zeros((N, H, W), bool)
     masks[0] = True  # a bed

@@ -138,6 +138,33 @@ def test_no_recompilation_after_the_first_frames(room_frames):
     assert (step.fuse_detections._cache_size(), step.integrate_frame._cache_size(), step._merge_step._cache_size()) == sizes
 
 
+def test_the_label_image_and_the_mask_stack_make_the_same_map(room_frames):
+    # the host adapter sends a label image at the fused stride; full-resolution masks must give the same map
+    room, frames = room_frames
+    config = small_config()
+    builder = build(config, room)
+    from fmfusion_jax.engine.detections import pack_detections
+    from fmfusion_jax.engine.state import init_map_state
+    from fmfusion_jax.pipeline import frame_inputs
+
+    map_config, stride = builder.map_config, builder.map_config.pixel_stride
+    maps = []
+    for as_image in (False, True):
+        state = init_map_state(map_config)  # the step donates its state
+        for frame in frames[:3]:
+            batch = pack_detections(
+                clean_detections(frame), LABELS.open_labels, 12, 100, stride=stride if as_image else 1, as_image=as_image
+            )
+            assert (batch.masks is None) == as_image
+            state, _ = step.fuse_detections(
+                state, frame_inputs(frame, map_config), batch, builder.likelihood, map_config, builder.fusion_config
+            )
+        maps.append(jax.device_get(state))
+    assert int(maps[1].instances.valid.sum()) >= 3
+    for leaf_stack, leaf_image in zip(jax.tree.leaves(maps[0]), jax.tree.leaves(maps[1])):
+        np.testing.assert_array_equal(leaf_stack, leaf_image)
+
+
 def test_batch_of_two_maps_equals_two_runs(room_frames):
     room, frames = room_frames
     other_room = BoxRoom(boxes=(((1.0, 1.0, 0.0), (1.8, 1.6, 0.9)),), spheres=())

@@ -429,7 +429,7 @@ class KimeraMapper:
             self.seconds["labels"] += time.perf_counter() - start
 
     def _add_labels(self, frame: RGBDFrame, detections: FrameDetections) -> None:
-        from fmfusion_jax.engine.detections import detection_pixel_image, filter_detection_depth, remaining_stride
+        from fmfusion_jax.engine.detections import batch_pixel_image, filter_detection_depth
 
         config, map_config = self.config, self.map_config
         batch = self.geometry.adapter.detections(detections)
@@ -437,10 +437,8 @@ class KimeraMapper:
         depth_s = np.asarray(frame.depth, np.float32)[::stride, ::stride]
         lo, hi = config.detections.depth_percentiles
         image_shape = (map_config.image_height, map_config.image_width)
-        det_image = detection_pixel_image(batch.masks, batch.valid, remaining_stride(batch.masks.shape, image_shape, stride))
-        det_image = np.asarray(
-            filter_detection_depth(det_image, depth_s, batch.valid.shape[0], lo, hi, depth_max=map_config.depth_max)
-        )
+        raw = batch_pixel_image(batch, image_shape, stride)
+        det_image = np.asarray(filter_detection_depth(raw, depth_s, batch.valid.shape[0], lo, hi, depth_max=map_config.depth_max))
         classes = detection_classes(batch.label_scores, batch.valid, self.hard_class)
         pixel_class = np.where(det_image >= 0, classes[np.maximum(det_image, 0)], -1)
         k = frame.intrinsics

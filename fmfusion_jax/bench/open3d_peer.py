@@ -489,6 +489,7 @@ class Open3DInstancePipeline:
         """`(N, H, W)` bool filtered masks and `(N, O)` float32 label scores of the kept detections."""
         cfg = self.config.detections
         batch = pack_detections(detections, self.label_sets.open_labels, cfg.max_detections, cfg.min_mask_pixels)
+        assert batch.masks is not None  # packed as a mask stack (the default)
         n = int(np.count_nonzero(batch.valid))  # packed rows: the kept detections first
         lo, hi = cfg.depth_percentiles
         return _filter_mask_depth(batch.masks[:n], depth, lo, hi), batch.label_scores[:n]

@@ -27,16 +27,23 @@ from fmfusion_jax.types import FrameDetections
 class DetectionBatch(NamedTuple):
     """One frame's detections padded to a fixed capacity `N` (host arrays; jit converts them).
 
+    The pixels come one of two ways: as a stack of masks, or (what the host adapter sends) as the label image
+    the engine would make of them (`detection_pixel_image`), an `(Hs, Ws)` int16 image: a sixteenth of the bytes
+    of a 32-row stack, and no per-detection pass over the pixels on the device.
+
     Attributes:
-      masks: `(N, H, W)` bool at full resolution, or `(N, Hs, Ws)` at the fused pixel stride (`pack_detections`);
-        rows past the real detections are all False.
+      masks: `(N, H, W)` bool at full resolution, or `(N, Hs, Ws)` at the fused pixel stride; rows past the
+        real detections are all False. None when `pixel_detection` carries the pixels.
       label_scores: `(N, O)` float32, score of each open-set label (0 = label not measured).
       valid: `(N,)` bool, which rows hold a real detection.
+      pixel_detection: `(Hs, Ws)` int16 (int32 for `N >= 2**15`) at the fused pixel stride: the row of the
+        detection owning each pixel, -1 none (`pack_detections(..., as_image=True)`); None with `masks`.
     """
 
-    masks: np.ndarray
+    masks: np.ndarray | None
     label_scores: np.ndarray
     valid: np.ndarray
+    pixel_detection: np.ndarray | None = None
 
 
 def select_detections(
@@ -67,11 +74,14 @@ def pack_detections(
     max_detections: int,
     min_mask_pixels: int,
     stride: int = 1,
+    as_image: bool = False,
 ) -> DetectionBatch:
     """Pads a frame's detections into a `DetectionBatch` of capacity `max_detections` (host side).
 
     `stride`: the masks are sent at `[::stride, ::stride]` (the fused pixel grid: a quarter of the bytes at
     the default stride 2); the engine takes masks at full or at that resolution (`remaining_stride`).
+    `as_image`: send the pixels as the label image at that stride (`DetectionBatch.pixel_detection`, made by
+    `pixel_detection_image` with the engine's overlap rule) instead of the mask stack.
 
     Dropped: masks with fewer than `min_mask_pixels` pixels (full resolution; the reference uses 1000
     in its Python pipeline, 100 in C++) and detections with no score on any label of `open_labels`
@@ -81,11 +91,12 @@ def pack_detections(
     """
     open_labels = tuple(open_labels)
     height, width = subsampled_shape(*frame_detections.image_shape, stride)
-    masks = np.zeros((max_detections, height, width), bool)
     scores = np.zeros((max_detections, len(open_labels)), np.float32)
     valid = np.zeros((max_detections,), bool)
     if frame_detections.num_detections == 0:
-        return DetectionBatch(masks, scores, valid)
+        if as_image:
+            return DetectionBatch(None, scores, valid, np.full((height, width), -1, _label_dtype(max_detections)))
+        return DetectionBatch(np.zeros((max_detections, height, width), bool), scores, valid)
 
     keep, usable = select_detections(frame_detections, open_labels, max_detections, min_mask_pixels)
     if usable > max_detections:
@@ -96,10 +107,43 @@ def pack_detections(
             stacklevel=2,
         )
     n = keep.size
-    masks[:n] = np.asarray(frame_detections.masks, bool)[keep, ::stride, ::stride]
+    kept_masks = np.asarray(frame_detections.masks, bool)[keep, ::stride, ::stride]
     scores[:n] = frame_detections.label_score_matrix(open_labels)[keep]
     valid[:n] = True
+    if as_image:
+        return DetectionBatch(None, scores, valid, pixel_detection_image(kept_masks, max_detections))
+    masks = np.zeros((max_detections, height, width), bool)
+    masks[:n] = kept_masks
     return DetectionBatch(masks, scores, valid)
+
+
+def _label_dtype(max_detections: int):
+    return np.int16 if max_detections < 2**15 else np.int32
+
+
+def pixel_detection_image(masks: np.ndarray, max_detections: int) -> np.ndarray:
+    """The label image of `(n, h, w)` bool masks (host side): int16 `(h, w)`, the index of the mask owning
+    each pixel, -1 none. Where masks overlap, `detection_pixel_image`'s rule: the smallest mask wins (ties:
+    lower index). `max_detections` (>= n) sets the dtype (int32 from 2**15 rows)."""
+    image = np.full(masks.shape[1:], -1, _label_dtype(max_detections))
+    areas = np.count_nonzero(masks, axis=(1, 2))
+    # painted largest first, so smaller masks overwrite it; among equal areas the lower index is painted last
+    for k in np.argsort(areas, kind="stable")[::-1]:
+        image[masks[k]] = k
+    return image
+
+
+def batch_pixel_image(batch: DetectionBatch, image_shape: tuple[int, int], stride: int) -> jax.Array:
+    """int32 `(Hs, Ws)`: the detection owning each fused pixel, -1 none: the batch's label image as sent, or
+    made from its masks (`detection_pixel_image`)."""
+    if batch.pixel_detection is not None:
+        labels = jnp.asarray(batch.pixel_detection)
+        if labels.shape != subsampled_shape(*image_shape, stride):
+            raise ValueError(f"pixel_detection has shape {labels.shape}, expected {subsampled_shape(*image_shape, stride)}")
+        return labels.astype(jnp.int32)
+    if batch.masks is None:
+        raise ValueError("a DetectionBatch needs masks or pixel_detection")
+    return detection_pixel_image(batch.masks, batch.valid, remaining_stride(batch.masks.shape, image_shape, stride))
 
 
 def subsampled_shape(height: int, width: int, stride: int) -> tuple[int, int]:

@@ -167,9 +167,7 @@ def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig
     removed pixels are `FILTERED_PIXEL`."""
     stride = config.pixel_stride
     image_shape = (config.image_height, config.image_width)
-    raw = detections.detection_pixel_image(
-        batch.masks, batch.valid, detections.remaining_stride(batch.masks.shape, image_shape, stride)
-    )
+    raw = detections.batch_pixel_image(batch, image_shape, stride)
     kept = detections.filter_detection_depth(
         raw,
         frame.depth[::stride, ::stride],
