@@ -165,6 +165,11 @@ class StageTimer:
         self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
         return out
 
+    def record_host(self, name: str, start: float) -> None:
+        """Keeps the host work since `start` (`time.perf_counter()`) as a stage (nothing when not enabled)."""
+        if self.enabled:
+            self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
+
     def record(self, name: str, elapsed_ms: float, compiled: bool) -> None:
         """Keeps one call's time: apart when it compiled (the first one in `first_ms`), else as a sample."""
         self.warm.add(name)
@@ -332,15 +337,24 @@ class MapBuilder:
         adapter = self.adapter
         # packed while the device may still run the previous step, then put on the device before this one
         # (a step given host arrays copies them in before it starts)
+        start = time.perf_counter()
         inputs = adapter.frame(frame)
         batch = None if detections is None else adapter.detections(detections)
+        self.timer.record_host("host", start)
         self.flush()
         inputs, batch = jax.device_put((inputs, batch))
         if batch is None:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.step_config)
         else:
             self.state, stats = self.timer.run(
-                "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.step_config, self.fusion_config
+                "fusion",
+                self.fuse_detections,
+                self.state,
+                inputs,
+                batch,
+                self.likelihood,
+                self.step_config,
+                step.fusion_on_device(self.fusion_config),
             )
             merge_due, geometry_due = self.count_detection_frame()
             refine_stats = None
@@ -348,7 +362,7 @@ class MapBuilder:
                 self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.step_config, self.fusion_config)
             if geometry_due:
                 self.state = self.timer.run(
-                    "geometry_fusion", step.fuse_geometry, self.state, self.step_config, self.fusion_config
+                    "geometry_fusion", step.fuse_geometry, self.state, self.step_config, step.fusion_on_device(self.fusion_config)
                 )
             self._pending = (frame.name, stats, refine_stats)
         self.frames_integrated += 1

