@@ -162,11 +162,12 @@ class StageTimer:
             return fn(*args)
         start = time.perf_counter()
         out = jax.block_until_ready(fn(*args))
-        self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
+        self.record_since(name, start)
         return out
 
-    def record_host(self, name: str, start: float) -> None:
-        """Keeps the host work since `start` (`time.perf_counter()`) as a stage (nothing when not enabled)."""
+    def record_since(self, name: str, start: float) -> None:
+        """Keeps the time since `start` (`time.perf_counter()`) as a call of stage `name` (nothing when not
+        enabled): the host's own work, which `run` cannot wrap."""
         if self.enabled:
             self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
 
@@ -340,7 +341,7 @@ class MapBuilder:
         start = time.perf_counter()
         inputs = adapter.frame(frame)
         batch = None if detections is None else adapter.detections(detections)
-        self.timer.record_host("host", start)
+        self.timer.record_since("host", start)
         self.flush()
         inputs, batch = jax.device_put((inputs, batch))
         if batch is None:

@@ -138,6 +138,17 @@ def test_no_recompilation_after_the_first_frames(room_frames):
     assert (step.fuse_detections._cache_size(), step.integrate_frame._cache_size(), step._merge_step._cache_size()) == sizes
 
 
+def test_fusion_thresholds_go_to_the_device_once_per_config():
+    fusion = step.FusionConfig(association_threshold=0.4)
+    on_device = step.fusion_on_device(fusion)
+    assert step.fusion_on_device(step.FusionConfig(association_threshold=0.4)) is on_device  # cached per config
+    assert jax.tree.structure(on_device) == jax.tree.structure(fusion)
+    for leaf, value in zip(jax.tree.leaves(on_device), jax.tree.leaves(fusion)):
+        assert isinstance(leaf, jax.Array) and leaf.weak_type and float(leaf) == pytest.approx(value)  # same trace
+    swept = dataclasses.replace(fusion, association_threshold=jax.numpy.float32(0.3))
+    assert step.fusion_on_device(swept) is swept  # array thresholds pass as they are
+
+
 def test_the_label_image_and_the_mask_stack_make_the_same_map(room_frames):
     # the host adapter sends a label image at the fused stride; full-resolution masks must give the same map
     room, frames = room_frames

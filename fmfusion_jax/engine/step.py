@@ -495,11 +495,18 @@ def _online_params(remove_missed, remove_min_voxels, similarity, overlap, reunit
     )
 
 
-@functools.lru_cache(maxsize=16)
 def fusion_on_device(fusion: FusionConfig) -> FusionConfig:
-    """`fusion` with its thresholds put on the device once (weak types kept: the same compiled steps). Passed
-    as Python numbers, its twelve thresholds are converted on every call of a jitted step (~0.5 ms each call
-    of `fuse_detections` on the CPU)."""
+    """`fusion` with its thresholds put on the device once per config (weak types kept: the same compiled
+    steps). Passed as Python numbers, its twelve thresholds are converted on every call of a jitted step
+    (~0.5 ms each call of `fuse_detections` on the CPU). Array thresholds (a sweep, a gradient) pass as they are."""
+    try:
+        return _fusion_on_device(fusion)
+    except TypeError:  # unhashable: array thresholds
+        return fusion
+
+
+@functools.lru_cache(maxsize=16)
+def _fusion_on_device(fusion: FusionConfig) -> FusionConfig:
     return jax.device_put(fusion)
 
 
