@@ -143,13 +143,15 @@ def as_words(x: jax.Array) -> jax.Array | None:
 
 
 def materialize(x: jax.Array) -> jax.Array:
-    """`x`, computed once into a buffer of its own (an identity scatter, which XLA never fuses away).
+    """`x`, computed once into a buffer of its own: the operand of a one-element scatter (which XLA never fuses
+    away; `lax.optimization_barrier` did not stop the recomputation).
 
     XLA's CPU fusion inlines an elementwise producer into each consumer; a producer that is costly per
     element (gathers, long select chains) and read several times, or through a concatenate (`jnp.stack`
-    evaluates each operand's whole chain per output element), is then computed several times over. The
-    scatter costs one pass over `x`.
+    evaluates each operand's whole chain per output element), is then computed several times over. Here it
+    is computed once, into the scatter's buffer (an identity scatter of every element into zeros, as before,
+    also cost a fill, a copy and a scalar pass).
     """
     flat = x.reshape(-1)
-    at = jnp.arange(flat.shape[0], dtype=jnp.int32)
-    return jnp.zeros_like(flat).at[at].set(flat, unique_indices=True, indices_are_sorted=True).reshape(x.shape)
+    # the scatter's operand is a buffer XLA must fill; rewriting one element in place costs nothing more
+    return flat.at[jnp.zeros((1,), jnp.int32)].set(flat[:1], unique_indices=True, indices_are_sorted=True).reshape(x.shape)

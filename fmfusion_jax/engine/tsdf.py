@@ -140,11 +140,15 @@ def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: Map
     d = depth.reshape(-1)[pixel]
     sdf = d - zc
     update = in_image & geo.valid_depth(d, config) & (sdf >= -config.sdf_trunc)
+    # computed once (the three outputs, colour per channel, would each redo the projection): the pixel of
+    # each updated voxel (-1: no update) and its observed value
+    pixel = geo.materialize(jnp.where(update, pixel, -1))
+    observed = geo.materialize(jnp.minimum(sdf / config.sdf_trunc, 1.0))
+    update, pixel = pixel >= 0, jnp.maximum(pixel, 0)
 
     w_old = blocks.weight[slots]
     t_old = blocks.tsdf[slots]
     c_old = blocks.color[slots].astype(jnp.float32)  # stored in half precision, averaged in single
-    observed = jnp.minimum(sdf / config.sdf_trunc, 1.0)
     inv = 1.0 / (w_old + 1.0)
     t_new = jnp.where(update, jnp.clip((t_old * w_old + observed) * inv, -1.0, 1.0), t_old)
     rgb = color.reshape(-1, 3)[pixel].astype(jnp.float32)  # (C, V, 3); converted once gathered, not the image
