@@ -135,13 +135,12 @@ def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: Map
     safe_z = jnp.where(in_front, zc, 1.0)
     u = jnp.round(K[0] * xc / safe_z + K[2]).astype(jnp.int32)
     v = jnp.round(K[1] * yc / safe_z + K[3]).astype(jnp.int32)
-    in_image = in_front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    pixel = jnp.where(in_image, v * w + u, 0)
-    d = depth.reshape(-1)[pixel]
+    # Values computed once (XLA would redo the projection in the depth gather and in each output, colour per
+    # channel): each voxel's pixel (-1: outside the image), then that of each updated voxel and its observation.
+    pixel = geo.materialize(jnp.where(in_front & (u >= 0) & (u < w) & (v >= 0) & (v < h), v * w + u, -1))
+    d = depth.reshape(-1)[jnp.maximum(pixel, 0)]
     sdf = d - zc
-    update = in_image & geo.valid_depth(d, config) & (sdf >= -config.sdf_trunc)
-    # computed once (the three outputs, colour per channel, would each redo the projection): the pixel of
-    # each updated voxel (-1: no update) and its observed value
+    update = (pixel >= 0) & geo.valid_depth(d, config) & (sdf >= -config.sdf_trunc)
     pixel = geo.materialize(jnp.where(update, pixel, -1))
     observed = geo.materialize(jnp.minimum(sdf / config.sdf_trunc, 1.0))
     update, pixel = pixel >= 0, jnp.maximum(pixel, 0)
