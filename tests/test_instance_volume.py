@@ -13,6 +13,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from oracles import reference as ref
 
+from fmfusion_jax.engine import _geometry as geo
 from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine import occupied_cells as oc
 from fmfusion_jax.engine import tsdf
@@ -472,11 +473,11 @@ def test_prefix_sum_and_compaction():
     rng = np.random.default_rng(0)
     for n in (1, 16, 17, 4097):
         x = rng.integers(0, 3, n).astype(np.int32)
-        np.testing.assert_array_equal(np.asarray(oc._inclusive_cumsum(jnp.asarray(x))), np.cumsum(x))
+        np.testing.assert_array_equal(np.asarray(geo.inclusive_cumsum(jnp.asarray(x))), np.cumsum(x))
         flags = rng.random(n) < 0.4
         values = (np.arange(n) * 7).astype(np.int32)
         for start, size in ((0, n), (3, n + 5), (2, max(1, n // 3))):
-            out, found = oc._compact(jnp.full((size,), -1, jnp.int32), jnp.int32(start), jnp.asarray(flags), jnp.asarray(values))
+            out, found = geo.compact(jnp.full((size,), -1, jnp.int32), jnp.int32(start), jnp.asarray(flags), jnp.asarray(values))
             expected = np.full(size + n + start, -1)
             expected[start : start + flags.sum()] = values[flags]
             np.testing.assert_array_equal(np.asarray(out), expected[:size])

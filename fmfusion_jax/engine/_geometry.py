@@ -155,3 +155,31 @@ def materialize(x: jax.Array) -> jax.Array:
     flat = x.reshape(-1)
     # the scatter's operand is a buffer XLA must fill; rewriting one element in place costs nothing more
     return flat.at[jnp.zeros((1,), jnp.int32)].set(flat[:1], unique_indices=True, indices_are_sorted=True).reshape(x.shape)
+
+
+def inclusive_cumsum(x: jax.Array, width: int = 16) -> jax.Array:
+    """Inclusive prefix sum of a 1-D int32 array, in two levels: within rows of `width`, then of the row
+    totals. On the CPU this was ~3x faster than one `jnp.cumsum` over the whole array (and
+    `jnp.nonzero`, built on two of them, was the main cost of listing cells); an unrolled version was
+    faster still but took a second to compile."""
+    n = x.shape[0]
+    if n <= width:
+        return jnp.cumsum(x)
+    m = -(-n // width)
+    rows = jnp.cumsum(jnp.pad(x, (0, m * width - n)).reshape(m, width), axis=1)
+    totals = rows[:, -1]
+    return (rows + (jnp.cumsum(totals) - totals)[:, None]).reshape(-1)[:n]
+
+
+def compact(out: jax.Array, found, flags: jax.Array, values: jax.Array):
+    """Writes `values[flags]` (in order) into the list `out` from position `found`; returns `(out, found')`.
+
+    Entries past the end of `out` are dropped (and still counted in `found'`). One scatter of
+    `len(flags)` updates.
+    """
+    flags = flags.reshape(-1)
+    ones = flags.astype(jnp.int32)
+    position = found + inclusive_cumsum(ones) - 1
+    target = jnp.where(flags, position, out.shape[0])
+    out = out.at[target].set(values.reshape(-1), mode="drop")
+    return out, found + jnp.sum(ones)

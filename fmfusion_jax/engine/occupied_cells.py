@@ -49,34 +49,6 @@ class InstanceCounts(NamedTuple):
 # to rewrite from those tags instead of reading the pool again.
 
 
-def _inclusive_cumsum(x: jax.Array, width: int = 16) -> jax.Array:
-    """Inclusive prefix sum of a 1-D int32 array, in two levels: within rows of `width`, then of the row
-    totals. On the CPU this was ~3x faster than one `jnp.cumsum` over the whole array (and
-    `jnp.nonzero`, built on two of them, was the main cost of listing cells); an unrolled version was
-    faster still but took a second to compile."""
-    n = x.shape[0]
-    if n <= width:
-        return jnp.cumsum(x)
-    m = -(-n // width)
-    rows = jnp.cumsum(jnp.pad(x, (0, m * width - n)).reshape(m, width), axis=1)
-    totals = rows[:, -1]
-    return (rows + (jnp.cumsum(totals) - totals)[:, None]).reshape(-1)[:n]
-
-
-def _compact(out: jax.Array, found, flags: jax.Array, values: jax.Array):
-    """Writes `values[flags]` (in order) into the list `out` from position `found`; returns `(out, found')`.
-
-    Entries past the end of `out` are dropped (and still counted in `found'`). One scatter of
-    `len(flags)` updates.
-    """
-    flags = flags.reshape(-1)
-    ones = flags.astype(jnp.int32)
-    position = found + _inclusive_cumsum(ones) - 1
-    target = jnp.where(flags, position, out.shape[0])
-    out = out.at[target].set(values.reshape(-1), mode="drop")
-    return out, found + jnp.sum(ones)
-
-
 def _cell_rows(array: jax.Array) -> jax.Array:
     """A pool array `[B, V, ...]` viewed as one row per 2x2x2 cell: `[B * V / 8, 8 * prod(...)]` (free)."""
     b, v = array.shape[:2]
@@ -147,7 +119,7 @@ def _fold_occupied(
         carry, flagged_list, flagged, tags = c
         carry, flag, tag = cell_step(index, ok, carry)
         if flagged_step is not None:
-            flagged_list, flagged = _compact(flagged_list, flagged, ok & flag, index)
+            flagged_list, flagged = geo.compact(flagged_list, flagged, ok & flag, index)
         if record:  # the step's tags at its place in the chunk's list (rows not `ok` keep theirs)
             before = jax.lax.dynamic_slice_in_dim(tags, start, sub)
             tags = jax.lax.dynamic_update_slice_in_dim(tags, jnp.where(ok, tag, before), start, 0)
@@ -165,7 +137,7 @@ def _fold_occupied(
             ids = jnp.take(ids_of(carry), jnp.where(fresh, here, 0), axis=0, mode="clip")
             first_cells = (here[:, None] * cells_per_block + jnp.arange(cells_per_block, dtype=jnp.int32)).reshape(-1)
         occupied = jnp.any(ids.reshape(chunk, cells_per_block, 8 * num_slots) >= 0, axis=-1) & fresh[:, None]
-        occupied_list, found = _compact(occupied_list, 0, occupied, first_cells)
+        occupied_list, found = geo.compact(occupied_list, 0, occupied, first_cells)
         visit = found if capacity is None else jnp.clip(capacity - seen, 0, found)
         carry, flagged_list, flagged, tags = inner(occupied_list, visit, first_step, (carry, flagged_list, jnp.int32(0), tags))
         if flagged_step is not None:
@@ -198,7 +170,7 @@ def _fold_listed(cells, tags, count, config: MapConfig, flag_of, flagged_step, c
         flagged_list, flagged = state
         index = jax.lax.dynamic_slice_in_dim(cells, start, sub)
         flag = fresh & (index >= 0) & flag_of(jax.lax.dynamic_slice_in_dim(tags, start, sub))
-        return _compact(flagged_list, flagged, flag, index)
+        return geo.compact(flagged_list, flagged, flag, index)
 
     flagged_list, flagged = geo.fold_chunks(
         count, sub, cells.shape[0], pick, (jnp.full(cells.shape, -1, jnp.int32), jnp.int32(0))
@@ -547,7 +519,7 @@ def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries
     first = changed & (got == vote)
     # the reset depends on the read (`got >= -1` always holds), so XLA reads before writing in place
     owner = owner.at[jnp.where(changed & (got >= -1), cells, owner.shape[0])].set(-1, mode="drop")
-    listed, count = _compact(jnp.full((n,), -1, jnp.int32), jnp.int32(0), first, vote)
+    listed, count = geo.compact(jnp.full((n,), -1, jnp.int32), jnp.int32(0), first, vote)
     chunk = max(1, min(config.cell_chunk // 4, n))
 
     def body(start, fresh, carry):
@@ -721,7 +693,7 @@ def _edit_cells(
         else:
             flagged = visit & scan & (jnp.arange(shape[0]) < blocks.num_blocks)
         empty = jnp.full((shape[0],), -1, jnp.int32)
-        block_list, num_blocks = _compact(empty, jnp.int32(0), flagged, jnp.arange(shape[0], dtype=jnp.int32))
+        block_list, num_blocks = geo.compact(empty, jnp.int32(0), flagged, jnp.arange(shape[0], dtype=jnp.int32))
 
     def clear_bits(here, ok, carry):  # the visited blocks' bits, set again from the ids they hold (bits of ids
         # gone from a block do not flag it forever)
