@@ -453,7 +453,7 @@ def _cell_contributions(entries: jax.Array, ok: jax.Array, k: int, d_max: int):
     two ids, so one (the crowded cells') serves every cell. (Splitting the cells as the pass does, simple
     ones by their summary and the crowded ones in a loop of their own, was not faster here and raised the
     peak memory by ~80 MB on scene0000_00.)"""
-    entries = jnp.where(ok[:, None], entries, -1)
+    entries = geo.materialize(jnp.where(ok[:, None], entries, -1))  # read by the counts and every pair reduction
     pair, value, distinct = _inflated_cell_pairs(entries, k, d_max)
     return _segment_count(entries, k), pair, value, jnp.sum(ok & (distinct > d_max), dtype=jnp.int32)
 
