@@ -469,6 +469,19 @@ def run_census(blocks, config, overlap=None, keep=None, list_cells=False):
     return _census_flag(blocks, config, overlap, keep, list_cells)
 
 
+def test_materialize_is_the_identity():
+    rng = np.random.default_rng(1)
+    for x in (
+        rng.random((5, 7)).astype(np.float32),
+        rng.integers(-3, 3, 9).astype(np.int32),
+        rng.random(4) < 0.5,
+        np.zeros((0, 2)),
+    ):
+        got = jax.jit(geo.materialize)(jnp.asarray(x))
+        assert got.shape == x.shape and got.dtype == jnp.asarray(x).dtype
+        np.testing.assert_array_equal(np.asarray(got), x)
+
+
 def test_prefix_sum_and_compaction():
     rng = np.random.default_rng(0)
     for n in (1, 16, 17, 4097):

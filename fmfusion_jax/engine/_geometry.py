@@ -153,6 +153,8 @@ def materialize(x: jax.Array) -> jax.Array:
     also cost a fill, a copy and a scalar pass).
     """
     flat = x.reshape(-1)
+    if flat.shape[0] == 0:
+        return x
     # the scatter's operand is a buffer XLA must fill; rewriting one element in place costs nothing more
     return flat.at[jnp.zeros((1,), jnp.int32)].set(flat[:1], unique_indices=True, indices_are_sorted=True).reshape(x.shape)
 
