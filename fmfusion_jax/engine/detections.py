@@ -95,7 +95,7 @@ def pack_detections(
     valid = np.zeros((max_detections,), bool)
     if frame_detections.num_detections == 0:
         if as_image:
-            return DetectionBatch(None, scores, valid, np.full((height, width), -1, _label_dtype(max_detections)))
+            return DetectionBatch(None, scores, valid, np.full((height, width), -1, _index_dtype(max_detections)))
         return DetectionBatch(np.zeros((max_detections, height, width), bool), scores, valid)
 
     keep, usable = select_detections(frame_detections, open_labels, max_detections, min_mask_pixels)
@@ -127,15 +127,16 @@ def subsampled_masks(masks: np.ndarray, stride: int) -> np.ndarray:
     return np.ascontiguousarray(masks[:, ::stride, ::stride])
 
 
-def _label_dtype(max_detections: int):
-    return np.int16 if max_detections < 2**15 else np.int32
+def _index_dtype(rows: int):
+    """The narrowest integer type holding the detection indices of `rows` rows and `rows` itself (a sentinel)."""
+    return np.int16 if rows < 2**15 else np.int32
 
 
 def pixel_detection_image(masks: np.ndarray, max_detections: int) -> np.ndarray:
     """The label image of bool masks `(n, h, w)` (host side): int16 `(h, w)`, the index of the mask owning each
     pixel, -1 none. Where masks overlap, `detection_pixel_image`'s rule: the smallest mask wins (ties: lower
     index). `max_detections` (>= n) sets the dtype (int32 from 2**15 rows)."""
-    image = np.full(masks.shape[1:], -1, _label_dtype(max_detections))
+    image = np.full(masks.shape[1:], -1, _index_dtype(max_detections))
     areas = np.array([np.count_nonzero(mask) for mask in masks])
     # painted largest first, so smaller masks overwrite it; among equal areas the lower index is painted last
     for k in np.argsort(areas, kind="stable")[::-1]:
@@ -190,7 +191,7 @@ def detection_pixel_image(masks: jax.Array, valid: jax.Array, stride: int) -> ja
     sub = masks[:, ::stride, ::stride] & valid[:, None, None]
     area = mask_areas(sub)
     order = jnp.argsort(area, stable=True)  # smallest first, ties by index
-    rank_dtype = jnp.int16 if n < 2**15 else jnp.int32  # a narrow key: the per-pixel min is the cost
+    rank_dtype = _index_dtype(n)  # a narrow key: the per-pixel min is the cost
     rank = jnp.zeros((n,), rank_dtype).at[order].set(jnp.arange(n, dtype=rank_dtype))
     best = jnp.min(jnp.where(sub, rank[:, None, None], jnp.asarray(n, rank_dtype)), axis=0).astype(jnp.int32)
     return jnp.where(best < n, order.astype(jnp.int32)[jnp.minimum(best, n - 1)], -1)

@@ -482,39 +482,52 @@ def _scalar(value, dtype):
     return jnp.asarray(value, dtype) if isinstance(value, jax.Array) else np.asarray(value, dtype)
 
 
-def _online_params(remove_missed, remove_min_voxels, similarity, overlap, reunite, separate) -> _MergeParams:
+def _online_params(fusion: FusionConfig) -> _MergeParams:
     """The online merge's `_MergeParams` (see `FusionConfig` for each threshold)."""
     return _MergeParams(
         final=np.bool_(False),
-        remove_missed=_scalar(remove_missed, jnp.int32),
-        remove_min_voxels=_scalar(remove_min_voxels, jnp.int32),
-        similarity=_scalar(similarity, jnp.float32),
-        overlap=_scalar(overlap, jnp.float32),
-        reunite=_scalar(reunite, jnp.int32),
-        separate=_scalar(separate, jnp.int32),
+        remove_missed=_scalar(fusion.remove_missed, jnp.int32),
+        remove_min_voxels=_scalar(fusion.remove_min_voxels, jnp.int32),
+        similarity=_scalar(fusion.merge_similarity, jnp.float32),
+        overlap=_scalar(fusion.merge_overlap, jnp.float32),
+        reunite=_scalar(fusion.reunite_min_frames, jnp.int32),
+        separate=_scalar(fusion.separate_min_frames, jnp.int32),
     )
 
 
+def _once_per_config(unhashable):
+    """Decorator: `make(fusion)` computed once per `FusionConfig` of plain numbers (cached on the config); for one
+    that cannot be hashed (array or traced thresholds: a sweep, a vmapped batch, a gradient), `unhashable(fusion)`
+    on every call."""
+
+    def decorate(make):
+        cached = functools.lru_cache(maxsize=16)(make)
+
+        @functools.wraps(make)
+        def get(fusion: FusionConfig):
+            try:
+                return cached(fusion)
+            except TypeError:
+                return unhashable(fusion)
+
+        return get
+
+    return decorate
+
+
+@_once_per_config(unhashable=lambda fusion: fusion)
 def fusion_on_device(fusion: FusionConfig) -> FusionConfig:
     """`fusion` with its thresholds put on the device once per config (weak types kept: the same compiled
     steps). Passed as Python numbers, its twelve thresholds are converted on every call of a jitted step
-    (~0.5 ms each call of `fuse_detections` on the CPU). Array thresholds (a sweep, a gradient) pass as they are."""
-    try:
-        return _fusion_on_device(fusion)
-    except TypeError:  # unhashable: array thresholds
-        return fusion
-
-
-@functools.lru_cache(maxsize=16)
-def _fusion_on_device(fusion: FusionConfig) -> FusionConfig:
+    (~0.5 ms each call of `fuse_detections` on the CPU). Array thresholds pass as they are."""
     return jax.device_put(fusion)
 
 
-@functools.lru_cache(maxsize=16)
-def _online_params_on_device(*values) -> _MergeParams:
-    """`_online_params` of Python numbers, put on the device once: sent with every call, seven host scalars
+@_once_per_config(unhashable=_online_params)
+def _online_params_on_device(fusion: FusionConfig) -> _MergeParams:
+    """`_online_params(fusion)`, put on the device once per config: sent with every call, seven host scalars
     cost the merge step's call ~0.3 ms."""
-    return jax.device_put(_online_params(*values))
+    return jax.device_put(_online_params(fusion))
 
 
 def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[MapState, RefineStats]:
@@ -528,18 +541,7 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
     pass over the voxels for the counts and overlaps, the decisions on the table, and a renaming of
     the voxels only when an instance is removed or merged.
     """
-    values = (
-        fusion.remove_missed,
-        fusion.remove_min_voxels,
-        fusion.merge_similarity,
-        fusion.merge_overlap,
-        fusion.reunite_min_frames,
-        fusion.separate_min_frames,
-    )
-    if all(isinstance(v, (int, float)) for v in values):  # a plain config: its arrays made once, on the device
-        params = _online_params_on_device(*values)
-    else:  # traced or array thresholds (a vmapped batch, a sweep, a gradient)
-        params = _online_params(*values)
+    params = _online_params_on_device(fusion)
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
 
