@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -162,23 +163,46 @@ def as_frame(
     )
 
 
-def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
-    """int64 `(N, 3)`: the distinct blocks (world lattice, origin 0) that the engine's block finder would
-    touch for this frame, from the same strided depth samples over `[d - trunc, d + trunc]`."""
+def _sample_block_coordinates(frame: RGBDFrame, map_config: MapConfig) -> list[np.ndarray]:
+    """Three int64 `(N,)` arrays (x, y, z): the world block (lattice origin 0) of each depth sample that the
+    engine's block finder takes, the strided pixels at `[d - trunc, d + trunc]`, duplicates kept. One array per
+    axis: numpy reduces and combines 1-D arrays several times faster than the columns of an `(N, 3)` one."""
     stride, trunc = map_config.alloc_pixel_stride, map_config.sdf_trunc
     k = frame.intrinsics
     d = frame.depth[::stride, ::stride]
     v, u = np.mgrid[0 : frame.depth.shape[0] : stride, 0 : frame.depth.shape[1] : stride]
     ok = (d >= map_config.depth_min) & (d <= map_config.depth_max)
-    if not ok.any():
-        return np.zeros((0, 3), np.int64)
     x, y, z = (u[ok] - k.cx) / k.fx, (v[ok] - k.cy) / k.fy, d[ok]
     offsets = np.linspace(-trunc, trunc, map_config.alloc_depth_samples) if map_config.alloc_depth_samples > 1 else [0.0]
     zs = np.concatenate([z + o for o in offsets])
-    camera = np.stack([np.tile(x, len(offsets)) * zs, np.tile(y, len(offsets)) * zs, zs], axis=1)
-    world = camera @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
-    keys = np.floor(world / map_config.block_length).astype(np.int64)
-    return unique_block_keys(keys)
+    xs, ys = np.tile(x, len(offsets)) * zs, np.tile(y, len(offsets)) * zs
+    rotation, translation = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
+    world = [rotation[i, 0] * xs + rotation[i, 1] * ys + rotation[i, 2] * zs + translation[i] for i in range(3)]
+    return [np.floor(axis / map_config.block_length).astype(np.int64) for axis in world]
+
+
+def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
+    """int64 `(N, 3)`: the distinct blocks (world lattice, origin 0) that the engine's block finder would
+    touch for this frame, from the same strided depth samples over `[d - trunc, d + trunc]`."""
+    return unique_block_keys(np.stack(_sample_block_coordinates(frame, map_config), axis=1))
+
+
+def frame_block_extent(frame: RGBDFrame, map_config: MapConfig) -> tuple[int, np.ndarray, np.ndarray]:
+    """(how many distinct blocks, lowest block, highest block + 1) of `frame_block_keys` (`(0, zeros, zeros)`
+    for a frame without valid depth), counted on a bitmap over their box rather than by sorting: the growth
+    check runs it on every frame."""
+    axes = _sample_block_coordinates(frame, map_config)
+    if len(axes[0]) == 0:
+        return 0, np.zeros(3, np.int64), np.zeros(3, np.int64)
+    lo = np.array([a.min() for a in axes])
+    hi = np.array([a.max() for a in axes]) + 1
+    dims = hi - lo
+    if int(np.prod(dims)) > 1 << 24:  # a box too large for a bitmap (depth far beyond a room): sort instead
+        return len(frame_block_keys(frame, map_config)), lo, hi
+    flat = ((axes[0] - lo[0]) * dims[1] + (axes[1] - lo[1])) * dims[2] + (axes[2] - lo[2])
+    seen = np.zeros(int(np.prod(dims)), bool)
+    seen[flat] = True
+    return int(np.count_nonzero(seen)), lo, hi
 
 
 #: Bits per axis of a packed block key (block coordinates within +-2^20 blocks: +-131 km at 12.5 cm blocks).
@@ -311,6 +335,8 @@ class Mapper:
         """
         if self._result is not None:
             raise UserError("this map is finalized: integrate frames before finalize(), or start a new Mapper")
+        timer = self._builder.timer if self._builder is not None else self._timer
+        start, recorded_before = time.perf_counter(), (timer.recorded_ms if timer is not None else 0.0)
         frame = as_frame(
             frame,
             depth=depth,
@@ -327,6 +353,8 @@ class Mapper:
         if due:
             self._schedule.fused(frame.T_world_camera)
         self._schedule.advance(frame.T_world_camera)
+        # the Mapper's own share (checks, schedule, growth check): with the builder's stages, the whole call
+        self._builder.timer.host_since("mapper", start, recorded_before)
         return due
 
     def detection_due(self, T_world_camera) -> bool:
@@ -499,14 +527,14 @@ class Mapper:
         full_pool, full_table = old.block_capacity >= ceiling.block_capacity, old.instance_capacity >= ceiling.instance_capacity
         if full_pool and full_table and not grows_index:
             return  # nothing left to grow: the capacity monitor reports an overflow
-        keys = frame_block_keys(frame, old)
+        new_blocks, keys_lo, keys_hi = frame_block_extent(frame, old)
         new_rows = self.config.detections.max_detections if detections_due else 0
 
         pool, rows = old.block_capacity, old.instance_capacity
         if not full_pool:
-            if self._blocks_bound is None or self._blocks_bound + len(keys) + 1 > pool:
+            if self._blocks_bound is None or self._blocks_bound + new_blocks + 1 > pool:
                 self._blocks_bound = int(builder.state.blocks.num_blocks)  # waits for the device
-            self._blocks_bound += len(keys)
+            self._blocks_bound += new_blocks
             if self._blocks_bound + 1 > pool:
                 pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(self._blocks_bound + 1)))
         if not full_table:
@@ -518,8 +546,8 @@ class Mapper:
 
         lo, hi = growth.bounds_block_range(old)
         new_lo, new_hi = lo.copy(), hi.copy()
-        if grows_index and len(keys):
-            need_lo, need_hi = keys.min(axis=0) - 1, keys.max(axis=0) + 2
+        if grows_index and new_blocks:
+            need_lo, need_hi = keys_lo - 1, keys_hi + 1
             extent = hi - lo
             for axis in range(3):  # grow a side by at least half the extent: few recompiles
                 if need_lo[axis] < lo[axis]:
@@ -728,4 +756,4 @@ class MapperBatch:
         return jax.tree.map(lambda leaf: leaf[index], self.states)
 
 
-__all__ = ["Mapper", "MapperBatch", "as_config", "as_frame", "as_intrinsics", "frame_block_keys"]
+__all__ = ["Mapper", "MapperBatch", "as_config", "as_frame", "as_intrinsics", "frame_block_extent", "frame_block_keys"]

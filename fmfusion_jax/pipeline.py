@@ -156,6 +156,8 @@ class StageTimer:
     enabled: bool = True
     #: the stages called since the last layout change (their next call does not compile)
     warm: set[str] = dataclasses.field(default_factory=set)
+    #: milliseconds of every call recorded so far, compiling ones too (`host_since` leaves out the stages inside)
+    recorded_ms: float = 0.0
 
     def run(self, name: str, fn, *args):
         if not self.enabled:
@@ -171,8 +173,16 @@ class StageTimer:
         if self.enabled:
             self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
 
+    def host_since(self, name: str, start: float, recorded_before: float) -> None:
+        """Keeps as a call of stage `name` the host's own time since `start` (`time.perf_counter()`): the wall time
+        less the stages recorded since, when `recorded_ms` was `recorded_before` (nothing when not enabled)."""
+        if self.enabled:
+            inside = self.recorded_ms - recorded_before
+            self.record(name, (time.perf_counter() - start) * 1e3 - inside, compiled=name not in self.warm)
+
     def record(self, name: str, elapsed_ms: float, compiled: bool) -> None:
         """Keeps one call's time: apart when it compiled (the first one in `first_ms`), else as a sample."""
+        self.recorded_ms += elapsed_ms
         self.warm.add(name)
         if compiled:
             self.first_ms.setdefault(name, elapsed_ms)
@@ -336,12 +346,11 @@ class MapBuilder:
         device works; the merge and geometry-fusion schedules count detection frames on the host.
         """
         adapter = self.adapter
+        start, recorded_before = time.perf_counter(), self.timer.recorded_ms
         # packed while the device may still run the previous step, then put on the device before this one
         # (a step given host arrays copies them in before it starts)
-        start = time.perf_counter()
         inputs = adapter.frame(frame)
         batch = None if detections is None else adapter.detections(detections)
-        self.timer.record_since("host", start)
         self.flush()
         inputs, batch = jax.device_put((inputs, batch))
         if batch is None:
@@ -369,6 +378,7 @@ class MapBuilder:
         self.frames_integrated += 1
         if self.frames_integrated % self.CAPACITY_CHECK_EVERY == 0:
             self.monitor.check(self.state, self.map_config, self.frames_integrated)
+        self.timer.host_since("host", start, recorded_before)  # all of the above but the steps
 
     def flush(self) -> None:
         """Reads the statistics of the last detection frame (waits for the device): counters and log line."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import time
 from pathlib import Path
 
 import jax
@@ -18,7 +19,7 @@ from fmfusion_jax.engine import growth
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.mapper import Mapper, as_config, frame_block_keys, initial_pool_blocks, sample_block_count
+from fmfusion_jax.mapper import Mapper, as_config, frame_block_extent, frame_block_keys, initial_pool_blocks, sample_block_count
 from fmfusion_jax.pipeline import build_map_config, extract_map_instances
 from fmfusion_jax.runner import fuse_scene
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
@@ -124,6 +125,44 @@ def test_a_bounded_map_grows_its_instance_table_to_the_same_map(room, monkeypatc
     timer = small.finalize().timings
     fused = len(timer.samples_ms["fusion"])
     assert fused == small.detection_frames - 1 - small.growths  # each growth's first fusion call compiled
+
+
+def test_the_timed_stages_of_a_frame_add_up_to_the_whole_integrate_call(room):
+    """What `fmfusion bench` calls the whole frame is all of `Mapper.integrate`: the steps, the builder's host work
+    (packing, sending, statistics) and the Mapper's own (checks, schedule, growth check), each timed once."""
+    from fmfusion_jax.bench.stages import FrameTimer
+
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    timer = FrameTimer()
+    mapper = Mapper(config, bounds=scene.bounds(), timer=timer)
+    walls = []
+    for frame in scene.frames():
+        timer.start_frame()
+        start = time.perf_counter()
+        mapper.integrate(frame, folder.get(frame.name))
+        walls.append((time.perf_counter() - start) * 1e3)
+    for wall, stages, compiled in zip(walls, timer.frames, timer.compiled):
+        assert {"host", "mapper"} <= set(stages) | set(compiled)
+        accounted = sum(stages.values()) + sum(compiled.values())
+        assert wall - 2.0 < accounted <= wall + 1e-6, (wall, stages, compiled)  # only a few statements untimed
+
+
+def test_frame_block_extent_counts_the_distinct_blocks_of_a_frame(room):
+    """The growth check's count and box of a frame's blocks (a bitmap, not a sort) are those of its keys."""
+    scene_dir, _, config = room
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    layout = build_map_config(config, *scene.bounds(), SPEC.height, SPEC.width)
+    for frame in list(scene.frames())[::5]:
+        keys = frame_block_keys(frame, layout)
+        assert len(keys) > 0 and len(np.unique(keys, axis=0)) == len(keys)
+        count, lo, hi = frame_block_extent(frame, layout)
+        assert count == len(keys)
+        np.testing.assert_array_equal(lo, keys.min(axis=0))
+        np.testing.assert_array_equal(hi, keys.max(axis=0) + 1)
+    blank = dataclasses.replace(frame, depth=np.zeros_like(frame.depth))
+    assert frame_block_extent(blank, layout)[0] == 0 and len(frame_block_keys(blank, layout)) == 0
 
 
 def test_sample_block_count_matches_the_frames_it_samples(room):

@@ -32,10 +32,11 @@ STAGE_ROWS = (
     ("instance integration", "staged", ("integration",), ("integration",)),
     ("merge (removal + online merge)", "fused", ("refine",), ("merge",)),
     ("geometry fusion (per call)", "fused", ("geometry_fusion",), ("geometry_fusion",)),
-    ("host: frame and detections packed", "fused", ("host",), ()),
+    ("host: frame and detections packed and sent, statistics read", "fused", ("host",), ()),
+    ("host: the Mapper's frame checks, schedule and growth check", "fused", ("mapper",), ()),
     ("sum of the stages above, jitted apart", "staged", FUSION_STAGES, PEER_FUSION_STAGES),
     ("**fusion step** (`fuse_detections`, one jit)", "fused", ("fusion",), PEER_FUSION_STAGES),
-    ("**whole frame** (host + fusion step + merge + geometry fusion)", "fused", None, None),
+    ("**whole frame** (all of `Mapper.integrate`: host + fusion step + merge + geometry fusion)", "fused", None, None),
 )
 
 #: Our timed functions, by timer name (`compile_ms` keys of the ours worker).
