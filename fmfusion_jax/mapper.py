@@ -163,22 +163,34 @@ def as_frame(
     )
 
 
+@functools.lru_cache(maxsize=8)
+def _pixel_rays(height: int, width: int, stride: int, fx: float, fy: float, cx: float, cy: float) -> tuple[np.ndarray, ...]:
+    """float32 `(height // stride, width // stride)` x2: `(u - cx) / fx` and `(v - cy) / fy` of the strided pixels."""
+    v, u = np.mgrid[0:height:stride, 0:width:stride]
+    rays = (((u - cx) / fx).astype(np.float32), ((v - cy) / fy).astype(np.float32))
+    for ray in rays:
+        ray.flags.writeable = False  # shared by every call
+    return rays
+
+
 def _sample_block_coordinates(frame: RGBDFrame, map_config: MapConfig) -> list[np.ndarray]:
     """Three int64 `(N,)` arrays (x, y, z): the world block (lattice origin 0) of each depth sample that the
-    engine's block finder takes, the strided pixels at `[d - trunc, d + trunc]`, duplicates kept. One array per
-    axis: numpy reduces and combines 1-D arrays several times faster than the columns of an `(N, 3)` one."""
+    engine's block finder takes, the strided pixels at `[d - trunc, d + trunc]`, duplicates kept. In float32 as
+    the engine, and one array per axis: numpy reduces and combines 1-D arrays several times faster than the
+    columns of an `(N, 3)` one (the growth check runs this on every frame)."""
     stride, trunc = map_config.alloc_pixel_stride, map_config.sdf_trunc
     k = frame.intrinsics
-    d = frame.depth[::stride, ::stride]
-    v, u = np.mgrid[0 : frame.depth.shape[0] : stride, 0 : frame.depth.shape[1] : stride]
+    ray_x, ray_y = _pixel_rays(*frame.depth.shape, stride, k.fx, k.fy, k.cx, k.cy)
+    d = np.asarray(frame.depth[::stride, ::stride], np.float32)
     ok = (d >= map_config.depth_min) & (d <= map_config.depth_max)
-    x, y, z = (u[ok] - k.cx) / k.fx, (v[ok] - k.cy) / k.fy, d[ok]
-    offsets = np.linspace(-trunc, trunc, map_config.alloc_depth_samples) if map_config.alloc_depth_samples > 1 else [0.0]
+    x, y, z = ray_x[ok], ray_y[ok], d[ok]
+    samples = map_config.alloc_depth_samples
+    offsets = np.linspace(-trunc, trunc, samples, dtype=np.float32) if samples > 1 else np.zeros(1, np.float32)
     zs = np.concatenate([z + o for o in offsets])
     xs, ys = np.tile(x, len(offsets)) * zs, np.tile(y, len(offsets)) * zs
-    rotation, translation = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
+    rotation, translation = frame.T_world_camera[:3, :3].astype(np.float32), frame.T_world_camera[:3, 3].astype(np.float32)
     world = [rotation[i, 0] * xs + rotation[i, 1] * ys + rotation[i, 2] * zs + translation[i] for i in range(3)]
-    return [np.floor(axis / map_config.block_length).astype(np.int64) for axis in world]
+    return [np.floor(axis / np.float32(map_config.block_length)).astype(np.int64) for axis in world]
 
 
 def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
