@@ -174,46 +174,48 @@ def _pixel_rays(height: int, width: int, stride: int, fx: float, fy: float, cx: 
 
 
 def _sample_block_coordinates(frame: RGBDFrame, map_config: MapConfig) -> list[np.ndarray]:
-    """Three int64 `(N,)` arrays (x, y, z): the world block (lattice origin 0) of each depth sample that the
-    engine's block finder takes, the strided pixels at `[d - trunc, d + trunc]`, duplicates kept. In float32 as
-    the engine, and one array per axis: numpy reduces and combines 1-D arrays several times faster than the
-    columns of an `(N, 3)` one (the growth check runs this on every frame)."""
+    """int32 `(3, N)` per depth offset: the world block (x, y, z rows; lattice origin 0) of each depth sample that
+    the engine's block finder takes, the strided pixels at `[d - trunc, d + trunc]`, duplicates kept. In float32
+    as the engine, in rows and one offset at a time: the growth check runs this on every frame, and numpy reduces
+    contiguous rows of cache-sized arrays several times faster than the columns of one `(N, 3)` array."""
     stride, trunc = map_config.alloc_pixel_stride, map_config.sdf_trunc
     k = frame.intrinsics
     ray_x, ray_y = _pixel_rays(*frame.depth.shape, stride, k.fx, k.fy, k.cx, k.cy)
     d = np.asarray(frame.depth[::stride, ::stride], np.float32)
     ok = (d >= map_config.depth_min) & (d <= map_config.depth_max)
-    x, y, z = ray_x[ok], ray_y[ok], d[ok]
+    camera = np.stack([ray_x[ok], ray_y[ok], np.ones(int(ok.sum()), np.float32)])  # (3, N): rays at unit depth
     samples = map_config.alloc_depth_samples
     offsets = np.linspace(-trunc, trunc, samples, dtype=np.float32) if samples > 1 else np.zeros(1, np.float32)
-    zs = np.concatenate([z + o for o in offsets])
-    xs, ys = np.tile(x, len(offsets)) * zs, np.tile(y, len(offsets)) * zs
-    rotation, translation = frame.T_world_camera[:3, :3].astype(np.float32), frame.T_world_camera[:3, 3].astype(np.float32)
-    world = [rotation[i, 0] * xs + rotation[i, 1] * ys + rotation[i, 2] * zs + translation[i] for i in range(3)]
-    return [np.floor(axis / np.float32(map_config.block_length)).astype(np.int64) for axis in world]
+    rotation, translation = frame.T_world_camera[:3, :3].astype(np.float32), frame.T_world_camera[:3, 3:].astype(np.float32)
+    rotated = rotation @ camera  # (3, N): each ray in the world, scaled by its sample's depth below
+    depth = d[ok]
+    return [
+        np.floor((rotated * (depth + offset) + translation) / np.float32(map_config.block_length)).astype(np.int32)
+        for offset in offsets
+    ]
 
 
 def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
     """int64 `(N, 3)`: the distinct blocks (world lattice, origin 0) that the engine's block finder would
     touch for this frame, from the same strided depth samples over `[d - trunc, d + trunc]`."""
-    return unique_block_keys(np.stack(_sample_block_coordinates(frame, map_config), axis=1))
+    return unique_block_keys(np.concatenate(_sample_block_coordinates(frame, map_config), axis=1).T.astype(np.int64))
 
 
 def frame_block_extent(frame: RGBDFrame, map_config: MapConfig) -> tuple[int, np.ndarray, np.ndarray]:
     """(how many distinct blocks, lowest block, highest block + 1) of `frame_block_keys` (`(0, zeros, zeros)`
     for a frame without valid depth), counted on a bitmap over their box rather than by sorting: the growth
     check runs it on every frame."""
-    axes = _sample_block_coordinates(frame, map_config)
-    if len(axes[0]) == 0:
+    pieces = _sample_block_coordinates(frame, map_config)
+    if pieces[0].shape[1] == 0:
         return 0, np.zeros(3, np.int64), np.zeros(3, np.int64)
-    lo = np.array([a.min() for a in axes])
-    hi = np.array([a.max() for a in axes]) + 1
+    lo = np.min([piece.min(axis=1) for piece in pieces], axis=0).astype(np.int64)
+    hi = np.max([piece.max(axis=1) for piece in pieces], axis=0).astype(np.int64) + 1
     dims = hi - lo
     if int(np.prod(dims)) > 1 << 24:  # a box too large for a bitmap (depth far beyond a room): sort instead
         return len(frame_block_keys(frame, map_config)), lo, hi
-    flat = ((axes[0] - lo[0]) * dims[1] + (axes[1] - lo[1])) * dims[2] + (axes[2] - lo[2])
     seen = np.zeros(int(np.prod(dims)), bool)
-    seen[flat] = True
+    for piece in pieces:
+        seen[((piece[0] - lo[0]) * dims[1] + (piece[1] - lo[1])) * dims[2] + (piece[2] - lo[2])] = True
     return int(np.count_nonzero(seen)), lo, hi
 
 

@@ -139,14 +139,18 @@ def test_the_timed_stages_of_a_frame_add_up_to_the_whole_integrate_call(room):
     mapper = Mapper(config, bounds=scene.bounds(), timer=timer)
     walls = []
     for frame in scene.frames():
+        detections = folder.get(frame.name)
         timer.start_frame()
         start = time.perf_counter()
-        mapper.integrate(frame, folder.get(frame.name))
+        mapper.integrate(frame, detections)
         walls.append((time.perf_counter() - start) * 1e3)
+    untimed = []
     for wall, stages, compiled in zip(walls, timer.frames, timer.compiled):
         assert {"host", "mapper"} <= set(stages) | set(compiled)
         accounted = sum(stages.values()) + sum(compiled.values())
-        assert wall - 2.0 < accounted <= wall + 1e-6, (wall, stages, compiled)  # only a few statements untimed
+        assert accounted <= wall + 1e-6, (wall, stages, compiled)
+        untimed.append(wall - accounted)
+    assert np.median(untimed) < 0.2, untimed  # a few statements (a garbage collection may land in one)
 
 
 def test_frame_block_extent_counts_the_distinct_blocks_of_a_frame(room):
