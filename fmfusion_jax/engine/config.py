@@ -43,7 +43,9 @@ class MapConfig:
     max_touched_blocks: int = 8192  # M: touched-block list length per frame (more are counted, not integrated)
     alloc_pixel_stride: int = 4  # depth subsampling used to find the blocks a frame touches
     alloc_depth_samples: int = 3  # samples per pixel ray over [d - trunc, d + trunc] for block finding
-    integrate_chunk_blocks: int = 256  # touched blocks integrated per loop step (cost follows the touched count)
+    # touched blocks integrated per loop step (cost follows the touched count); 96 blocks (49k voxels) keep a
+    # step's arrays in a CPU core's cache: 10% faster than 256 for the global TSDF on the 2-core VM, same map
+    integrate_chunk_blocks: int = 96
     pool_chunk_blocks: int = 1024  # allocated blocks per loop step of pool-wide passes (cost follows num_blocks)
     # --- images ---
     image_height: int = 480  # H of every depth/colour frame
