@@ -99,6 +99,16 @@ def test_frame_sums_leave_out_warm_up_and_compiling_frames():
     assert report.frame_sums(frames, None, ("refine",), stop=3) == [5.0]
 
 
+def test_compile_cache_state_says_whether_the_steps_were_compiled_in_the_measured_process():
+    """Peak memory depends on it: a process that compiles its steps peaks higher than one that loads them."""
+    state = lambda **cache: report.compile_cache_state({"compile_cache": cache})  # noqa: E731
+    assert state(dir=None).startswith("compile cache off")
+    assert state(dir="c", entries_before=0, entries_after=12).startswith("compile cache cold")
+    assert state(dir="c", entries_before=248, entries_after=248).startswith("compile cache warm (248 entries")
+    assert "12 new ones" in state(dir="c", entries_before=248, entries_after=260)
+    assert state(dir="c", entries_before=248).startswith("compile cache warm")  # results of older runs
+
+
 def test_cap_keeps_the_k_highest_scoring_usable_detections_in_order():
     masks = np.zeros((6, 40, 50), bool)
     for i, rows in enumerate((30, 30, 30, 1, 30, 30)):  # detection 3: too small a mask (50 < 100 pixels)

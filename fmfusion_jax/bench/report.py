@@ -311,8 +311,14 @@ def compile_cache_state(ours: dict) -> str:
     cache = ours.get("compile_cache") or {}
     if not cache.get("dir"):
         return "compile cache off (every step compiled in the process)"
-    if cache.get("entries_before"):
-        return f"compile cache warm ({cache['entries_before']} entries: steps loaded, not compiled)"
+    before, after = cache.get("entries_before") or 0, cache.get("entries_after")
+    if before and after is not None and after > before:
+        return (
+            f"compile cache partly warm ({before} entries; {after - before} new ones: steps compiled in the process,"
+            " which a second run loads)"
+        )
+    if before:
+        return f"compile cache warm ({before} entries: steps loaded, not compiled)"
     return "compile cache cold (every step compiled in the process; a second run loads them)"
 
 

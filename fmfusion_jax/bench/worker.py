@@ -172,7 +172,12 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
         **counts,
         "blocks_used": int(mapper.state.blocks.num_blocks),
         "dropped_blocks": int(mapper.state.blocks.dropped_blocks),
-        "compile_cache": {"dir": str(cache) if cache else None, "entries_before": cache_entries},
+        "compile_cache": {
+            "dir": str(cache) if cache else None,
+            "entries_before": cache_entries,
+            # more entries after the pass than before: some steps were compiled here (their peak memory with them)
+            "entries_after": sum(1 for _ in cache.iterdir()) if cache else None,
+        },
         "block_capacity": map_config.block_capacity,
         "peak_rss_mb": peak_rss_mb(),
         "baseline_rss_mb": baseline_mb,
