@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from oracles import reference as ref
 
 from fmfusion_jax.engine import tsdf
-from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.config import MapConfig, integrate_chunk_for_backend
 from fmfusion_jax.engine.extraction import extract_surface_points
 from fmfusion_jax.engine.state import init_map_state, init_voxel_blocks, voxel_offsets
 
@@ -101,8 +101,9 @@ def test_allocation_covers_the_truncation_band():
     assert allocated[band].mean() > 0.99
 
 
-def test_chunking_does_not_change_the_result():
-    odd = dataclasses.replace(CONFIG, max_touched_blocks=1000, integrate_chunk_blocks=96)  # 1000 % 96 != 0
+@pytest.mark.parametrize("chunk", [96, 0])  # 1000 % 96 != 0; 0: the backend's default
+def test_chunking_does_not_change_the_result(chunk):
+    odd = dataclasses.replace(CONFIG, max_touched_blocks=1000, integrate_chunk_blocks=chunk)
     a, b = init_voxel_blocks(CONFIG), init_voxel_blocks(odd)
     for i in range(3):
         depth, color, T = frame(i)
@@ -113,6 +114,14 @@ def test_chunking_does_not_change_the_result():
     assert np.array_equal(da.allocated, db.allocated)
     assert np.array_equal(da.weight, db.weight)
     np.testing.assert_allclose(da.tsdf, db.tsdf, atol=1e-6)
+
+
+def test_integrate_chunk_by_backend():
+    """0 leaves the TSDF's loop step to the backend: cache-sized on the CPU, fewer steps on an accelerator."""
+    assert integrate_chunk_for_backend("cpu") == 96 and integrate_chunk_for_backend("gpu") == 256
+    assert MapConfig().integrate_chunk_blocks == 0
+    with pytest.raises(ValueError, match="chunk"):
+        MapConfig(integrate_chunk_blocks=-1)
 
 
 def test_plane_zero_crossing_within_a_voxel():

@@ -9,7 +9,7 @@ Two steps, as in Open3D's VoxelBlockGrid but without hashing:
    the pool take the next free slots (a cumulative sum over the `M` entries). When the pool is full
    the block is counted in `dropped_blocks`; touched blocks beyond `M` in `touched_overflow`; samples
    outside the index in `out_of_bounds`.
-2. **Integrate the touched blocks.** A loop over chunks of `integrate_chunk_blocks` slots of that
+2. **Integrate the touched blocks.** A loop over chunks of `integrate_chunk_blocks` slots (0: by the backend) of that
    list runs only as many times as there are touched blocks (the list is fixed-size, the trip count
    is not, so the cost follows the frame, not `M`). Every voxel centre of a chunk is projected into
    the image (gathers only) and updated with the standard projective TSDF rule:
@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fmfusion_jax.engine import _geometry as geo
-from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.config import MapConfig, integrate_chunk_for_backend
 from fmfusion_jax.engine.state import VoxelBlocks, voxel_offsets
 
 
@@ -165,7 +165,7 @@ def _integrate_tsdf(blocks: VoxelBlocks, depth, color, T_world_camera, intrinsic
     T = geo.as_pose(T_world_camera)
     K = geo.as_intrinsics(intrinsics)
     touched = _find_touched_blocks(blocks, depth, T, K, config)
-    chunk = config.integrate_chunk_blocks
+    chunk = config.integrate_chunk_blocks or integrate_chunk_for_backend(jax.default_backend())
     total = config.max_touched_blocks
 
     def body(start, fresh, pool: VoxelBlocks) -> VoxelBlocks:
