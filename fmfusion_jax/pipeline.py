@@ -141,6 +141,15 @@ class HostAdapter:
         )
 
 
+def small_tree_to_host(tree):
+    """A tree of small device arrays as numpy arrays: on the CPU each leaf read in place (`np.asarray`, no copy:
+    `jax.device_get` took 0.28 ms per frame for the step's eight statistics there, this 0.08), elsewhere by
+    `jax.device_get` (all transfers in flight at once)."""
+    if jax.default_backend() != "cpu":
+        return jax.device_get(tree)
+    return jax.tree.map(np.asarray, tree)
+
+
 @dataclasses.dataclass
 class StageTimer:
     """Wall time per named stage (milliseconds per call), with the calls that compiled kept apart.
@@ -385,7 +394,7 @@ class MapBuilder:
             return
         name, stats, refine_stats = self._pending
         self._pending = None
-        stats, refine_stats = jax.device_get((stats, refine_stats))  # one transfer
+        stats, refine_stats = small_tree_to_host((stats, refine_stats))
         self.add_frame_counts(stats)
         log.info(
             "%s: %d detections, %d matched, %d new instances, %d in view",
