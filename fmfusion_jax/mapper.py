@@ -198,7 +198,12 @@ def _sample_block_coordinates(frame: RGBDFrame, map_config: MapConfig) -> list[n
 def frame_block_keys(frame: RGBDFrame, map_config: MapConfig) -> np.ndarray:
     """int64 `(N, 3)`: the distinct blocks (world lattice, origin 0) that the engine's block finder would
     touch for this frame, from the same strided depth samples over `[d - trunc, d + trunc]`."""
-    return unique_block_keys(np.concatenate(_sample_block_coordinates(frame, map_config), axis=1).T.astype(np.int64))
+    return _distinct_blocks(_sample_block_coordinates(frame, map_config))
+
+
+def _distinct_blocks(pieces: list[np.ndarray]) -> np.ndarray:
+    """int64 `(N, 3)`: the distinct blocks of `_sample_block_coordinates`' pieces, sorted."""
+    return unique_block_keys(np.concatenate(pieces, axis=1).T.astype(np.int64))
 
 
 def frame_block_extent(frame: RGBDFrame, map_config: MapConfig) -> tuple[int, np.ndarray, np.ndarray]:
@@ -212,7 +217,7 @@ def frame_block_extent(frame: RGBDFrame, map_config: MapConfig) -> tuple[int, np
     hi = np.max([piece.max(axis=1) for piece in pieces], axis=0).astype(np.int64) + 1
     dims = hi - lo
     if int(np.prod(dims)) > 1 << 24:  # a box too large for a bitmap (depth far beyond a room): sort instead
-        return len(frame_block_keys(frame, map_config)), lo, hi
+        return len(_distinct_blocks(pieces)), lo, hi
     seen = np.zeros(int(np.prod(dims)), bool)
     for piece in pieces:
         seen[((piece[0] - lo[0]) * dims[1] + (piece[1] - lo[1])) * dims[2] + (piece[2] - lo[2])] = True
@@ -504,15 +509,14 @@ class Mapper:
             expected = self._expected_blocks
             if expected is not None:  # at least what the first frame needs
                 index = build_map_config(self.config, *self._bounds, height, width)
-                expected = max(expected, len(frame_block_keys(frame, index)))
+                expected = max(expected, frame_block_extent(frame, index)[0])
             map_config = bounded_map_config(self.config, self._bounds, height, width, expected)
         else:
-            keys = frame_block_keys(frame, layout)
-            lo = keys.min(axis=0) - INDEX_PAD_BLOCKS if len(keys) else -INDEX_PAD_BLOCKS * np.ones(3, np.int64)
-            hi = keys.max(axis=0) + 1 + INDEX_PAD_BLOCKS if len(keys) else INDEX_PAD_BLOCKS * np.ones(3, np.int64)
+            # the frame's blocks padded (a frame without depth: the padding around the origin)
+            count, lo, hi = frame_block_extent(frame, layout)
             map_config = dataclasses.replace(
-                growth.config_for_block_range(layout, lo, hi),
-                block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * len(keys) + 1))),
+                growth.config_for_block_range(layout, lo - INDEX_PAD_BLOCKS, hi + INDEX_PAD_BLOCKS),
+                block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * count + 1))),
                 instance_capacity=initial_instance_rows(self.config.detections.max_detections, layout.instance_capacity),
             )
         self._builder = MapBuilder(

@@ -173,14 +173,8 @@ class StageTimer:
             return fn(*args)
         start = time.perf_counter()
         out = jax.block_until_ready(fn(*args))
-        self.record_since(name, start)
+        self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
         return out
-
-    def record_since(self, name: str, start: float) -> None:
-        """Keeps the time since `start` (`time.perf_counter()`) as a call of stage `name` (nothing when not
-        enabled): the host's own work, which `run` cannot wrap."""
-        if self.enabled:
-            self.record(name, (time.perf_counter() - start) * 1e3, compiled=name not in self.warm)
 
     def host_since(self, name: str, start: float, recorded_before: float) -> None:
         """Keeps as a call of stage `name` the host's own time since `start` (`time.perf_counter()`): the wall time
@@ -364,24 +358,16 @@ class MapBuilder:
         if batch is None:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.step_config)
         else:
+            fusion = step.fusion_on_device(self.fusion_config)
             self.state, stats = self.timer.run(
-                "fusion",
-                self.fuse_detections,
-                self.state,
-                inputs,
-                batch,
-                self.likelihood,
-                self.step_config,
-                step.fusion_on_device(self.fusion_config),
+                "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.step_config, fusion
             )
             merge_due, geometry_due = self.count_detection_frame()
             refine_stats = None
             if merge_due:
                 self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.step_config, self.fusion_config)
             if geometry_due:
-                self.state = self.timer.run(
-                    "geometry_fusion", step.fuse_geometry, self.state, self.step_config, step.fusion_on_device(self.fusion_config)
-                )
+                self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.step_config, fusion)
             self._pending = (frame.name, stats, refine_stats)
         self.frames_integrated += 1
         if self.frames_integrated % self.CAPACITY_CHECK_EVERY == 0:

@@ -129,7 +129,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     from fmfusion_jax.runner import mapper_for_scene
 
     cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)
-    cache_entries = sum(1 for _ in cache.iterdir()) if cache else None
+    cache_entries = _entries(cache)
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()
     sample = opened.sample_depth(max_frames=60)
@@ -176,7 +176,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
             "dir": str(cache) if cache else None,
             "entries_before": cache_entries,
             # more entries after the pass than before: some steps were compiled here (their peak memory with them)
-            "entries_after": sum(1 for _ in cache.iterdir()) if cache else None,
+            "entries_after": _entries(cache),
         },
         "block_capacity": map_config.block_capacity,
         "peak_rss_mb": peak_rss_mb(),
@@ -193,6 +193,11 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     result.update(stage_frames=staged_timer.frames, stage_compiled=staged_timer.compiled)
     result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items() if k in FUSION_STAGES})
     return result
+
+
+def _entries(cache) -> int | None:
+    """Files in the compile cache folder (None without one)."""
+    return sum(1 for _ in cache.iterdir()) if cache else None
 
 
 def _mismatch_cause(device: dict) -> str:

@@ -81,7 +81,7 @@ def pack_detections(
     `stride`: the masks are sent at `[::stride, ::stride]` (the fused pixel grid: a quarter of the bytes at
     the default stride 2); the engine takes masks at full or at that resolution (`remaining_stride`).
     `as_image`: send the pixels as the label image at that stride (`DetectionBatch.pixel_detection`, made by
-    `pixel_detection_image` with the engine's overlap rule) instead of the mask stack.
+    `host_detection_pixel_image` with the engine's overlap rule) instead of the mask stack.
 
     Dropped: masks with fewer than `min_mask_pixels` pixels (full resolution; the reference uses 1000
     in its Python pipeline, 100 in C++) and detections with no score on any label of `open_labels`
@@ -112,7 +112,7 @@ def pack_detections(
     scores[:n] = frame_detections.label_score_matrix(open_labels)[keep]
     valid[:n] = True
     if as_image:
-        return DetectionBatch(None, scores, valid, pixel_detection_image(kept_masks, max_detections))
+        return DetectionBatch(None, scores, valid, host_detection_pixel_image(kept_masks, max_detections))
     masks = np.zeros((max_detections, height, width), bool)
     masks[:n] = kept_masks
     return DetectionBatch(masks, scores, valid)
@@ -132,7 +132,7 @@ def _index_dtype(rows: int):
     return np.int16 if rows < 2**15 else np.int32
 
 
-def pixel_detection_image(masks: np.ndarray, max_detections: int) -> np.ndarray:
+def host_detection_pixel_image(masks: np.ndarray, max_detections: int) -> np.ndarray:
     """The label image of bool masks `(n, h, w)` (host side): int16 `(h, w)`, the index of the mask owning each
     pixel, -1 none. Where masks overlap, `detection_pixel_image`'s rule: the smallest mask wins (ties: lower
     index). `max_detections` (>= n) sets the dtype (int32 from 2**15 rows)."""
