@@ -91,6 +91,20 @@ def test_line_fit_recovers_base_and_slope():
     assert all(math.isnan(v) for v in report.fit_line([5.0, 5.0], [1.0, 2.0]))  # one distinct load: no line
 
 
+def test_the_targets_judge_the_whole_frame_as_run_when_that_pass_ran():
+    timed = [{"fusion": 20.0, "host": 3.0}] * 4
+    ours = {"frames": timed, "compiled": [{}] * 4, "stage_frames": [], "stage_compiled": []}
+    calls = [{}, {"call": 19.0}, {"call": 21.0}, {"call": 20.0}]  # the first call left out (a chunk's first)
+    as_run = {**ours, "run_frames": calls, "run_compiled": [{"call": 9.0}, {}, {}, {}]}
+    peer = {"frames": [{"tsdf": 100.0, "merge": 300.0}] * 4}
+    for result, whole_ms in ((ours, 23.0), (as_run, 20.0)):
+        table = report.stage_table(result, peer)
+        row = report.whole_frame_row(table)
+        assert row is not None and row["ours_all"] == whole_ms and row["ratio"] == pytest.approx(400.0 / whole_ms)
+    assert report.whole_frame_row(report.stage_table(as_run, peer))["label"] == report.AS_RUN_LABEL
+    assert report.whole_frame_row(None) is None
+
+
 def test_frame_sums_leave_out_warm_up_and_compiling_frames():
     frames = [{"fusion": 900.0}, {"fusion": 10.0, "refine": 5.0}, {"fusion": 12.0}, {"fusion": 11.0, "refine": 7.0}]
     compiled = [{"fusion": 3000.0}, {}, {"refine": 2000.0}, {}]
@@ -214,7 +228,8 @@ def run_quick_bench(bench_dirs, monkeypatch, name: str, *extra: str) -> dict:
         assert f"| {label} |" in markdown
     data = json.loads((out / "bench.json").read_text())
     ours = data["runs"][0]["ours"]
-    assert "error" not in ours and not ours.get("staged_mismatch")
+    assert "error" not in ours and not ours.get("staged_mismatch") and not ours.get("as_run_mismatch")
+    assert len(ours["run_frames"]) == len(ours["frames"])  # the pass without timers made the timed pass's map
     rows = data["summary"]["stages"]["rows"]
     assert len(rows) == len(report.STAGE_ROWS)
     for row in rows:

@@ -18,10 +18,17 @@ from numpy.typing import ArrayLike
 
 from fmfusion_jax.bench.stages import FUSION_STAGES
 
+#: Frames the worker's pass without timers reads ahead at a time (`worker.AS_RUN_CHUNK`; the first call of each
+#: chunk finds the device idle and is left out). Defined here: the report is imported without JAX, the worker not.
+AS_RUN_CHUNK = 32
+
 #: The peer's stages of a detection frame (keys of `Open3DInstancePipeline.add_frame`'s result).
 PEER_FUSION_STAGES = ("tsdf", "projection", "association", "label_fusion", "integration")
 
-#: Rows of the stage table: (label, our pass ("staged" or "fused"), our keys, the peer's keys);
+#: The whole frame as `fmfusion run` runs it (the worker's pass without timers): the figure the targets judge.
+AS_RUN_LABEL = "**whole frame, as run** (`Mapper.integrate` without timers: the host's work overlaps the device's)"
+
+#: Rows of the stage table: (label, our pass ("staged", "fused" or "as_run"), our keys, the peer's keys);
 #: keys None = every stage of the frame. Several keys: their sum per frame.
 STAGE_ROWS = (
     ("global TSDF", "staged", ("tsdf",), ("tsdf",)),
@@ -36,7 +43,8 @@ STAGE_ROWS = (
     ("host: the Mapper's frame checks, schedule and growth check", "fused", ("mapper",), ()),
     ("sum of the stages above, jitted apart", "staged", FUSION_STAGES, PEER_FUSION_STAGES),
     ("**fusion step** (`fuse_detections`, one jit)", "fused", ("fusion",), PEER_FUSION_STAGES),
-    ("**whole frame** (all of `Mapper.integrate`: host + fusion step + merge + geometry fusion)", "fused", None, None),
+    ("whole frame, stages timed (all of `Mapper.integrate`, waiting for each step: the sum of the above)", "fused", None, None),
+    (AS_RUN_LABEL, "as_run", None, None),
 )
 
 #: Our timed functions, by timer name (`compile_ms` keys of the ours worker).
@@ -91,7 +99,20 @@ def fit_line(x: ArrayLike, y: ArrayLike) -> tuple[float, float]:
 def _pass(ours: dict, name: str) -> tuple[list, list]:
     if name == "staged":
         return ours.get("stage_frames", []), ours.get("stage_compiled", [])
+    if name == "as_run":
+        return ours.get("run_frames", []), ours.get("run_compiled", [])
     return ours.get("frames", []), ours.get("compiled", [])
+
+
+def whole_frame_row(stages: dict | None) -> dict | None:
+    """The stage table's whole-frame row the targets judge: as run when that pass ran, else with stages timed."""
+    if not stages:
+        return None
+    rows = {row["label"]: row for row in stages["rows"]}
+    as_run = rows.get(AS_RUN_LABEL)
+    if as_run is not None and math.isfinite(as_run["ours_all"]):
+        return as_run
+    return next((row for row in stages["rows"] if row["label"].startswith("whole frame, stages timed")), None)
 
 
 def _usable(result: dict | None) -> TypeGuard[dict]:
@@ -327,7 +348,7 @@ def targets(summary: dict, main: dict) -> list[dict]:
     not measurable in this run)."""
     rows = []
     stages = summary.get("stages")
-    whole = next((r for r in stages["rows"] if r["label"].startswith("**whole")), None) if stages else None
+    whole = whole_frame_row(stages)
     ours, peer = main.get("ours") or {}, main.get("peer")
     real = main["scene"]["kind"] == "real"
     every = ours.get("geometry_fusion_every")
@@ -351,7 +372,9 @@ def targets(summary: dict, main: dict) -> list[dict]:
     target = f"whole frame >= {PEER_RATIO:g}x faster than the Open3D per-instance pipeline"
     rows.append({"target": target, "figure": figure, "met": met})
 
-    flat = flatness(ours) if _usable(ours) else None
+    as_run = whole is not None and whole["label"] == AS_RUN_LABEL  # flat as the targets' whole frame is measured
+    judged = {"frames": ours["run_frames"], "compiled": ours["run_compiled"]} if as_run else ours
+    flat = flatness(judged) if _usable(ours) else None
     target = f"flat: last {FLAT_WINDOW} frames <= {FLAT_RATIO:g}x the first {FLAT_WINDOW} (median whole frame)"
     if flat and math.isfinite(flat["ratio"]):
         peer_flat = flatness(peer) if _usable(peer) else None
@@ -483,7 +506,11 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
         lines += [
             f"Ours vs the Open3D per-instance reference pipeline (global ScalableTSDFVolume + one volume per "
             f"instance), {peer_note}. Stage rows time each stage jitted apart; the fusion step is the same "
-            "stages in one jit.",
+            "stages in one jit. Timing a stage waits for its result, so in the timed rows the host's work and the "
+            "device's add up; the last row is a pass without timers, as `fmfusion run` fuses (each step dispatched "
+            "without waiting: the host packs the next frame while the device works, and waits only to read the "
+            f"frame before's statistics; the first call after each {AS_RUN_CHUNK} frames read ahead left out). "
+            "The targets judge that row; the peer runs synchronously, so its whole frame is the same in both.",
             "",
             f"| stage | ours, ms ({f'frames 1-{p - 1}' if p else 'the peer frames'}) | Open3D peer, ms | "
             "peer / ours | "
@@ -503,8 +530,9 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
             f"{ours.get('counters')}.",
             "",
         ]
-        if ours.get("staged_mismatch"):
-            lines += [f"**Warning**: {ours['staged_mismatch']}.", ""]
+        for mismatch in ("staged_mismatch", "as_run_mismatch"):
+            if ours.get(mismatch):
+                lines += [f"**Warning**: {ours[mismatch]}.", ""]
         lines += ["Compile time (first call minus the median call):", "", "| jitted function | compile, s |", "|---|---:|"]
         lines += [f"| {name} | {ms / 1e3:.2f} |" for name, ms in summary["compile_ms"].items()]
         lines.append("")

@@ -7,10 +7,10 @@ SPEC: `{"pipeline": "ours" | "peer" | "vbg" | "ours-sweep" | "peer-sweep", "scen
 per-frame stage times in milliseconds and the counts and memory figures the report needs (see each
 `run_*`). A pipeline that cannot run (Open3D missing) writes `{"unavailable": reason}`.
 
-- `ours`: the engine as `fmfusion run` drives it (`pipeline.MapBuilder`: its schedules, its timer around
-  each jitted step), twice over the same frames: first with the fused `fuse_detections` (the figures
-  that count, and the peak memory), then with its stages jitted one by one (`bench.stages`) to see
-  where the time goes. Both passes make the same map.
+- `ours`: the engine as `fmfusion run` drives it (`pipeline.MapBuilder`: its schedules), three times over the
+  same frames: with the fused `fuse_detections` and a timer around each jitted step (each then waits for the
+  device; the peak memory), with its stages jitted one by one (`bench.stages`) to see where the time goes,
+  and as run, without timers (the whole frame: the host's work overlaps the device's). All make the same map.
 - `peer`: the Open3D reference pipeline (a global ScalableTSDFVolume and one volume per instance).
 - `vbg`: Open3D's VoxelBlockGrid integration alone.
 Times exclude reading images and detection files, for every pipeline (and, for ours, putting the frame's
@@ -25,6 +25,7 @@ import resource
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from fmfusion_jax.bench.scenes import BenchScene
 
@@ -119,7 +120,8 @@ def scene_map_config(config, opened):
 
 def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """Our engine: the fused pass (`frames`: stage name -> ms per frame, from `MapBuilder`'s timer: `fusion`,
-    `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`).
+    `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`), then the
+    pass as run, without timers (`run_frames`: `call`, the wall time of each `Mapper.integrate`).
 
     The map is `fmfusion run`'s (`runner.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
     doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
@@ -192,7 +194,48 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
         result["staged_mismatch"] = "the stages jitted apart made a different map than the fused step" + _mismatch_cause(device)
     result.update(stage_frames=staged_timer.frames, stage_compiled=staged_timer.compiled)
     result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items() if k in FUSION_STAGES})
+    del staged_mapper
+    run_mapper, run_frames, run_left_out = _as_run_pass(
+        lambda: mapper_for_scene(opened, config, sample), opened, folder, config, progress, scene
+    )
+    if state_digest(run_mapper.state) != fused_digest:  # waiting for each step or not must not change the map
+        result["as_run_mismatch"] = "the pass without timers made a different map than the timed one" + _mismatch_cause(device)
+    result.update(run_frames=run_frames, run_compiled=run_left_out)
     return result
+
+
+def _as_run_pass(make_mapper, opened, folder, config, progress: bool, scene: BenchScene) -> tuple[Any, list, list]:
+    """The fused step as `fmfusion run` drives it: no stage timing, so each step is dispatched without waiting and
+    the host's work for a frame (checks, growth check, packing) overlaps the device's work on the one before.
+
+    Returns the Mapper, per-frame `{"call": ms}` (the wall time of `Mapper.integrate`: its host work, then the wait for the
+    previous frame's steps, then the dispatch of its own; in a steady run their median is the time per frame)
+    and, in the same layout, the calls left out: the first of each chunk of `AS_RUN_CHUNK` frames read ahead
+    (it finds the device idle) and those in which the map grew (their steps compiled in the first pass).
+    The frames of a chunk are read before its calls: reading between two calls would give the device time that a
+    run whose reader works in another thread (`fmfusion run`) does not have.
+    """
+    import itertools
+
+    import jax
+
+    from fmfusion_jax.bench.report import AS_RUN_CHUNK
+
+    mapper = make_mapper()
+    frames: list[dict] = []
+    left_out: list[dict] = []
+    stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
+    while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
+        for position, (frame, detections) in enumerate(chunk):
+            growths = mapper.growths
+            start = time.perf_counter()
+            mapper.integrate(frame, detections)
+            elapsed = {"call": (time.perf_counter() - start) * 1e3}
+            skip = position == 0 or mapper.growths != growths
+            frames.append({} if skip else elapsed)
+            left_out.append(elapsed if skip else {})
+    jax.block_until_ready(mapper.state)
+    return mapper, frames, left_out
 
 
 def _entries(cache) -> int | None:
