@@ -345,8 +345,9 @@ class MapBuilder:
         e.g. `scheduled_detections`).
 
         The steps are dispatched without waiting for the device: the frame's statistics (counters, log line)
-        are read at the next call (or `flush`), so the caller may read and decode the next frame while the
-        device works; the merge and geometry-fusion schedules count detection frames on the host.
+        are read at the next call, after it dispatched its own steps (or at `flush`), so the caller may read and
+        decode the next frame while the device works, and the device has the next steps queued when it finishes;
+        the merge and geometry-fusion schedules count detection frames on the host.
         """
         adapter = self.adapter
         start, recorded_before = time.perf_counter(), self.timer.recorded_ms
@@ -354,7 +355,7 @@ class MapBuilder:
         # dispatch copies them in: a jax.device_put first cost 0.5 ms more per frame in Python on the CPU)
         inputs = adapter.frame(frame)
         batch = None if detections is None else adapter.detections(detections)
-        self.flush()
+        unread = None  # this frame's statistics (a detection frame's)
         if batch is None:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.step_config)
         else:
@@ -368,7 +369,10 @@ class MapBuilder:
                 self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.step_config, self.fusion_config)
             if geometry_due:
                 self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.step_config, fusion)
-            self._pending = (frame.name, stats, refine_stats)
+            unread = (frame.name, stats, refine_stats)
+        # the last detection frame's statistics, read while the device runs this frame's steps (its dispatch first)
+        pending, self._pending = self._pending, unread
+        self._read_statistics(pending)
         self.frames_integrated += 1
         if self.frames_integrated % self.CAPACITY_CHECK_EVERY == 0:
             self.monitor.check(self.state, self.map_config, self.frames_integrated)
@@ -376,10 +380,14 @@ class MapBuilder:
 
     def flush(self) -> None:
         """Reads the statistics of the last detection frame (waits for the device): counters and log line."""
-        if self._pending is None:
+        pending, self._pending = self._pending, None
+        self._read_statistics(pending)
+
+    def _read_statistics(self, pending: tuple[str, Any, Any] | None) -> None:
+        """Counts and logs a detection frame's `(name, stats, refine_stats)` (device values: waits for them)."""
+        if pending is None:
             return
-        name, stats, refine_stats = self._pending
-        self._pending = None
+        name, stats, refine_stats = pending
         stats, refine_stats = small_tree_to_host((stats, refine_stats))
         self.add_frame_counts(stats)
         log.info(
