@@ -290,7 +290,7 @@ def assert_same_map(got, expected):
 
 
 def assert_kept_census_is_a_recount(state, map_config):
-    """A valid kept census equals a full inflated census of the voxels, exactly; the scratch is clear."""
+    """A valid kept census equals a full inflated census of the voxels, exactly; the scratches are clear."""
     from fmfusion_jax.engine import occupied_cells as oc
 
     table = state.instances
@@ -300,6 +300,8 @@ def assert_kept_census_is_a_recount(state, map_config):
         np.testing.assert_array_equal(np.asarray(table.census_overlap), np.asarray(full.overlap))
         assert int(table.census_overfull) == int(full.overfull)
     assert (np.asarray(state.blocks.cell_owner) == -1).all()
+    # the scratch block (the pool's last) holds no instance: reads of "no cell" or "no voxel" land there
+    assert (np.asarray(state.blocks.instance_id)[-1] == -1).all() and (np.asarray(state.blocks.instance_weight)[-1] == 0).all()
     # every id a block holds has its bit set (the renaming visits only those blocks)
     ids = np.asarray(state.blocks.instance_id).astype(np.int64)
     bits = np.asarray(state.blocks.instance_bits)
