@@ -54,15 +54,21 @@ def association_scores(det_image: jax.Array, pixel_instances: jax.Array, n_max: 
     for s in range(num_slots):
         for t in range(s):
             counts[s] = counts[s] & (ids[:, s] != ids[:, t])
-    # Rows: detection + 1 (row 0: no detection). Columns: instance + 1; column 0 is a pseudo slot
-    # counted once per pixel, which gives the detection areas.
-    row = jnp.where((det >= 0) & (det < n_max), det + 1, 0)
-    cols = jnp.concatenate([jnp.zeros((det.shape[0], 1), jnp.int32), jnp.where(jnp.stack(counts, 1), ids + 1, 0)], 1)
-    weight = jnp.concatenate([jnp.ones((det.shape[0], 1), jnp.int32), jnp.stack(counts, 1).astype(jnp.int32)], 1)
-    seg = row[:, None] * (k + 1) + cols
-    table = jax.ops.segment_sum(weight.reshape(-1), seg.reshape(-1), num_segments=(n_max + 1) * (k + 1))
-    table = table.reshape(n_max + 1, k + 1)
-    return AssociationCounts(intersection=table[1:, 1:], det_area=table[1:, 0], inst_area=jnp.sum(table[:, 1:], axis=0))
+    # One table per slot, rows: detection + 1 (row 0: no detection), columns: instance + 1. Slot 0 counts every
+    # pixel once, in column 0 when it holds no id: its rows sum to the detection areas. (One segment_sum of a
+    # pseudo column and the S slots, S + 1 updates per pixel, cost 1.5x as much on the CPU.)
+    row = jnp.where((det >= 0) & (det < n_max), det + 1, 0) * (k + 1)
+    tables = [
+        jax.ops.segment_sum(
+            jnp.ones(det.shape, jnp.int32) if s == 0 else counts[s].astype(jnp.int32),
+            row + jnp.where(counts[s], ids[:, s] + 1, 0),
+            num_segments=(n_max + 1) * (k + 1),
+        ).reshape(n_max + 1, k + 1)
+        for s in range(num_slots)
+    ]
+    per_instance = functools.reduce(jnp.add, [t[:, 1:] for t in tables])
+    det_area = jnp.sum(tables[0][1:], axis=1)
+    return AssociationCounts(intersection=per_instance[1:], det_area=det_area, inst_area=jnp.sum(per_instance, axis=0))
 
 
 @functools.partial(jax.jit, static_argnames=("metric",))
