@@ -46,14 +46,20 @@ def association_scores(det_image: jax.Array, pixel_instances: jax.Array, n_max: 
     Returns:
       `AssociationCounts(intersection (N, K), det_area (N,), inst_area (K,))`, int32.
     """
-    ids = pixel_instances.reshape(-1, pixel_instances.shape[-1])
+    return association_counts(det_image, [pixel_instances[..., s] for s in range(pixel_instances.shape[-1])], n_max, k)
+
+
+def association_counts(det_image: jax.Array, instance_slots, n_max: int, k: int) -> AssociationCounts:
+    """`association_scores` (unjitted) with the instances seen as a list of S slots, int32 `(Hs, Ws)` each
+    (`instance_volume.pixel_instance_slots`)."""
+    ids = [slot.reshape(-1) for slot in instance_slots]
     det = det_image.reshape(-1)
-    num_slots = ids.shape[1]
+    num_slots = len(ids)
     # A slot counts if it holds an id that no earlier slot of the same pixel holds.
-    counts = [(ids[:, s] >= 0) & (ids[:, s] < k) for s in range(num_slots)]
+    counts = [(ids[s] >= 0) & (ids[s] < k) for s in range(num_slots)]
     for s in range(num_slots):
         for t in range(s):
-            counts[s] = counts[s] & (ids[:, s] != ids[:, t])
+            counts[s] = counts[s] & (ids[s] != ids[t])
     # One table per slot, rows: detection + 1 (row 0: no detection), columns: instance + 1. Slot 0 counts every
     # pixel once, in column 0 when it holds no id: its rows sum to the detection areas. (One segment_sum of a
     # pseudo column and the S slots, S + 1 updates per pixel, cost 1.5x as much on the CPU.)
@@ -61,7 +67,7 @@ def association_scores(det_image: jax.Array, pixel_instances: jax.Array, n_max: 
     tables = [
         jax.ops.segment_sum(
             jnp.ones(det.shape, jnp.int32) if s == 0 else counts[s].astype(jnp.int32),
-            row + jnp.where(counts[s], ids[:, s] + 1, 0),
+            row + jnp.where(counts[s], ids[s] + 1, 0),
             num_segments=(n_max + 1) * (k + 1),
         ).reshape(n_max + 1, k + 1)
         for s in range(num_slots)

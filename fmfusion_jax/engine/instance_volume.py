@@ -102,7 +102,9 @@ def _slot_entries(blocks: VoxelBlocks, slot, voxel):
     return ids, weights
 
 
-def _pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig):
+def pixel_instance_slots(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig) -> list:
+    """`pixel_instances` as a list of its S slots, int32 `(Hs, Ws)` each (unjitted, for composing: readers of
+    single slots then read them as computed, with no stacked copy)."""
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     depth = jnp.asarray(depth, jnp.float32)
     num_slots = blocks.instance_id.shape[-1]
@@ -135,7 +137,11 @@ def _pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, con
             best_at = jnp.where(better, a, best_at)
         out.append(jnp.where(best >= 0.0, best_id, -1))
         scores = [jnp.where(best_at == a, -1.0, sc) for a, sc in enumerate(scores)]
-    return jnp.stack(_computed_once(out), axis=-1)
+    return _computed_once(out)
+
+
+def _pixel_instances(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig):
+    return jnp.stack(pixel_instance_slots(blocks, depth, T_world_camera, intrinsics, config), axis=-1)
 
 
 def _computed_once(ids: list) -> list:
@@ -381,4 +387,4 @@ def integrate_instances(
     )
 
 
-__all__ = ["pixel_instances", "pixel_voxels", "pixel_cells", "integrate_instances", "apply_instance_hits"]
+__all__ = ["pixel_instances", "pixel_instance_slots", "pixel_voxels", "pixel_cells", "integrate_instances", "apply_instance_hits"]

@@ -30,7 +30,7 @@ from jax.typing import ArrayLike
 from fmfusion_jax.engine import _geometry, association, detections, label_fusion, maintenance, merge, occupied_cells
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
-from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_cells, pixel_instances, pixel_voxels
+from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_cells, pixel_instance_slots, pixel_voxels
 from fmfusion_jax.engine.occupied_cells import census as occupied_census
 from fmfusion_jax.engine.occupied_cells import remap_cells
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
@@ -180,9 +180,10 @@ def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig
     return _geometry.materialize(jnp.where((raw >= 0) & (kept < 0), FILTERED_PIXEL, kept))
 
 
-def project_instances(blocks: VoxelBlocks, frame: FrameInputs, config: MapConfig) -> jax.Array:
-    """int32[Hs, Ws, S]: the existing instances at the surface each subsampled pixel sees (-1 padded)."""
-    return pixel_instances(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
+def project_instances(blocks: VoxelBlocks, frame: FrameInputs, config: MapConfig) -> list[jax.Array]:
+    """S slots of int32[Hs, Ws]: the existing instances at the surface each subsampled pixel sees, strongest
+    first (-1 padded; `instance_volume.pixel_instances` stacked)."""
+    return pixel_instance_slots(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
 
 
 class Matches(NamedTuple):
@@ -195,16 +196,16 @@ class Matches(NamedTuple):
 
 def associate(
     det_image: jax.Array,
-    seen: jax.Array,
+    seen: list[jax.Array],
     det_valid: jax.Array | np.ndarray,
     inst_valid: jax.Array,
     config: MapConfig,
     fusion: FusionConfig,
 ) -> Matches:
     """Projection-overlap association of the detections (`det_valid bool[N]`) with the live rows
-    (`inst_valid bool[K]`), and new rows for the unmatched ones."""
-    counts = association.association_scores(det_image, seen, det_valid.shape[0], config.instance_capacity)
-    valid_det = det_valid & (counts.det_area > 0)  # a mask may lose all its pixels to the depth filter
+    (`inst_valid bool[K]`) seen at the pixels (`project_instances`), and new rows for the unmatched ones."""
+    counts = association.association_counts(det_image, seen, det_valid.shape[0], config.instance_capacity)
+    valid_det = (counts.det_area > 0) & det_valid  # a mask may lose all its pixels to the depth filter
     scores = association.association_score_matrix(
         counts.intersection, counts.det_area, counts.inst_area, fusion.association_metric
     )
