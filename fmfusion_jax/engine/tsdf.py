@@ -84,7 +84,8 @@ def _find_touched_blocks(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
     is_rep = (flat < num_grid) & (owner[jnp.minimum(flat, num_grid - 1)] == sample_id)
     num_touched = jnp.sum(is_rep).astype(jnp.int32)
     rep, _ = geo.compact(jnp.full((m,), num_samples, jnp.int32), jnp.int32(0), is_rep, sample_id)  # as jnp.nonzero, faster
-    touched = jnp.concatenate([flat, jnp.array([num_grid], jnp.int32)])[rep]  # (M,) flat block ids
+    # (M,) flat block ids (padding rep = num_samples: none; a select, not a copy of `flat` with a sentinel appended)
+    touched = jnp.where(rep < num_samples, flat.at[rep].get(mode="clip"), num_grid)
     real = touched < num_grid
 
     # Allocate the new ones into the next free slots (slot B - 1 is never handed out).
