@@ -226,6 +226,7 @@ def run_quick_bench(bench_dirs, monkeypatch, name: str, *extra: str) -> dict:
     markdown = (out / "bench.md").read_text()
     for label, *_ in report.STAGE_ROWS:
         assert f"| {label} |" in markdown
+    assert "Means per frame (the periodic geometry fusion spread over the frames): ours " in markdown
     data = json.loads((out / "bench.json").read_text())
     ours = data["runs"][0]["ours"]
     assert "error" not in ours and not ours.get("staged_mismatch") and not ours.get("as_run_mismatch")

@@ -150,6 +150,23 @@ def stage_table(ours: dict, peer: dict | None) -> dict:
     return {"rows": rows, "frames": n, "peer_frames": p}
 
 
+def whole_frame_means(ours: dict, peer: dict | None) -> str:
+    """A sentence with the mean whole frame of each pass (the medians leave out the periodic geometry fusion's frames;
+    the means spread it), or "" when ours ran no pass without timers."""
+    if not ours.get("run_frames"):
+        return ""
+    run = _mean(frame_sums(ours["run_frames"], ours.get("run_compiled"), None))
+    timed = _mean(frame_sums(ours.get("frames", []), ours.get("compiled"), None))
+    text = (
+        "Means per frame (the periodic geometry fusion spread over the frames): "
+        f"ours {_ms(run)} ms as run, {_ms(timed)} ms with stages timed"
+    )
+    if _usable(peer):
+        assert peer is not None
+        text += f"; the Open3D peer {_ms(_mean(frame_sums(peer['frames'], None, None)))} ms"
+    return text + "."
+
+
 def whole_frame_ms(result: dict, stop: int | None = None) -> float:
     """Median ms per frame of everything the pipeline did in a frame (ours: the fused pass)."""
     return median(frame_sums(result["frames"], result.get("compiled"), None, stop=stop))
@@ -522,6 +539,9 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
                 f"| {row['label']} | {_ms(row['ours'])} | {_ms(row['peer'])} | {_ratio(row['ratio'])} | {_ms(row['ours_all'])} |"
             )
         ours = main["ours"]
+        means = whole_frame_means(ours, main.get("peer"))
+        if means:
+            lines += ["", means]
         lines += [
             "",
             f"Geometry fusion runs every {ours.get('geometry_fusion_every')} frames. Map (as `fmfusion run` sizes and "
