@@ -230,5 +230,8 @@ def instance_pixel_image(det_image: jax.Array, instance_for_detection: jax.Array
     The `pixel_instance` argument of the geometry's `integrate_instances`.
     """
     n = instance_for_detection.shape[0]
-    inst = instance_for_detection[jnp.clip(det_image, 0, n - 1)]
-    return jnp.where((det_image >= 0) & (det_image < n), inst, -1).astype(jnp.int32)
+    # one table read per pixel: entry 0 for the negative values (no detection, filtered), n + 1 past the rows
+    table = jnp.concatenate(
+        [jnp.full((1,), -1, jnp.int32), instance_for_detection.astype(jnp.int32), jnp.full((1,), -1, jnp.int32)]
+    )
+    return table[jnp.clip(det_image + 1, 0, n + 1)]
