@@ -194,15 +194,17 @@ def _apply_instance_hits(
     instance = jnp.asarray(instance, jnp.int32).reshape(-1)
     seen = (slot >= 0) & (slot < config.dummy_slot)  # the pixel observes an allocated voxel
     valid = seen & (instance >= 0)
-    ids, weights = _slot_entries(blocks, jnp.where(seen, slot, -1), voxel)  # the state before the frame
-    if cell_entries is not None:
+    if cell_entries is None:
+        ids, weights = _slot_entries(blocks, jnp.where(seen, slot, -1), voxel)  # the state before the frame
+    else:
         # the ids read from the vote's cell row (`pixel_cells`) instead: the same values, and the writes below
         # then depend on that read, so XLA reads the row before writing in place rather than copy the pool
-        at = (voxel % 8) * num_slots
-        ids = [
-            jnp.where(seen, jnp.take_along_axis(cell_entries, (at + s)[:, None], axis=1)[:, 0].astype(jnp.int32), -1)
-            for s in range(num_slots)
-        ]
+        at = jnp.arange(slot.shape[0], dtype=jnp.int32) * cell_entries.shape[1] + (voxel % 8) * num_slots
+        entries = cell_entries.reshape(-1)
+        ids = [jnp.where(seen, entries[at + s].astype(jnp.int32), -1) for s in range(num_slots)]
+        base = jnp.where(seen, (slot * v_per_block + voxel) * num_slots, 0)
+        w_flat = blocks.instance_weight.reshape(-1)
+        weights = [jnp.where(i >= 0, w_flat.at[base + s].get(mode="promise_in_bounds"), 0.0) for s, i in enumerate(ids)]
     # read by every scatter below: each computed once (else each consumer redoes the gathers)
     ids = _computed_once(ids)
     weights = [geo.materialize(w) for w in weights]
