@@ -178,6 +178,44 @@ def test_slot_rule_with_contrary_votes_matches_reference_exactly(seed, rounds, n
     check_slot_invariants(blocks)
 
 
+@functools.partial(jax.jit, static_argnames=("contrary_weight",))
+def _hits_reporting_changes(blocks, slot, voxel, inst, detected, neutral, contrary_weight):
+    return iv._apply_instance_hits(
+        blocks, slot, voxel, inst, CONFIG, detected, neutral, contrary_weight=contrary_weight, report_changes=True
+    )
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    rounds=st.integers(1, 4),
+    n_votes=st.integers(1, 300),
+    weight=st.sampled_from([0.0, 0.5, 2.0]),
+)
+def test_votes_report_every_voxel_whose_ids_they_changed(seed, rounds, n_votes, weight):
+    """The kept census only visits the voxels of the votes flagged as changing an id (a claim or an emptied slot,
+    by a decay or contrary votes): every voxel whose ids changed must have a flagged vote."""
+    rng = np.random.default_rng(seed)
+    blocks = integrated_map(1)
+    n_alloc = int(blocks.num_blocks)
+    hot = rng.integers(0, n_alloc, 3)
+    for _ in range(rounds):
+        slot = rng.choice(hot, 512)[:n_votes]
+        local = rng.integers(0, 2, (512, 3))[:n_votes]
+        inst = rng.integers(-1, 6, 512)[:n_votes]
+        neutral = rng.random(512)[:n_votes] < 0.2
+        detected = rng.random(NUM_INSTANCES) < 0.5
+        voxel = local_voxel_index(local[:, 0], local[:, 1], local[:, 2], CONFIG.block_size)
+        before = np.asarray(blocks.instance_id)
+        blocks, changed = _hits_reporting_changes(
+            blocks, _pad(slot), _pad(voxel), _pad(inst), detected, _pad(neutral.astype(np.int32)).astype(bool), weight
+        )
+        changed_voxels = {(int(b), int(v)) for b, v in zip(*np.nonzero((np.asarray(blocks.instance_id) != before).any(axis=-1)))}
+        flagged = np.asarray(changed)[:n_votes]
+        reported = {(int(b), int(v)) for b, v, f in zip(slot, voxel, flagged) if f}
+        assert changed_voxels <= reported, sorted(changed_voxels - reported)
+
+
 def _vote_one_voxel(blocks, config, instances, detected, weight):
     """Votes on voxel 0 of slot 0: `instances` int per pixel (-1 none), `detected` ids of the frame."""
     n = len(instances)

@@ -309,12 +309,15 @@ def assert_kept_census_is_a_recount(state, map_config):
     assert bits[block, ids[block, voxel, slot] % bits.shape[1]].all()
 
 
-def test_kept_census_equals_a_recount_after_every_step(room_frames):
-    """Votes, removals, merges and geometry fusion all keep the merge's census exactly (re-segmented and
-    noisy detections, loose merge thresholds, geometry fusion every other frame)."""
+@pytest.mark.parametrize("contrary", [0.5, 0.0])
+def test_kept_census_equals_a_recount_after_every_step(room_frames, contrary):
+    """Votes (with contrary votes and without: slots are emptied both ways), removals, merges and geometry fusion
+    all keep the merge's census exactly (re-segmented and noisy detections, loose merge thresholds, geometry
+    fusion every other frame)."""
     room, frames = room_frames
     config = small_config(
         **{
+            "instances.contrary_vote_weight": contrary,
             "refinement.merge_similarity": 0.02,
             "refinement.merge_overlap": 0.1,
             "refinement.remove_missed": 1,

@@ -186,7 +186,10 @@ def _apply_instance_hits(
     neutral=None,
     contrary_weight: float = 0.0,
     cell_entries=None,
-) -> VoxelBlocks:
+    report_changes: bool = False,
+):
+    """`apply_instance_hits`; with `report_changes` (static) also returns bool[N]: the votes that changed an id of
+    their voxel (a claim, or an emptied slot): every voxel whose ids changed has one."""
     num_blocks, v_per_block, num_slots = blocks.instance_id.shape
     n_entries = num_blocks * v_per_block * num_slots
     slot = jnp.asarray(slot, jnp.int32).reshape(-1)
@@ -258,17 +261,21 @@ def _apply_instance_hits(
     for entries, deltas, _ in per_slot:
         w_flat = w_flat.at[entries].add(deltas, mode="drop")
     # Slots voted down to zero are emptied.
+    changed = claim
     for entries, _, lowered in per_slot:
-        cleared_entry = jnp.where(lowered & (w_flat[jnp.minimum(entries, n_entries - 1)] <= 0.0), entries, n_entries)
+        emptied = lowered & (w_flat[jnp.minimum(entries, n_entries - 1)] <= 0.0)
+        cleared_entry = jnp.where(emptied, entries, n_entries)
         ids_flat = ids_flat.at[cleared_entry].set(jnp.asarray(-1, id_dtype), mode="drop")
         w_flat = w_flat.at[cleared_entry].set(0.0, mode="drop")
+        changed = changed | emptied
     # a claim adds an id to its voxel: the next geometry fusion visits the block
     stale = blocks.geometry_stale.at[jnp.where(claim, slot, num_blocks)].set(True, mode="drop")
-    return blocks._replace(
+    blocks = blocks._replace(
         instance_id=ids_flat.reshape(blocks.instance_id.shape),
         instance_weight=w_flat.reshape(blocks.instance_weight.shape),
         geometry_stale=stale,
     )
+    return (blocks, changed) if report_changes else blocks
 
 
 @functools.partial(jax.jit, static_argnames=("config", "contrary_weight"))
@@ -306,6 +313,7 @@ def _integrate_instances(
     contrary_weight: float = 0.0,
     cell_entries=None,
     voxels=None,
+    report_changes: bool = False,
 ):
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     depth = jnp.asarray(depth, jnp.float32)
@@ -317,7 +325,16 @@ def _integrate_instances(
     v_per_block = config.voxels_per_block
     slot = jnp.where(voxels >= 0, voxels // v_per_block, -1)
     return _apply_instance_hits(
-        blocks, slot, voxels % v_per_block, pixel_instance, config, detected, neutral, contrary_weight, cell_entries
+        blocks,
+        slot,
+        voxels % v_per_block,
+        pixel_instance,
+        config,
+        detected,
+        neutral,
+        contrary_weight,
+        cell_entries,
+        report_changes,
     )
 
 
@@ -389,4 +406,16 @@ def integrate_instances(
     )
 
 
-__all__ = ["pixel_instances", "pixel_instance_slots", "pixel_voxels", "pixel_cells", "integrate_instances", "apply_instance_hits"]
+#: `integrate_instances` unjitted, for composing; with `report_changes=True` it returns `(blocks, changed bool[Hs * Ws])`,
+#: the pixels whose vote changed an id of their voxel (`_apply_instance_hits`).
+integrate_instances_unjitted = _integrate_instances
+
+__all__ = [
+    "pixel_instances",
+    "pixel_instance_slots",
+    "integrate_instances_unjitted",
+    "pixel_voxels",
+    "pixel_cells",
+    "integrate_instances",
+    "apply_instance_hits",
+]

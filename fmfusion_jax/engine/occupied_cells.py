@@ -490,15 +490,7 @@ def gather_cell_ids(cell_ids: jax.Array, cells: jax.Array) -> jax.Array:
     return cell_ids.at[jnp.where(cells >= 0, cells, cell_ids.shape[0] - 1)].get(mode="promise_in_bounds")
 
 
-def _rows_differ(a: jax.Array, b: jax.Array) -> jax.Array:
-    """bool[N]: rows of `a` and `b` (int16[N, W]) that differ, compared two ids to a 32-bit word."""
-    words_a, words_b = geo.as_words(a), geo.as_words(b)
-    if words_a is None or words_b is None:
-        return jnp.any(a != b, axis=1)
-    return jnp.any(words_a != words_b, axis=1)
-
-
-def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries, new_entries, config: MapConfig):
+def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries, changed, config: MapConfig):
     """`kept` and `blocks` after a frame's votes: the census brought up to date (meaningless while not valid),
     the voted ids set in `blocks.instance_bits`, the scratch `blocks.cell_owner` returned as it came (all -1).
 
@@ -506,16 +498,19 @@ def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries
       kept: the census before the votes.
       blocks: the pool after the votes.
       cells: int32[N]: the pool cell (flat index) of each vote's voxel, -1 for none.
-      old_entries, new_entries: int16[N, 8S]: that cell's ids before and after the votes (`gather_cell_ids`).
+      old_entries: int16[N, 8S]: that cell's ids before the votes (`gather_cell_ids`).
+      changed: bool[N]: the votes that changed an id of their voxel (`instance_volume.integrate_instances_unjitted`
+        with `report_changes`): every cell whose ids changed has one (a flagged cell whose ids did not change
+        would count out and in the same ids).
 
     A cell seen by several votes counts once: the scratch names one vote per changed cell (the largest
-    index, a scatter-max), and is reset by a second scatter. Only the changed cells are visited: O(N) work,
-    whatever the size of the map.
+    index, a scatter-max), and is reset by a second scatter. Only the changed cells are visited, their ids
+    after the votes read from the pool: O(N) work, whatever the size of the map.
     """
     n = cells.shape[0]
     cells_per_block = config.voxels_per_block // 8
     vote = jnp.arange(n, dtype=jnp.int32)
-    changed = (cells >= 0) & _rows_differ(old_entries, new_entries)
+    changed = (cells >= 0) & changed
     owner = blocks.cell_owner.reshape(-1)
     target = jnp.where(changed, cells, owner.shape[0])
     owner = owner.at[target].max(vote, mode="drop")
@@ -525,13 +520,14 @@ def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries
     owner = owner.at[jnp.where(changed & (got >= -1), cells, owner.shape[0])].set(-1, mode="drop")
     listed, count = geo.compact(jnp.full((n,), -1, jnp.int32), jnp.int32(0), first, vote)
     chunk = max(1, min(config.cell_chunk // 4, n))
+    cell_ids = pool_cell_ids(blocks)
 
     def body(start, fresh, carry):
         kept, bits = carry
         at = jax.lax.dynamic_slice_in_dim(listed, start, chunk)
         ok = fresh & (at >= 0)
         at = jnp.where(ok, at, 0)
-        new = new_entries[at].astype(jnp.int32)
+        new = gather_cell_ids(cell_ids, jnp.where(ok, cells[at], -1)).astype(jnp.int32)
         bits = set_instance_bits(bits, cells[at] // cells_per_block, new, ok)
         return update_kept_census(kept, old_entries[at].astype(jnp.int32), new, ok, config), bits
 

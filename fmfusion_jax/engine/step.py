@@ -30,7 +30,7 @@ from jax.typing import ArrayLike
 from fmfusion_jax.engine import _geometry, association, detections, label_fusion, maintenance, merge, occupied_cells
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
-from fmfusion_jax.engine.instance_volume import integrate_instances, pixel_cells, pixel_instance_slots, pixel_voxels
+from fmfusion_jax.engine.instance_volume import integrate_instances_unjitted, pixel_cells, pixel_instance_slots, pixel_voxels
 from fmfusion_jax.engine.occupied_cells import census as occupied_census
 from fmfusion_jax.engine.occupied_cells import remap_cells
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
@@ -306,7 +306,7 @@ def integrate_instance_votes(
     voxels = pixel_voxels(blocks, frame.depth, frame.T_world_camera, frame.intrinsics, config)
     cells = pixel_cells(voxels)
     old_entries = occupied_cells.gather_cell_ids(occupied_cells.pool_cell_ids(blocks), cells)
-    blocks = integrate_instances(
+    blocks, changed = integrate_instances_unjitted(
         blocks,
         frame.depth,
         frame.T_world_camera,
@@ -318,10 +318,10 @@ def integrate_instance_votes(
         fusion.contrary_vote_weight,
         old_entries,  # the votes read their ids there: XLA then reads the cells before writing in place
         voxels,
+        report_changes=True,
     )
-    new_entries = occupied_cells.gather_cell_ids(occupied_cells.pool_cell_ids(blocks), cells)
     kept, blocks = occupied_cells.census_after_votes(
-        occupied_cells.KeptCensus.of(table), blocks, cells, old_entries, new_entries, config
+        occupied_cells.KeptCensus.of(table), blocks, cells, old_entries, changed, config
     )
     return blocks, table._replace(**kept.fields())
 
