@@ -45,6 +45,7 @@ from fmfusion_jax.pipeline import (
     DetectionSchedule,
     FusionResult,
     MapBuilder,
+    MapSizes,
     StageTimer,
     build_map_config,
     extract_map_instances,
@@ -324,10 +325,9 @@ class Mapper:
         self._result: FusionResult | None = None
         self._expected_blocks = expected_blocks
         self._ceiling: MapConfig | None = None  # the config's capacities: how far a growing map may grow
-        # upper bounds of the pool's blocks in use and the table's live rows, kept on the host so that the
-        # growth check reads the device only when a bound comes close to a capacity (None: read it)
-        self._blocks_bound: int | None = None
-        self._rows_bound: int | None = None
+        # per frame since the last known sizes (`MapBuilder.sizes_after`): (position, bound of the blocks it adds,
+        # bound of the rows it adds), so that the growth check reads the device only near a capacity
+        self._recent: list[tuple[int, int, int]] = []
         #: how often the map's layout grew (each one recompiles the steps)
         self.growths = 0
 
@@ -527,16 +527,26 @@ class Mapper:
             timer=self._timer or StageTimer(enabled=self.time_stages),
             fuse_detections=self._fuse_detections,
         )
-        self._blocks_bound = self._rows_bound = None  # read after the first frame
+        self._recent = []  # the sizes are read after the first frame
         log.info("map: %s", map_config.describe())
+
+    def _size_bounds(self, builder: MapBuilder) -> tuple[int, int] | None:
+        """Upper bounds of the pool's blocks and the table's rows with the frames of `_recent` in: the sizes after
+        the last frame whose statistics were read plus each later frame's bound (None before any was read)."""
+        known = builder.sizes_after
+        if known is None:
+            return None
+        self._recent = [entry for entry in self._recent if entry[0] > known.position]
+        return known.blocks + sum(entry[1] for entry in self._recent), known.instances + sum(entry[2] for entry in self._recent)
 
     def _grow_for(self, frame: RGBDFrame, detections_due: bool) -> None:
         """Enlarges the pool or the table (doubling) and, without bounds, the index (by at least half a side)
         if `frame` might not fit.
 
         The frame adds at most its distinct blocks to the pool and `detections.max_detections` rows to the
-        table. Upper bounds of both are summed on the host; the device's counts are read (a wait) only when a
-        bound would pass a capacity, so most frames are checked without waiting for the previous one.
+        table. The bounds are the sizes after the last frame whose statistics were read (`MapBuilder.sizes_after`,
+        a frame or two back) plus these per-frame bounds of the frames since; the device's counts are read (a wait)
+        only when a bound would pass a capacity, so most frames are checked without waiting for the previous one.
         """
         builder = self._require_builder()
         old, ceiling = builder.map_config, self._ceiling
@@ -549,18 +559,20 @@ class Mapper:
         new_rows = self.config.detections.max_detections if detections_due else 0
 
         pool, rows = old.block_capacity, old.instance_capacity
-        if not full_pool:
-            if self._blocks_bound is None or self._blocks_bound + new_blocks + 1 > pool:
-                self._blocks_bound = int(builder.state.blocks.num_blocks)  # waits for the device
-            self._blocks_bound += new_blocks
-            if self._blocks_bound + 1 > pool:
-                pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(self._blocks_bound + 1)))
-        if not full_table:
-            if self._rows_bound is None or self._rows_bound + new_rows > rows:
-                self._rows_bound = int(builder.state.instances.valid.sum())  # waits for the device
-            self._rows_bound += new_rows
-            if self._rows_bound > rows:
-                rows = min(ceiling.instance_capacity, max(2 * rows, _next_power_of_two(self._rows_bound)))
+        position = builder.frames_integrated  # this frame's
+        self._recent.append((position, new_blocks, new_rows))
+        bounds = self._size_bounds(builder)
+        if bounds is None or (not full_pool and bounds[0] + 1 > pool) or (not full_table and bounds[1] > rows):
+            # unknown, or close to a capacity: the exact sizes after the steps dispatched so far (waits for the device)
+            state = builder.state
+            builder.sizes_after = MapSizes(position - 1, int(state.blocks.num_blocks), int(state.instances.valid.sum()))
+            bounds = self._size_bounds(builder)
+            assert bounds is not None
+        blocks_bound, rows_bound = bounds
+        if not full_pool and blocks_bound + 1 > pool:
+            pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(blocks_bound + 1)))
+        if not full_table and rows_bound > rows:
+            rows = min(ceiling.instance_capacity, max(2 * rows, _next_power_of_two(rows_bound)))
 
         lo, hi = growth.bounds_block_range(old)
         new_lo, new_hi = lo.copy(), hi.copy()

@@ -14,7 +14,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -269,6 +269,15 @@ class CapacityMonitor:
                 log.warning("capacity: %s (count so far: %d)", message, value)
 
 
+class MapSizes(NamedTuple):
+    """The map's sizes after the frame at `position` (0-based, in the frames integrated): upper bounds for the frames
+    after it (a merge or a removal only lowers `instances`)."""
+
+    position: int
+    blocks: int  # allocated pool blocks
+    instances: int  # live instance rows
+
+
 @dataclasses.dataclass
 class FusionResult:
     """A fused map with what is needed to interpret and export it."""
@@ -329,7 +338,9 @@ class MapBuilder:
         self.frames_integrated = 0
         self.detection_frames = 0
         self._counters = {"created": 0, "matched": 0, "merged": 0, "removed": 0, "detections": 0}
-        self._pending: tuple[str, Any, Any] | None = None  # the last detection frame's unread statistics
+        self._pending: tuple[str, Any, Any, int] | None = None  # the last detection frame's unread statistics
+        #: the map's sizes after a recent frame, from its statistics (None: none read since the map was built)
+        self.sizes_after: MapSizes | None = None
 
     #: Frames between two reads of the capacity counters (each read waits for the device).
     CAPACITY_CHECK_EVERY = 16
@@ -369,7 +380,7 @@ class MapBuilder:
                 self.state, refine_stats = self.timer.run("refine", step.refine, self.state, self.step_config, self.fusion_config)
             if geometry_due:
                 self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.step_config, fusion)
-            unread = (frame.name, stats, refine_stats)
+            unread = (frame.name, stats, refine_stats, self.frames_integrated)
         # the last detection frame's statistics, read while the device runs this frame's steps (its dispatch first)
         pending, self._pending = self._pending, unread
         self._read_statistics(pending)
@@ -383,12 +394,14 @@ class MapBuilder:
         pending, self._pending = self._pending, None
         self._read_statistics(pending)
 
-    def _read_statistics(self, pending: tuple[str, Any, Any] | None) -> None:
-        """Counts and logs a detection frame's `(name, stats, refine_stats)` (device values: waits for them)."""
+    def _read_statistics(self, pending: tuple[str, Any, Any, int] | None) -> None:
+        """Counts and logs a detection frame's `(name, stats, refine_stats, position)` (device values: waits for
+        them), and keeps the map's sizes after it (`sizes_after`)."""
         if pending is None:
             return
-        name, stats, refine_stats = pending
+        name, stats, refine_stats, position = pending
         stats, refine_stats = small_tree_to_host((stats, refine_stats))
+        self.sizes_after = MapSizes(position, int(stats.blocks), int(stats.instances))
         self.add_frame_counts(stats)
         log.info(
             "%s: %d detections, %d matched, %d new instances, %d in view",

@@ -71,7 +71,7 @@ def staged_fuse_detections(timer: StageTimer):
             config,
             fusion,
         )
-        return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
+        return state._replace(blocks=blocks, instances=table), frame_stats(matches, update, table, blocks)
 
     return fuse
 

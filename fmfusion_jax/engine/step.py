@@ -112,6 +112,8 @@ class FrameStats(NamedTuple):
     created: jax.Array  # int32[]: new instances
     table_overflow: jax.Array  # int32[]: detections that found no free instance row
     in_view: jax.Array  # int32[]: instances in view
+    instances: jax.Array  # int32[]: live instance rows after the frame
+    blocks: jax.Array  # int32[]: allocated pool blocks after the frame
 
 
 class RefineStats(NamedTuple):
@@ -150,7 +152,7 @@ def fuse_detections(
     blocks, table = integrate_instance_votes(
         state.blocks, table, frame, det_image, matches.assignment.instance_for_detection, config, fusion
     )
-    return state._replace(blocks=blocks, instances=table), frame_stats(matches, update)
+    return state._replace(blocks=blocks, instances=table), frame_stats(matches, update, table, blocks)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -326,8 +328,8 @@ def integrate_instance_votes(
     return blocks, table._replace(**kept.fields())
 
 
-def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:
-    """The frame's counts (the loop logs them)."""
+def frame_stats(matches: Matches, update: TableUpdate, table: InstanceTable, blocks: VoxelBlocks) -> FrameStats:
+    """The frame's counts (the loop logs them; the Mapper's growth check reads the map's sizes after it)."""
     assignment = matches.assignment
     return FrameStats(
         detections=jnp.sum(update.fused).astype(jnp.int32),
@@ -335,6 +337,8 @@ def frame_stats(matches: Matches, update: TableUpdate) -> FrameStats:
         created=jnp.sum(assignment.is_new).astype(jnp.int32),
         table_overflow=assignment.overflow.astype(jnp.int32),
         in_view=jnp.sum(update.in_view).astype(jnp.int32),
+        instances=jnp.sum(table.valid).astype(jnp.int32),
+        blocks=jnp.asarray(blocks.num_blocks, jnp.int32),
     )
 
 
