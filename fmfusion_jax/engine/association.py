@@ -1,9 +1,9 @@
 """Data association between a frame's detections and the map's instances (paper Sec. III-C).
 
 Everything is counted per subsampled pixel: the detection image gives the detection at each pixel,
-`pixel_instances` (from the geometry) the instances seen there. One `segment_sum` over
-(pixel, instance slot) pairs yields the mask/projection intersections and both areas, hence the
-score matrix `[N, K]` for all detections and instances at once. Areas are in subsampled pixels:
+`pixel_instances` (from the geometry) the instances seen there. One `segment_sum` per instance slot over
+the pixels yields the mask/projection intersections and both areas, hence the score matrix `[N, K]` for
+all detections and instances at once. Areas are in subsampled pixels:
 at stride `s` one pixel stands for `s * s` image pixels; ratios (IoU, overlap) are unaffected up to
 sampling error.
 """

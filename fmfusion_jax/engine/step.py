@@ -299,8 +299,9 @@ def integrate_instance_votes(
     in this frame whose voxel it sees outside their mask.
 
     The table's kept census (`occupied_cells.KeptCensus`) and the blocks' `instance_bits` follow the votes:
-    the cells they touch are read before and after, and those that changed are counted out and in (a census
-    that cannot be kept is never valid: its update is wasted, but cheap). Returns `(blocks, table)`.
+    the cells they touch are read before, the votes report which cells they changed, and those are counted out
+    (as read before) and in (as read after) (a census that cannot be kept is never valid: its update is wasted,
+    but cheap). Returns `(blocks, table)`.
     """
     pixel_instance = association.instance_pixel_image(det_image, instance_for_detection)
     k = config.instance_capacity
