@@ -401,7 +401,8 @@ class MapBuilder:
             return
         name, stats, refine_stats, position = pending
         stats, refine_stats = small_tree_to_host((stats, refine_stats))
-        self.sizes_after = MapSizes(position, int(stats.blocks), int(stats.instances))
+        if self.sizes_after is None or position > self.sizes_after.position:  # not older than a direct read
+            self.sizes_after = MapSizes(position, int(stats.blocks), int(stats.instances))
         self.add_frame_counts(stats)
         log.info(
             "%s: %d detections, %d matched, %d new instances, %d in view",

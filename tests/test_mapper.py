@@ -100,6 +100,34 @@ def test_a_bounded_map_grows_its_pool_from_the_expected_blocks_to_the_same_map(r
     assert _key(sized.instances()) == _key(fixed.instances())
 
 
+@pytest.mark.parametrize("expected_blocks, direct_reads", [(2000, False), (6000, False), (6000, True)])
+def test_the_growth_checks_bounds_never_fall_below_the_maps_sizes(room, expected_blocks, direct_reads):
+    """The growth check bounds the pool's blocks and the table's rows by the sizes of a frame or two back (from the
+    statistics, or a direct read near a capacity) plus a bound per frame since: after every frame, with frames
+    without detections in between (they send no statistics), the bounds hold the map's true sizes. With
+    `direct_reads` the sizes are forgotten before every frame, so the check reads the device each time and the
+    statistics of an older frame arrive after it (they must not replace the newer sizes)."""
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    mapper = Mapper(config, bounds=scene.bounds(), expected_blocks=expected_blocks)
+    checked = 0
+    for frame in scene.frames():
+        if direct_reads and mapper._builder is not None:
+            mapper._builder.sizes_after = None
+        mapper.integrate(frame, folder.get(frame.name) if frame.index % 3 else None)
+        bounds = mapper._size_bounds(mapper._builder)
+        if bounds is None:
+            continue
+        # every frame after the known sizes has its bound in (none lost when older statistics arrive late)
+        known = mapper._builder.sizes_after
+        assert [entry[0] for entry in mapper._recent] == list(range(known.position + 1, mapper.frames_integrated)), frame.name
+        state = mapper.state
+        assert bounds[0] >= int(state.blocks.num_blocks) and bounds[1] >= int(state.instances.valid.sum()), frame.name
+        checked += 1
+    assert checked >= len(scene) - 2 and int(mapper.state.blocks.dropped_blocks) == 0
+
+
 def test_a_bounded_map_grows_its_instance_table_to_the_same_map(room, monkeypatch):
     """With bounds the instance table starts small too and doubles before a frame whose detections might not fit
     (the merge's K^2 tests cost what the map holds, not the ceiling): the same instances as a table that never
