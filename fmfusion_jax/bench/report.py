@@ -18,8 +18,8 @@ from numpy.typing import ArrayLike
 
 from fmfusion_jax.bench.stages import FUSION_STAGES
 
-#: Frames the worker's pass without timers reads ahead at a time (`worker.AS_RUN_CHUNK`; the first call of each
-#: chunk finds the device idle and is left out). Defined here: the report is imported without JAX, the worker not.
+#: Frames the worker's pass without timers reads ahead at a time (`worker._as_run_pass`; the first call of each
+#: chunk finds the device idle and is left out). Defined here, where the report's text needs it too.
 AS_RUN_CHUNK = 32
 
 #: The peer's stages of a detection frame (keys of `Open3DInstancePipeline.add_frame`'s result).
@@ -27,6 +27,8 @@ PEER_FUSION_STAGES = ("tsdf", "projection", "association", "label_fusion", "inte
 
 #: The whole frame as `fmfusion run` runs it (the worker's pass without timers): the figure the targets judge.
 AS_RUN_LABEL = "**whole frame, as run** (`Mapper.integrate` without timers: the host's work overlaps the device's)"
+#: The whole frame with every stage waited for (the worker's timed pass): judged when no pass ran without timers.
+TIMED_WHOLE_LABEL = "whole frame, stages timed (all of `Mapper.integrate`, waiting for each step: the sum of the above)"
 
 #: Rows of the stage table: (label, our pass ("staged", "fused" or "as_run"), our keys, the peer's keys);
 #: keys None = every stage of the frame. Several keys: their sum per frame.
@@ -43,7 +45,7 @@ STAGE_ROWS = (
     ("host: the Mapper's frame checks, schedule and growth check", "fused", ("mapper",), ()),
     ("sum of the stages above, jitted apart", "staged", FUSION_STAGES, PEER_FUSION_STAGES),
     ("**fusion step** (`fuse_detections`, one jit)", "fused", ("fusion",), PEER_FUSION_STAGES),
-    ("whole frame, stages timed (all of `Mapper.integrate`, waiting for each step: the sum of the above)", "fused", None, None),
+    (TIMED_WHOLE_LABEL, "fused", None, None),
     (AS_RUN_LABEL, "as_run", None, None),
 )
 
@@ -112,7 +114,7 @@ def whole_frame_row(stages: dict | None) -> dict | None:
     as_run = rows.get(AS_RUN_LABEL)
     if as_run is not None and math.isfinite(as_run["ours_all"]):
         return as_run
-    return next((row for row in stages["rows"] if row["label"].startswith("whole frame, stages timed")), None)
+    return rows.get(TIMED_WHOLE_LABEL)
 
 
 def _usable(result: dict | None) -> TypeGuard[dict]:

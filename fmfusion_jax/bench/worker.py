@@ -25,7 +25,6 @@ import resource
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 from fmfusion_jax.bench.scenes import BenchScene
 
@@ -195,20 +194,20 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     result.update(stage_frames=staged_timer.frames, stage_compiled=staged_timer.compiled)
     result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items() if k in FUSION_STAGES})
     del staged_mapper
-    run_mapper, run_frames, run_left_out = _as_run_pass(
-        lambda: mapper_for_scene(opened, config, sample), opened, folder, config, progress, scene
-    )
+    run_mapper = mapper_for_scene(opened, config, sample)
+    run_frames, run_left_out = _as_run_pass(run_mapper, opened, folder, config, progress, scene)
     if state_digest(run_mapper.state) != fused_digest:  # waiting for each step or not must not change the map
         result["as_run_mismatch"] = "the pass without timers made a different map than the timed one" + _mismatch_cause(device)
     result.update(run_frames=run_frames, run_compiled=run_left_out)
     return result
 
 
-def _as_run_pass(make_mapper, opened, folder, config, progress: bool, scene: BenchScene) -> tuple[Any, list, list]:
-    """The fused step as `fmfusion run` drives it: no stage timing, so each step is dispatched without waiting and
-    the host's work for a frame (checks, growth check, packing) overlaps the device's work on the one before.
+def _as_run_pass(mapper, opened, folder, config, progress: bool, scene: BenchScene) -> tuple[list, list]:
+    """Fuses the frames into `mapper` (a `Mapper` without timers) as `fmfusion run` drives it: each step is dispatched
+    without waiting and the host's work for a frame (checks, growth check, packing) overlaps the device's work on
+    the one before.
 
-    Returns the Mapper, per-frame `{"call": ms}` (the wall time of `Mapper.integrate`: its host work, then the wait for the
+    Returns per-frame `{"call": ms}` (the wall time of `Mapper.integrate`: its host work, then the wait for the
     previous frame's steps, then the dispatch of its own; in a steady run their median is the time per frame)
     and, in the same layout, the calls left out: the first of each chunk of `AS_RUN_CHUNK` frames read ahead
     (it finds the device idle) and those in which the map grew (their steps compiled in the first pass).
@@ -221,7 +220,6 @@ def _as_run_pass(make_mapper, opened, folder, config, progress: bool, scene: Ben
 
     from fmfusion_jax.bench.report import AS_RUN_CHUNK
 
-    mapper = make_mapper()
     frames: list[dict] = []
     left_out: list[dict] = []
     stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
@@ -235,7 +233,7 @@ def _as_run_pass(make_mapper, opened, folder, config, progress: bool, scene: Ben
             frames.append({} if skip else elapsed)
             left_out.append(elapsed if skip else {})
     jax.block_until_ready(mapper.state)
-    return mapper, frames, left_out
+    return frames, left_out
 
 
 def _entries(cache) -> int | None:

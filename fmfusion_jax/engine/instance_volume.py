@@ -90,16 +90,26 @@ def _locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):
     return slot, v, inside
 
 
+def _entry_base(blocks: VoxelBlocks, slot, voxel):
+    """Flat pool entry of slot 0 at the addresses `(slot, voxel)` (0 where slot is -1)."""
+    _, v_per_block, num_slots = blocks.instance_id.shape
+    return jnp.where(slot >= 0, (slot * v_per_block + voxel) * num_slots, 0)
+
+
+def _slot_weights(blocks: VoxelBlocks, base, ids: list) -> list:
+    """Per slot the weights at the entries `base + s` (`_entry_base`), 0 where the slot's id is empty."""
+    w_flat = blocks.instance_weight.reshape(-1)
+    return [jnp.where(i >= 0, w_flat.at[base + s].get(mode="promise_in_bounds"), 0.0) for s, i in enumerate(ids)]
+
+
 def _slot_entries(blocks: VoxelBlocks, slot, voxel):
     """Per-slot lists of (ids, weights) at pool addresses `(slot, voxel)` (slot -1: empty)."""
-    _, v_per_block, num_slots = blocks.instance_id.shape
+    num_slots = blocks.instance_id.shape[-1]
     hit = slot >= 0
-    base = jnp.where(hit, (slot * v_per_block + voxel) * num_slots, 0)
+    base = _entry_base(blocks, slot, voxel)
     ids_flat = blocks.instance_id.reshape(-1)
-    w_flat = blocks.instance_weight.reshape(-1)
     ids = [jnp.where(hit, ids_flat.at[base + s].get(mode="promise_in_bounds").astype(jnp.int32), -1) for s in range(num_slots)]
-    weights = [jnp.where(i >= 0, w_flat.at[base + s].get(mode="promise_in_bounds"), 0.0) for s, i in enumerate(ids)]
-    return ids, weights
+    return ids, _slot_weights(blocks, base, ids)
 
 
 def pixel_instance_slots(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: MapConfig) -> list:
@@ -205,9 +215,7 @@ def _apply_instance_hits(
         at = jnp.arange(slot.shape[0], dtype=jnp.int32) * cell_entries.shape[1] + (voxel % 8) * num_slots
         entries = cell_entries.reshape(-1)
         ids = [jnp.where(seen, entries[at + s].astype(jnp.int32), -1) for s in range(num_slots)]
-        base = jnp.where(seen, (slot * v_per_block + voxel) * num_slots, 0)
-        w_flat = blocks.instance_weight.reshape(-1)
-        weights = [jnp.where(i >= 0, w_flat.at[base + s].get(mode="promise_in_bounds"), 0.0) for s, i in enumerate(ids)]
+        weights = _slot_weights(blocks, _entry_base(blocks, jnp.where(seen, slot, -1), voxel), ids)
     # read by every scatter below: each computed once (else each consumer redoes the gathers)
     ids = _computed_once(ids)
     weights = [geo.materialize(w) for w in weights]

@@ -527,8 +527,9 @@ def census_after_votes(kept: KeptCensus, blocks: VoxelBlocks, cells, old_entries
         at = jax.lax.dynamic_slice_in_dim(listed, start, chunk)
         ok = fresh & (at >= 0)
         at = jnp.where(ok, at, 0)
-        new = gather_cell_ids(cell_ids, jnp.where(ok, cells[at], -1)).astype(jnp.int32)
-        bits = set_instance_bits(bits, cells[at] // cells_per_block, new, ok)
+        cell = cells[at]
+        new = gather_cell_ids(cell_ids, jnp.where(ok, cell, -1)).astype(jnp.int32)
+        bits = set_instance_bits(bits, cell // cells_per_block, new, ok)
         return update_kept_census(kept, old_entries[at].astype(jnp.int32), new, ok, config), bits
 
     kept, bits = geo.fold_chunks(count, chunk, n, body, (kept, blocks.instance_bits))
