@@ -664,6 +664,9 @@ def _edit_cells(
         old_ids = _gather_cells(id_rows, index, ok, -1).astype(jnp.int32).reshape(-1, 8, num_slots)
         old_w = _gather_cells(w_rows, index, ok, 0.0).reshape(-1, 8, num_slots)
         new_ids, new_w, extra = edit(old_ids, old_w, index, extra)
+        # the new rows are made before the scatters: fused into a scatter (as XLA does on a GPU), the gather of the
+        # old rows would read the array being written, and XLA would copy the whole pool array twice per step
+        new_ids, new_w = jax.lax.optimization_barrier((new_ids, new_w))
         rows = old_ids.shape[0]
         if kept is not None:
             kept = update_kept_census(kept, old_ids.reshape(rows, -1), new_ids.reshape(rows, -1), ok, config)
