@@ -497,6 +497,15 @@ def _ratio(value: float) -> str:
     return "—" if not math.isfinite(value) else f"{value:.1f}x" if value >= 1 else f"{value:.2f}x"
 
 
+def _flags_worth_naming(device: dict) -> bool:
+    """Whether bench.md names the run's XLA_FLAGS: always on an accelerator, on the CPU unless they are only the
+    GPU options that `fmfusion` sets itself (which the CPU ignores)."""
+    from fmfusion_jax.xla_options import GPU_COMMAND_BUFFER_FLAG
+
+    flags = device.get("xla_flags") or ""
+    return bool(flags.strip()) and (device.get("platform") != "cpu" or bool(flags.replace(GPU_COMMAND_BUFFER_FLAG, "").strip()))
+
+
 def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
     """bench.md: device, the stage table, compile times, memory, VoxelBlockGrid, per-object cost, targets."""
     device = summary.get("device") or {}
@@ -510,6 +519,7 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
         f"Device: {device.get('device_kind', '?')} ({device.get('platform', '?')}), "
         f"{device.get('cpus', '?')} CPUs, "
         f"jax {device.get('jax', '?')}; Open3D {_peer_version(runs) or 'not run'}.  ",
+        *([f"XLA_FLAGS: `{device['xla_flags']}`  "] if _flags_worth_naming(device) else []),
         "Figures: median ms per frame over frames 1.. (frame 0 warms up; calls that compiled left out).",
         "",
     ]

@@ -92,7 +92,13 @@ def device_description() -> dict:
     import jax
 
     device = jax.devices()[0]
-    return {"platform": device.platform, "device_kind": device.device_kind, "jax": jax.__version__, "cpus": cpu_count()}
+    return {
+        "platform": device.platform,
+        "device_kind": device.device_kind,
+        "jax": jax.__version__,
+        "cpus": cpu_count(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    }
 
 
 def _device_memory_mb() -> float | None:

@@ -15,6 +15,7 @@ import sys
 
 from fmfusion_jax.compile_cache import enable_compile_cache
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.xla_options import enable_gpu_command_buffers
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -96,6 +97,7 @@ def main(argv: list[str] | None = None, *, exit_at_once_on_interrupt: bool = Fal
     if args.verbose < 2:  # JAX's own INFO lines (backend probing) are noise unless debugging
         logging.getLogger("jax").setLevel(logging.WARNING)
     enable_compile_cache()  # steps compiled by an earlier run load from disk (FMFUSION_COMPILE_CACHE=off: never)
+    enable_gpu_command_buffers()  # on a GPU, the steps' loops run on the device (the CPU ignores it)
     try:
         return int(args.func(args) or 0)
     except UserError as error:
