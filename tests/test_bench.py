@@ -306,3 +306,28 @@ def test_bad_arguments_fail_in_one_line_before_any_work(tmp_path, capsys):
         assert main(["bench", *argv]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("fmfusion bench: error: ") and fragment in err[0], err
+
+
+def test_the_memory_target_is_judged_on_the_cpu_and_reported_with_the_device_peak_on_a_gpu():
+    """A GPU process holds the CUDA libraries in its resident memory and the map on the device: its peak RSS
+    says nothing of the map's budget, so the row gives the figures without a verdict there."""
+    ours = {
+        "frames": [{"fusion": 2.0}] * 4,
+        "compiled": [{}] * 4,
+        "peak_rss_mb": 3200.0,
+        "baseline_rss_mb": 270.0,
+        "map_state_mb": 430.0,
+        "blocks_used": 19375,
+        "block_capacity": 32768,
+        "device_memory_mb": 656.0,
+    }
+    main = {"scene": {"kind": "real", "frames": 300, "name": "scene0000_00"}, "ours": ours, "peer": None}
+    memory_row = lambda platform: next(  # noqa: E731
+        row for row in report.targets({"device": {"platform": platform}}, main) if row["target"].startswith("peak RSS")
+    )
+    on_cpu, on_gpu = memory_row("cpu"), memory_row("gpu")
+    assert on_cpu["met"] is False and "3.12x the target" in on_cpu["figure"]
+    assert on_gpu["met"] is None and on_gpu["figure"].startswith("n/a on a GPU") and "device peak 656 MiB" in on_gpu["figure"]
+    assert "x the target" not in on_gpu["figure"]
+    ours["dropped_blocks"] = 7  # a pool too small is a failure on any device
+    assert memory_row("gpu")["met"] is False

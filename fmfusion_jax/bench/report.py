@@ -416,16 +416,22 @@ def targets(summary: dict, main: dict) -> list[dict]:
 
     target = f"peak RSS <= {PEAK_RSS_GIB:g} GiB for a ScanNet room at 1.5 cm"
     if _usable(ours) and real:
-        gib = ours["peak_rss_mb"] / 1024
+        gib, on_gpu = ours["peak_rss_mb"] / 1024, _on_accelerator(summary)
         figure = (
             f"{gib:.2f} GiB ({main['scene']['frames']} frames of {main['scene']['name']}; map state "
             f"{ours['map_state_mb']:.0f} MiB, pool {ours.get('blocks_used')} of {ours.get('block_capacity')} blocks used; "
-            f"{ours['baseline_rss_mb']:.0f} MiB before fusing)" + _missed_by(gib, PEAK_RSS_GIB)
+            f"{ours['baseline_rss_mb']:.0f} MiB before fusing)" + ("" if on_gpu else _missed_by(gib, PEAK_RSS_GIB))
         )
         figure += f"; {compile_cache_state(ours)}"
         if ours.get("dropped_blocks"):
             figure += f"; **{ours['dropped_blocks']} blocks dropped: the pool was too small**"
-        rows.append({"target": target, "figure": figure, "met": gib <= PEAK_RSS_GIB and not ours.get("dropped_blocks")})
+        met: bool | None = gib <= PEAK_RSS_GIB and not ours.get("dropped_blocks")
+        if on_gpu and not ours.get("dropped_blocks"):  # the target is the CPU's: a GPU process holds
+            # the CUDA libraries in its resident memory and the map on the device
+            device_mb = ours.get("device_memory_mb")
+            figure = f"n/a on a GPU (judged on the CPU): {figure}" + (f"; device peak {device_mb:.0f} MiB" if device_mb else "")
+            met = None
+        rows.append({"target": target, "figure": figure, "met": met})
     else:
         rows.append({"target": target, "figure": "n/a (no real scene run)", "met": None})
 
@@ -442,8 +448,8 @@ def targets(summary: dict, main: dict) -> list[dict]:
         }
     )
     rows.append(_per_object_target(summary.get("sweep")))
+    gpu = _on_accelerator(summary)
     device = summary.get("device") or {}
-    gpu = device.get("platform") in ("gpu", "cuda", "rocm")
     fusion = next((r for r in stages["rows"] if r["label"].startswith("**fusion")), None) if stages else None
     rows.append(
         {
@@ -495,6 +501,10 @@ def _ms(value: float) -> str:
 
 def _ratio(value: float) -> str:
     return "—" if not math.isfinite(value) else f"{value:.1f}x" if value >= 1 else f"{value:.2f}x"
+
+
+def _on_accelerator(summary: dict) -> bool:
+    return (summary.get("device") or {}).get("platform") in ("gpu", "cuda", "rocm")
 
 
 def _flags_worth_naming(device: dict) -> bool:
