@@ -425,13 +425,13 @@ def targets(summary: dict, main: dict) -> list[dict]:
         figure += f"; {compile_cache_state(ours)}"
         if ours.get("dropped_blocks"):
             figure += f"; **{ours['dropped_blocks']} blocks dropped: the pool was too small**"
-        met: bool | None = gib <= PEAK_RSS_GIB and not ours.get("dropped_blocks")
+        within: bool | None = gib <= PEAK_RSS_GIB and not ours.get("dropped_blocks")
         if on_gpu and not ours.get("dropped_blocks"):  # the target is the CPU's: a GPU process holds
             # the CUDA libraries in its resident memory and the map on the device
             device_mb = ours.get("device_memory_mb")
             figure = f"n/a on a GPU (judged on the CPU): {figure}" + (f"; device peak {device_mb:.0f} MiB" if device_mb else "")
-            met = None
-        rows.append({"target": target, "figure": figure, "met": met})
+            within = None
+        rows.append({"target": target, "figure": figure, "met": within})
     else:
         rows.append({"target": target, "figure": "n/a (no real scene run)", "met": None})
 
