@@ -12,7 +12,7 @@ one run of each on the same machine, docs/benchmark.md). The CPU ignores these o
 the user's `XLA_FLAGS` already set `--xla_gpu_enable_command_buffer`, the installed jaxlib predates the
 versions it was checked with (an XLA that does not know a value stops the process at startup, on the CPU
 too), or a backend has already started (then it would not take effect). The Python API leaves `XLA_FLAGS`
-to the caller: set the same option there before the first JAX computation.
+to the caller: call `enable_gpu_command_buffers()` (or set the option) before the first JAX computation.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from importlib import metadata
 
 log = logging.getLogger(__name__)
 
-#: XLA's command-buffer types with the device-side loops (XLA's default set, plus WHILE and CONDITIONAL).
+#: XLA's command-buffer types: fusions, cuBLAS, cuDNN and custom calls (as XLA records them by default), plus the
+#: loops and conditionals.
 GPU_COMMAND_BUFFER_TYPES = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
 GPU_COMMAND_BUFFER_FLAG = f"--xla_gpu_enable_command_buffer={GPU_COMMAND_BUFFER_TYPES}"
 #: The oldest jaxlib whose XLA was seen to accept the flag (0.10.2 parses it, 0.11.2 ran it on an H100).
@@ -59,7 +60,7 @@ def enable_gpu_command_buffers(jaxlib_version: tuple[int, ...] | None = None) ->
     if "xla_gpu_enable_command_buffer" in current:
         reason = "XLA_FLAGS already sets --xla_gpu_enable_command_buffer"
     elif version is None or tuple(version[:2]) < OLDEST_JAXLIB:
-        reason = f"jaxlib {version or 'unknown'} predates {'.'.join(map(str, OLDEST_JAXLIB))}"
+        reason = f"jaxlib {'.'.join(map(str, version)) if version else '(version unknown)'} is not known to accept it"
     elif _backend_started():
         reason = "a JAX backend has already started"
     else:
