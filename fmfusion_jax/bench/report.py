@@ -451,18 +451,24 @@ def targets(summary: dict, main: dict) -> list[dict]:
     gpu = _on_accelerator(summary)
     device = summary.get("device") or {}
     fusion = next((r for r in stages["rows"] if r["label"].startswith("**fusion")), None) if stages else None
-    rows.append(
-        {
-            "target": f"GPU: whole frame < {GPU_WHOLE_FRAME_MS:g} ms",
-            "figure": (
-                f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on "  # type: ignore[index]
-                f"{device.get('device_kind')}"
-            )
-            if gpu and whole
-            else "n/a (no GPU in this run)",
-            "met": (whole["ours_all"] < GPU_WHOLE_FRAME_MS) if gpu and whole else None,
-        }
-    )
+    if gpu and whole and fusion:
+        figure = f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on {device.get('device_kind')}"
+        if whole["ours_all"] >= GPU_WHOLE_FRAME_MS:
+            figure += _missed_by(whole["ours_all"], GPU_WHOLE_FRAME_MS) + f"; bound by: {time_budget(stages, every)}"
+            host = sum(row["ours_all"] for row in stages["rows"] if row["label"].startswith("host:"))  # type: ignore[index]
+            # on a GPU the thread that runs the steps waits in them (their loops' conditions), so the host's work adds up
+            figure += f"; the host's work {_ms(host)} ms, in series with the steps' calls (docs/benchmark.md, GPU)"
+        rows.append(
+            {
+                "target": f"GPU: whole frame < {GPU_WHOLE_FRAME_MS:g} ms",
+                "figure": figure,
+                "met": whole["ours_all"] < GPU_WHOLE_FRAME_MS,
+            }
+        )
+    else:
+        rows.append(
+            {"target": f"GPU: whole frame < {GPU_WHOLE_FRAME_MS:g} ms", "figure": "n/a (no GPU in this run)", "met": None}
+        )
     return rows
 
 
