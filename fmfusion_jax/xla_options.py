@@ -8,11 +8,12 @@ among XLA's command-buffer types, the loops run as CUDA graphs with conditional 
 an H100 the as-run whole frame of `scene0000_00` went from 7.26 to 6.27 ms median (mean 8.74 to 6.79 ms;
 one run of each on the same machine, docs/benchmark.md). The CPU ignores these options.
 
-`enable_gpu_command_buffers()` adds the option to `XLA_FLAGS` (this process and those it starts) unless
-the user's `XLA_FLAGS` already set `--xla_gpu_enable_command_buffer`, the installed jaxlib predates the
-versions it was checked with (an XLA that does not know a value stops the process at startup, on the CPU
-too), or a backend has already started (then it would not take effect). The Python API leaves `XLA_FLAGS`
-to the caller: call `enable_gpu_command_buffers()` (or set the option) before the first JAX computation.
+`enable_gpu_command_buffers()` adds the option to `XLA_FLAGS` (this process and those it starts) where JAX
+has a GPU plugin installed, unless the user's `XLA_FLAGS` already set `--xla_gpu_enable_command_buffer`, the
+installed jaxlib is outside the versions it was checked with (an XLA that does not know the option or one of
+its values stops the process at startup), or a backend has already started (then it would not take effect).
+The Python API leaves `XLA_FLAGS` to the caller: call `enable_gpu_command_buffers()` (or set the option) before
+the first JAX computation.
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ log = logging.getLogger(__name__)
 #: loops and conditionals.
 GPU_COMMAND_BUFFER_TYPES = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
 GPU_COMMAND_BUFFER_FLAG = f"--xla_gpu_enable_command_buffer={GPU_COMMAND_BUFFER_TYPES}"
-#: The oldest jaxlib whose XLA was seen to accept the flag (0.10.2 parses it, 0.11.2 ran it on an H100).
-OLDEST_JAXLIB = (0, 10)
+#: The jaxlib releases (major, minor) whose XLA was seen to accept the flag, from the first to the one after the last
+#: (0.10.2 parses it, 0.11.2 ran it on an H100).
+CHECKED_JAXLIB = ((0, 10), (0, 12))
 
 
 def _jaxlib_version() -> tuple[int, ...] | None:
@@ -38,6 +40,16 @@ def _jaxlib_version() -> tuple[int, ...] | None:
         return tuple(int(part) for part in release.split(".")[:2])
     except (metadata.PackageNotFoundError, ValueError):
         return None
+
+
+def _gpu_plugin_installed() -> bool:
+    """Whether a JAX GPU plugin (jax-cuda12-plugin, jax-cuda13-plugin, jax-rocm...) is installed: without one the
+    option could only matter to a jaxlib built with GPU support, and CPU-only installs never see it."""
+    for distribution in metadata.distributions():
+        name = (distribution.metadata["Name"] or "").lower().replace("_", "-")
+        if name.startswith(("jax-cuda", "jax-rocm", "jaxlib-cuda")):
+            return True
+    return False
 
 
 def _backend_started() -> bool:
@@ -57,10 +69,13 @@ def enable_gpu_command_buffers(jaxlib_version: tuple[int, ...] | None = None) ->
     minor) stands in for the installed jaxlib's (tests)."""
     current = os.environ.get("XLA_FLAGS", "")
     version = jaxlib_version if jaxlib_version is not None else _jaxlib_version()
+    first, after_last = CHECKED_JAXLIB
     if "xla_gpu_enable_command_buffer" in current:
         reason = "XLA_FLAGS already sets --xla_gpu_enable_command_buffer"
-    elif version is None or tuple(version[:2]) < OLDEST_JAXLIB:
+    elif version is None or not first <= tuple(version[:2]) < after_last:
         reason = f"jaxlib {'.'.join(map(str, version)) if version else '(version unknown)'} is not known to accept it"
+    elif not _gpu_plugin_installed():
+        reason = "no JAX GPU plugin is installed"
     elif _backend_started():
         reason = "a JAX backend has already started"
     else:
@@ -70,4 +85,4 @@ def enable_gpu_command_buffers(jaxlib_version: tuple[int, ...] | None = None) ->
     return None
 
 
-__all__ = ["GPU_COMMAND_BUFFER_FLAG", "GPU_COMMAND_BUFFER_TYPES", "OLDEST_JAXLIB", "enable_gpu_command_buffers"]
+__all__ = ["CHECKED_JAXLIB", "GPU_COMMAND_BUFFER_FLAG", "GPU_COMMAND_BUFFER_TYPES", "enable_gpu_command_buffers"]

@@ -15,7 +15,9 @@ from fmfusion_jax.xla_options import GPU_COMMAND_BUFFER_FLAG, enable_gpu_command
 
 @pytest.fixture
 def no_backend(monkeypatch):
+    """A process with a JAX GPU plugin installed whose backend has not started yet."""
     monkeypatch.setattr(xla_options, "_backend_started", lambda: False)
+    monkeypatch.setattr(xla_options, "_gpu_plugin_installed", lambda: True)
 
 
 def test_the_gpu_loops_option_is_added_beside_the_users_flags(monkeypatch, no_backend):
@@ -23,7 +25,7 @@ def test_the_gpu_loops_option_is_added_beside_the_users_flags(monkeypatch, no_ba
     assert enable_gpu_command_buffers(jaxlib_version=(0, 11)) == GPU_COMMAND_BUFFER_FLAG
     assert os.environ["XLA_FLAGS"] == f"--xla_dump_to=/tmp/nowhere {GPU_COMMAND_BUFFER_FLAG}"
     monkeypatch.delenv("XLA_FLAGS")
-    assert enable_gpu_command_buffers(jaxlib_version=(1, 0)) == GPU_COMMAND_BUFFER_FLAG
+    assert enable_gpu_command_buffers(jaxlib_version=(0, 10)) == GPU_COMMAND_BUFFER_FLAG
     assert os.environ["XLA_FLAGS"] == GPU_COMMAND_BUFFER_FLAG
 
 
@@ -33,6 +35,7 @@ def test_the_gpu_loops_option_is_added_beside_the_users_flags(monkeypatch, no_ba
         ("--xla_gpu_enable_command_buffer=", (0, 11)),  # the user's own choice (here: no command buffers) stays
         ("--xla_gpu_enable_command_buffer=FUSION --xla_dump_to=/tmp/x", (0, 11)),
         ("", (0, 4)),  # an older XLA might not know WHILE or CONDITIONAL and would stop the process
+        ("", (0, 12)),  # a newer one might have dropped or renamed the option
         ("", None),  # jaxlib's version unknown
     ],
 )
@@ -41,6 +44,13 @@ def test_the_option_is_left_out_where_it_could_override_or_break(monkeypatch, no
     monkeypatch.setattr(xla_options, "_jaxlib_version", lambda: None)
     assert enable_gpu_command_buffers(jaxlib_version=version) is None
     assert os.environ["XLA_FLAGS"] == flags
+
+
+def test_the_option_is_left_out_without_a_gpu_plugin(monkeypatch, no_backend):
+    monkeypatch.setattr(xla_options, "_gpu_plugin_installed", lambda: False)  # a CPU-only install: never touched
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+    assert enable_gpu_command_buffers(jaxlib_version=(0, 11)) is None
+    assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/tmp/x"
 
 
 def test_the_option_is_left_out_once_a_backend_has_started(monkeypatch):
@@ -54,8 +64,9 @@ def test_the_option_is_left_out_once_a_backend_has_started(monkeypatch):
 
 def test_the_installed_xla_accepts_the_option_when_it_would_be_added():
     """XLA stops the process at startup on a flag value it does not know: check the installed one takes it."""
-    if xla_options._jaxlib_version() is None or xla_options._jaxlib_version() < xla_options.OLDEST_JAXLIB:
-        pytest.skip("the installed jaxlib predates the option: fmfusion does not add it")
+    version, (first, after_last) = xla_options._jaxlib_version(), xla_options.CHECKED_JAXLIB
+    if version is None or not first <= version < after_last:
+        pytest.skip(f"jaxlib {version} is outside the releases checked with the option: fmfusion does not add it")
     code = "import jax, jax.numpy as jnp; print(float(jax.jit(lambda x: x + 1)(jnp.ones(()))))"
     env = {**os.environ, "XLA_FLAGS": GPU_COMMAND_BUFFER_FLAG, "JAX_PLATFORMS": "cpu"}
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
