@@ -8,8 +8,10 @@ folder) so that the second run does not compile again.
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -265,7 +267,17 @@ def test_quick_bench_with_the_open3d_peer(bench_dirs, monkeypatch):
 
 
 def test_quick_bench_without_the_peer(bench_dirs, monkeypatch):
-    data = run_quick_bench(bench_dirs, monkeypatch, "no-peer", "--no-peer")
+    data = run_quick_bench(bench_dirs, monkeypatch, "no-peer", "--no-peer", "--profile", "2")
+    # --profile: the main scene's last 2 frames as run traced, left out of the figures, summarized per thread
+    primary = next(run for run in data["runs"] if run["scene"]["name"] == data["summary"]["primary"])
+    ours, markdown = primary["ours"], (bench_dirs["root"] / "no-peer" / "bench.md").read_text()
+    assert ours["run_frames"][-2:] == [{}, {}] and ours["run_frames"][-3] != {}
+    profile = ours["profile"]
+    assert profile["frames"] == 2 and not profile.get("error") and Path(profile["trace"]).is_file()
+    python = next(row for row in profile["threads"] if "python" in row["thread"])
+    assert python["busy_ms"] > 0 and any("integrate" in event["name"] for event in python["top"])
+    assert "## Profile: the last 2 frames as run (`--profile`)" in markdown and profile["trace"] in markdown
+    assert all("profile" not in run["ours"] for run in data["runs"] if run is not primary)
     assert data["runs"][0]["peer"] == {"unavailable": "--no-peer"}
     assert data["summary"]["sweep"]["peer_note"] == "--no-peer"
     assert "Not measured: Open3D peer: --no-peer." in (bench_dirs["root"] / "no-peer" / "bench.md").read_text()
@@ -345,3 +357,32 @@ def test_the_gpu_target_says_by_how_much_it_is_missed_and_what_bounds_the_frame(
     assert "bound by: fusion step 2.00 ms, merge 1.50 ms" in row["figure"] and "the host's work 1.80 ms" in row["figure"]
     summary["device"]["platform"] = "cpu"
     assert report.targets(summary, main)[-1] == {"target": row["target"], "figure": "n/a (no GPU in this run)", "met": None}
+
+
+def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_path):
+    """Nested events (a call and the calls it makes) add to the busy time once; time and calls per frame."""
+    from fmfusion_jax.bench.profile import profile_lines, summarize_trace
+
+    meta = [
+        {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/host:CPU"}},
+        {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "python"}},
+        {"ph": "M", "name": "thread_name", "pid": 1, "tid": 8, "args": {"name": "worker|1"}},
+    ]
+    spans = [  # µs: python busy 0-1000 and 3000-3500 (a nested call inside the first), the worker 500-700
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 0, "dur": 1000, "name": "integrate"},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 100, "dur": 400, "name": "pack"},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 3000, "dur": 500, "name": "integrate"},
+        {"ph": "X", "pid": 1, "tid": 8, "ts": 500, "dur": 200, "name": "fusion"},
+    ]
+    path = tmp_path / "trace.json.gz"
+    with gzip.open(path, "wt") as stream:
+        json.dump({"traceEvents": meta + spans}, stream)
+    python, worker = summarize_trace(path, frames=2)
+    assert python["thread"] == "/host:CPU / python" and python["busy_ms"] == pytest.approx(0.75) and python["events"] == 1.5
+    assert python["top"][0] == {"name": "integrate", "ms": pytest.approx(0.75), "calls": 1.0}
+    assert python["top"][1]["name"] == "pack" and python["top"][1]["ms"] == pytest.approx(0.2)
+    assert worker["busy_ms"] == pytest.approx(0.1)
+    lines = profile_lines({"frames": 2, "trace": str(path), "threads": [python, worker]})
+    assert lines[0] == "## Profile: the last 2 frames as run (`--profile`)"
+    assert "| /host:CPU / worker\\|1 | 0.10 | 0.5 | `fusion` 0.10 (0.5) |" in lines
+    assert profile_lines(None) == [] and "No profile: why" in profile_lines({"frames": 2, "error": "why"})[2]

@@ -16,6 +16,7 @@ from typing import Any, TypeGuard
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fmfusion_jax.bench.profile import profile_lines
 from fmfusion_jax.bench.stages import FUSION_STAGES
 
 #: Frames the worker's pass without timers reads ahead at a time (`worker._as_run_pass`; the first call of each
@@ -611,6 +612,7 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
     lines.append("")
     lines += _sweep_lines(summary.get("sweep"))
     lines += _per_object_lines(summary["per_object"])
+    lines += profile_lines((main.get("ours") or {}).get("profile"))
     lines += ["## Targets", "", "| target | figure | met |", "|---|---|---|"]
     lines += [
         f"| {t['target']} | {t['figure']} | {'—' if t['met'] is None else 'yes' if t['met'] else '**no**'} |"

@@ -54,6 +54,7 @@ class BenchOptions:
     seed: int = 0
     overrides: tuple[str, ...] = ()  # KEY=VALUE config overrides for every scene (`--set`)
     progress: bool = True
+    profile_frames: int = 0  # the last N frames of our as-run pass on the main scene traced (`--profile`; 0: none)
 
 
 def run_bench(
@@ -80,7 +81,10 @@ def run_bench(
     runs = []
     for scene in scenes:
         run: dict = {"scene": scene.to_json()}
-        run["ours"] = _child("ours", scene, None, options, work, say)
+        traced = None
+        if scene is primary and options.profile_frames:
+            traced = {"frames": options.profile_frames, "trace": str(out / f"profile-{scene.name}.json.gz")}
+        run["ours"] = _child("ours", scene, None, options, work, say, profile=traced)
         if peer_reason:
             run["peer"] = {"unavailable": peer_reason}
         else:
@@ -138,15 +142,25 @@ def _prepare_scenes(options: BenchOptions, cache: Path, say) -> list[BenchScene]
 
 
 def _child(
-    pipeline: str, scene: BenchScene, frames: int | None, options: BenchOptions, work: Path, say, sweep: list[int] | None = None
+    pipeline: str,
+    scene: BenchScene,
+    frames: int | None,
+    options: BenchOptions,
+    work: Path,
+    say,
+    sweep: list[int] | None = None,
+    profile: dict | None = None,
 ) -> dict:
     """Runs one pipeline on one scene in a fresh Python process (`bench.worker`); its result, or
-    `{"error": ...}` when it failed (its messages went to stderr). `sweep`: the caps of a sweep pipeline."""
+    `{"error": ...}` when it failed (its messages went to stderr). `sweep`: the caps of a sweep pipeline;
+    `profile`: `{"frames", "trace"}` of `--profile`."""
     stem = f"{pipeline}-{scene.name}"
     spec_path, result_path = work / f"{stem}.spec.json", work / f"{stem}.result.json"
     spec: dict[str, Any] = {"pipeline": pipeline, "scene": scene.to_json(), "frames": frames, "progress": options.progress}
     if sweep is not None:
         spec["sweep"] = sweep
+    if profile is not None:
+        spec["profile"] = profile
     spec_path.write_text(json.dumps(spec))
     result_path.unlink(missing_ok=True)
     names = {

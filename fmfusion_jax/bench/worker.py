@@ -123,7 +123,7 @@ def scene_map_config(config, opened):
     return bounded_map_config(config, bounds, opened.intrinsics.height, opened.intrinsics.width, expected)
 
 
-def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
+def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dict | None = None) -> dict:
     """Our engine: the fused pass (`frames`: stage name -> ms per frame, from `MapBuilder`'s timer: `fusion`,
     `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`), then the
     pass as run, without timers (`run_frames`: `call`, the wall time of each `Mapper.integrate`).
@@ -201,14 +201,18 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items() if k in FUSION_STAGES})
     del staged_mapper
     run_mapper = mapper_for_scene(opened, config, sample)
-    run_frames, run_left_out = _as_run_pass(run_mapper, opened, folder, config, progress, scene)
+    run_frames, run_left_out = _as_run_pass(run_mapper, opened, folder, config, progress, scene, profile)
+    if profile:
+        result["profile"] = profile
     if state_digest(run_mapper.state) != fused_digest:  # waiting for each step or not must not change the map
         result["as_run_mismatch"] = "the pass without timers made a different map than the timed one" + _mismatch_cause(device)
     result.update(run_frames=run_frames, run_compiled=run_left_out)
     return result
 
 
-def _as_run_pass(mapper, opened, folder, config, progress: bool, scene: BenchScene) -> tuple[list, list]:
+def _as_run_pass(
+    mapper, opened, folder, config, progress: bool, scene: BenchScene, profile: dict | None = None
+) -> tuple[list, list]:
     """Fuses the frames into `mapper` (a `Mapper` without timers) as `fmfusion run` drives it: each step is dispatched
     without waiting and the host's work for a frame (checks, growth check, packing) overlaps the device's work on
     the one before.
@@ -219,26 +223,41 @@ def _as_run_pass(mapper, opened, folder, config, progress: bool, scene: BenchSce
     (it finds the device idle) and those in which the map grew (their steps compiled in the first pass).
     The frames of a chunk are read before its calls: reading between two calls would give the device time that a
     run whose reader works in another thread (`fmfusion run`) does not have.
+    With `profile` (`{"frames": N, "trace": path}`, `--profile`), the last N frames are traced with `jax.profiler`
+    and left out; `profile` gains the trace's summary (`bench.profile.summarize_trace`).
     """
     import itertools
 
     import jax
 
+    from fmfusion_jax.bench import profile as tracing
     from fmfusion_jax.bench.report import AS_RUN_CHUNK
 
     frames: list[dict] = []
     left_out: list[dict] = []
+    traced_from = len(opened) - min(int(profile["frames"]), len(opened)) if profile else None
+    trace_dir = Path(profile["trace"]).with_suffix(".tmp") if profile else None
     stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
     while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
         for position, (frame, detections) in enumerate(chunk):
+            if len(frames) == traced_from:
+                tracing.start_trace(trace_dir)  # type: ignore[arg-type]
             growths = mapper.growths
             start = time.perf_counter()
             mapper.integrate(frame, detections)
             elapsed = {"call": (time.perf_counter() - start) * 1e3}
-            skip = position == 0 or mapper.growths != growths
+            skip = position == 0 or mapper.growths != growths or (traced_from is not None and len(frames) >= traced_from)
             frames.append({} if skip else elapsed)
             left_out.append(elapsed if skip else {})
     jax.block_until_ready(mapper.state)
+    if profile and traced_from is not None and traced_from < len(frames):
+        kept = tracing.stop_trace(trace_dir, Path(profile["trace"]))  # type: ignore[arg-type]
+        traced = len(frames) - traced_from
+        profile.update(frames=traced)
+        if kept is None:
+            profile["error"] = "jax.profiler wrote no Perfetto trace"
+        else:
+            profile["threads"] = tracing.summarize_trace(kept, traced)
     return frames, left_out
 
 
@@ -353,6 +372,8 @@ def main(argv: list[str]) -> int:
         from fmfusion_jax.bench.sweep import RUNNERS as SWEEP_RUNNERS
 
         result = SWEEP_RUNNERS[spec["pipeline"]](*args, [int(k) for k in spec["sweep"]])
+    elif spec.get("profile"):
+        result = run_ours(*args, profile=spec["profile"])  # `--profile`: ours on the main scene only
     else:
         result = RUNNERS[spec["pipeline"]](*args)
     result["scene"] = scene.name

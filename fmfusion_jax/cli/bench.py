@@ -100,6 +100,14 @@ def register(subparsers) -> None:
         metavar="KEY=VALUE",
         help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 (repeatable)",
     )
+    parser.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="trace the last N frames of our pass as run on the main scene with jax.profiler (left out of the figures): "
+        "bench.md summarizes where each thread's time went, the trace opens in ui.perfetto.dev (default: 0, none)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -120,6 +128,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--sweep caps must be >= 1, got {args.sweep}")
     if args.sweep_frames == 1:
         raise UserError("--sweep-frames must be >= 2 (frame 0 warms up)")
+    if args.profile < 0:
+        raise UserError(f"--profile must be >= 0, got {args.profile}")
 
     defaults = dict(QUICK_SIZES) if args.quick else {}
     given = {
@@ -145,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         overrides=tuple(args.overrides),
         progress=not args.no_progress,
+        profile_frames=args.profile,
         **options,
     )
     summary = run_bench(bench, command=_command_line(args))
@@ -175,6 +186,8 @@ def _command_line(args: argparse.Namespace) -> str:
         words += ["--size", *map(str, args.size)]
     if args.seed:
         words += ["--seed", str(args.seed)]
+    if args.profile:
+        words += ["--profile", str(args.profile)]
     words += [flag for flag, on in (("--no-scene", args.no_scene), ("--no-peer", args.no_peer)) if on]
     for override in args.overrides:
         words += ["--set", override]
