@@ -235,13 +235,18 @@ def _as_run_pass(
 
     frames: list[dict] = []
     left_out: list[dict] = []
-    traced_from = len(opened) - min(int(profile["frames"]), len(opened)) if profile else None
+    # at most half of the frames traced: the others make the as-run figures
+    traced_from = len(opened) - min(int(profile["frames"]), len(opened) // 2) if profile else None
     trace_dir = Path(profile["trace"]).with_suffix(".tmp") if profile else None
     stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
     while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
         for position, (frame, detections) in enumerate(chunk):
-            if len(frames) == traced_from:
-                tracing.start_trace(trace_dir)  # type: ignore[arg-type]
+            if len(frames) == traced_from and profile is not None:
+                try:
+                    tracing.start_trace(trace_dir)  # type: ignore[arg-type]
+                except Exception as error:  # noqa: BLE001 - a profiler that cannot start leaves the bench as it was
+                    profile["error"] = f"jax.profiler did not start: {error}"
+                    traced_from = None
             growths = mapper.growths
             start = time.perf_counter()
             mapper.integrate(frame, detections)
@@ -250,7 +255,7 @@ def _as_run_pass(
             frames.append({} if skip else elapsed)
             left_out.append(elapsed if skip else {})
     jax.block_until_ready(mapper.state)
-    if profile and traced_from is not None and traced_from < len(frames):
+    if profile is not None and traced_from is not None and traced_from < len(frames):
         kept = tracing.stop_trace(trace_dir, Path(profile["trace"]))  # type: ignore[arg-type]
         traced = len(frames) - traced_from
         profile.update(frames=traced)
@@ -258,6 +263,8 @@ def _as_run_pass(
             profile["error"] = "jax.profiler wrote no Perfetto trace"
         else:
             profile["threads"] = tracing.summarize_trace(kept, traced)
+    elif profile is not None and "error" not in profile:
+        profile["error"] = f"{len(frames)} frames: too few to trace any (at most half of them are)"
     return frames, left_out
 
 
