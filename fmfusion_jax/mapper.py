@@ -532,7 +532,8 @@ class Mapper:
 
     def _size_bounds(self, builder: MapBuilder) -> tuple[int, int] | None:
         """Upper bounds of the pool's blocks and the table's rows with the frames of `_recent` in: the sizes after
-        the last frame whose statistics were read plus each later frame's bound (None before any was read)."""
+        the last frame whose statistics were read plus each later frame's bound (None before any was read). Drops
+        from `_recent` the frames those sizes already hold."""
         known = builder.sizes_after
         if known is None:
             return None

@@ -18,8 +18,10 @@ the first JAX computation.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
+import pkgutil
 import sys
 from importlib import metadata
 
@@ -43,13 +45,13 @@ def _jaxlib_version() -> tuple[int, ...] | None:
 
 
 def _gpu_plugin_installed() -> bool:
-    """Whether a JAX GPU plugin (jax-cuda12-plugin, jax-cuda13-plugin, jax-rocm...) is installed: without one the
-    option could only matter to a jaxlib built with GPU support, and CPU-only installs never see it."""
-    for distribution in metadata.distributions():
-        name = (distribution.metadata["Name"] or "").lower().replace("_", "-")
-        if name.startswith(("jax-cuda", "jax-rocm", "jaxlib-cuda")):
-            return True
-    return False
+    """Whether a JAX GPU plugin is installed (`jax_plugins.xla_cuda12`, `xla_cuda13`, `xla_rocm...`: the namespace
+    JAX finds its plugins in): CPU-only installs never see the option. Looks at one folder, not at every installed
+    distribution (which took 30-60 ms at each command's start)."""
+    spec = importlib.util.find_spec("jax_plugins")
+    if spec is None or not spec.submodule_search_locations:
+        return False
+    return any(name.startswith(("xla_cuda", "xla_rocm")) for _, name, _ in pkgutil.iter_modules(spec.submodule_search_locations))
 
 
 def _backend_started() -> bool:

@@ -79,3 +79,10 @@ def test_bench_names_the_flags_that_matter_on_the_device_it_ran_on():
     assert not _flags_worth_naming({"platform": "cpu", "xla_flags": GPU_COMMAND_BUFFER_FLAG})  # the CPU ignores it
     assert _flags_worth_naming({"platform": "cpu", "xla_flags": f"--xla_cpu_use_thunk_runtime=false {GPU_COMMAND_BUFFER_FLAG}"})
     assert not _flags_worth_naming({"platform": "gpu", "xla_flags": ""})
+
+
+def test_a_gpu_plugin_is_found_in_jaxs_plugin_namespace(tmp_path, monkeypatch):
+    (tmp_path / "jax_plugins" / "xla_cuda12").mkdir(parents=True)
+    (tmp_path / "jax_plugins" / "xla_cuda12" / "__init__.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert xla_options._gpu_plugin_installed()

@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 
 from fmfusion_jax.bench.profile import profile_lines
 from fmfusion_jax.bench.stages import FUSION_STAGES
+from fmfusion_jax.xla_options import GPU_COMMAND_BUFFER_FLAG
 
 #: Frames the worker's pass without timers reads ahead at a time (`worker._as_run_pass`; the first call of each
 #: chunk finds the device idle and is left out). Defined here, where the report's text needs it too.
@@ -165,7 +166,6 @@ def whole_frame_means(ours: dict, peer: dict | None) -> str:
         f"ours {_ms(run)} ms as run, {_ms(timed)} ms with stages timed"
     )
     if _usable(peer):
-        assert peer is not None
         text += f"; the Open3D peer {_ms(_mean(frame_sums(peer['frames'], None, None)))} ms"
     return text + "."
 
@@ -369,6 +369,8 @@ def targets(summary: dict, main: dict) -> list[dict]:
     rows = []
     stages = summary.get("stages")
     whole = whole_frame_row(stages)
+    device = summary.get("device") or {}
+    gpu = device.get("platform") in ("gpu", "cuda", "rocm")
     ours, peer = main.get("ours") or {}, main.get("peer")
     real = main["scene"]["kind"] == "real"
     every = ours.get("geometry_fusion_every")
@@ -417,17 +419,17 @@ def targets(summary: dict, main: dict) -> list[dict]:
 
     target = f"peak RSS <= {PEAK_RSS_GIB:g} GiB for a ScanNet room at 1.5 cm"
     if _usable(ours) and real:
-        gib, on_gpu = ours["peak_rss_mb"] / 1024, _on_accelerator(summary)
+        gib = ours["peak_rss_mb"] / 1024
         figure = (
             f"{gib:.2f} GiB ({main['scene']['frames']} frames of {main['scene']['name']}; map state "
             f"{ours['map_state_mb']:.0f} MiB, pool {ours.get('blocks_used')} of {ours.get('block_capacity')} blocks used; "
-            f"{ours['baseline_rss_mb']:.0f} MiB before fusing)" + ("" if on_gpu else _missed_by(gib, PEAK_RSS_GIB))
+            f"{ours['baseline_rss_mb']:.0f} MiB before fusing)" + ("" if gpu else _missed_by(gib, PEAK_RSS_GIB))
         )
         figure += f"; {compile_cache_state(ours)}"
         if ours.get("dropped_blocks"):
             figure += f"; **{ours['dropped_blocks']} blocks dropped: the pool was too small**"
         within: bool | None = gib <= PEAK_RSS_GIB and not ours.get("dropped_blocks")
-        if on_gpu and not ours.get("dropped_blocks"):  # the target is the CPU's: a GPU process holds
+        if gpu and not ours.get("dropped_blocks"):  # the target is the CPU's: a GPU process holds
             # the CUDA libraries in its resident memory and the map on the device
             device_mb = ours.get("device_memory_mb")
             figure = f"n/a on a GPU (judged on the CPU): {figure}" + (f"; device peak {device_mb:.0f} MiB" if device_mb else "")
@@ -449,9 +451,8 @@ def targets(summary: dict, main: dict) -> list[dict]:
         }
     )
     rows.append(_per_object_target(summary.get("sweep")))
-    gpu = _on_accelerator(summary)
-    device = summary.get("device") or {}
     fusion = next((r for r in stages["rows"] if r["label"].startswith("**fusion")), None) if stages else None
+    target = f"GPU: whole frame < {GPU_WHOLE_FRAME_MS:g} ms"
     if gpu and whole and fusion:
         figure = f"{whole['ours_all']:.2f} ms whole frame, {fusion['ours_all']:.2f} ms fusion step on {device.get('device_kind')}"
         if whole["ours_all"] >= GPU_WHOLE_FRAME_MS:
@@ -459,17 +460,9 @@ def targets(summary: dict, main: dict) -> list[dict]:
             host = sum(row["ours_all"] for row in stages["rows"] if row["label"].startswith("host:"))  # type: ignore[index]
             # on a GPU the thread that runs the steps waits in them (their loops' conditions), so the host's work adds up
             figure += f"; the host's work {_ms(host)} ms, in series with the steps' calls (docs/benchmark.md, GPU)"
-        rows.append(
-            {
-                "target": f"GPU: whole frame < {GPU_WHOLE_FRAME_MS:g} ms",
-                "figure": figure,
-                "met": whole["ours_all"] < GPU_WHOLE_FRAME_MS,
-            }
-        )
+        rows.append({"target": target, "figure": figure, "met": whole["ours_all"] < GPU_WHOLE_FRAME_MS})
     else:
-        rows.append(
-            {"target": f"GPU: whole frame < {GPU_WHOLE_FRAME_MS:g} ms", "figure": "n/a (no GPU in this run)", "met": None}
-        )
+        rows.append({"target": target, "figure": "n/a (no GPU in this run)", "met": None})
     return rows
 
 
@@ -510,15 +503,9 @@ def _ratio(value: float) -> str:
     return "—" if not math.isfinite(value) else f"{value:.1f}x" if value >= 1 else f"{value:.2f}x"
 
 
-def _on_accelerator(summary: dict) -> bool:
-    return (summary.get("device") or {}).get("platform") in ("gpu", "cuda", "rocm")
-
-
 def _flags_worth_naming(device: dict) -> bool:
     """Whether bench.md names the run's XLA_FLAGS: always on an accelerator, on the CPU unless they are only the
     GPU options that `fmfusion` sets itself (which the CPU ignores)."""
-    from fmfusion_jax.xla_options import GPU_COMMAND_BUFFER_FLAG
-
     flags = device.get("xla_flags") or ""
     return bool(flags.strip()) and (device.get("platform") != "cpu" or bool(flags.replace(GPU_COMMAND_BUFFER_FLAG, "").strip()))
 

@@ -379,10 +379,9 @@ def main(argv: list[str]) -> int:
         from fmfusion_jax.bench.sweep import RUNNERS as SWEEP_RUNNERS
 
         result = SWEEP_RUNNERS[spec["pipeline"]](*args, [int(k) for k in spec["sweep"]])
-    elif spec.get("profile"):
-        result = run_ours(*args, profile=spec["profile"])  # `--profile`: ours on the main scene only
     else:
-        result = RUNNERS[spec["pipeline"]](*args)
+        traced = {"profile": spec["profile"]} if spec.get("profile") else {}  # `--profile`: ours on the main scene
+        result = RUNNERS[spec["pipeline"]](*args, **traced)
     result["scene"] = scene.name
     result_path.write_text(json.dumps(result))
     return 0
