@@ -225,6 +225,24 @@ def frame_block_extent(frame: RGBDFrame, map_config: MapConfig) -> tuple[int, np
     return int(np.count_nonzero(seen)), lo, hi
 
 
+def _extent_parameters(map_config: MapConfig) -> tuple:
+    """What `frame_block_extent` reads of a map config: maps that agree on these count the same extent."""
+    c = map_config
+    return (c.alloc_pixel_stride, c.alloc_depth_samples, c.sdf_trunc, c.depth_min, c.depth_max, c.block_length)
+
+
+@dataclasses.dataclass(frozen=True)
+class PreparedFrame:
+    """A frame with the host work that needs only the config done ahead (`Mapper.prepare`): its
+    `frame_block_extent`, which the growth check needs before the frame's step. `fmfusion run` prepares the next
+    frames in its reader thread, so that this NumPy work overlaps the fusion of the frame before."""
+
+    frame: RGBDFrame
+    block_extent: tuple[int, np.ndarray, np.ndarray]
+    #: `_extent_parameters` of the config the extent was counted with (a map with others counts again)
+    extent_parameters: tuple
+
+
 #: Bits per axis of a packed block key (block coordinates within +-2^20 blocks: +-131 km at 12.5 cm blocks).
 _KEY_BITS = 21
 
@@ -325,6 +343,7 @@ class Mapper:
         self._result: FusionResult | None = None
         self._expected_blocks = expected_blocks
         self._ceiling: MapConfig | None = None  # the config's capacities: how far a growing map may grow
+        self._layouts: dict[tuple[int, int], MapConfig] = {}  # `_layout` by image size
         # per frame since the last known sizes (`MapBuilder.sizes_after`): (position, bound of the blocks it adds,
         # bound of the rows it adds), so that the growth check reads the device only near a capacity
         self._recent: list[tuple[int, int, int]] = []
@@ -336,7 +355,7 @@ class Mapper:
 
     def integrate(
         self,
-        frame: RGBDFrame | None = None,
+        frame: RGBDFrame | PreparedFrame | None = None,
         detections: FrameDetections | None = None,
         *,
         depth=None,
@@ -348,16 +367,18 @@ class Mapper:
         """Integrates one frame into the global TSDF and, when the detection schedule says the frame is due,
         fuses its `detections`. Returns whether the detections were fused.
 
-        `frame` is an `RGBDFrame`, or give the arrays: `depth` `(H, W)` float metres, `color` `(H, W, 3)` uint8
-        RGB (optional), `T_world_camera` `(4, 4)` and `intrinsics` (default: the Mapper's). Detections of a
-        frame that is not due are ignored (ask `detection_due` first to skip running the detectors).
+        `frame` is an `RGBDFrame` (or a `PreparedFrame` of one, see `prepare`), or give the arrays: `depth`
+        `(H, W)` float metres, `color` `(H, W, 3)` uint8 RGB (optional), `T_world_camera` `(4, 4)` and
+        `intrinsics` (default: the Mapper's). Detections of a frame that is not due are ignored (ask
+        `detection_due` first to skip running the detectors).
         """
         if self._result is not None:
             raise UserError("this map is finalized: integrate frames before finalize(), or start a new Mapper")
         timer = self._builder.timer if self._builder is not None else self._timer
         start, recorded_before = time.perf_counter(), (timer.recorded_ms if timer is not None else 0.0)
+        prepared = frame if isinstance(frame, PreparedFrame) else None
         frame = as_frame(
-            frame,
+            prepared.frame if prepared is not None else frame,
             depth=depth,
             color=color,
             T_world_camera=T_world_camera,
@@ -366,7 +387,7 @@ class Mapper:
             name=name,
         )
         due = detections is not None and self.detection_due(frame.T_world_camera)
-        self._prepare(frame, due)
+        self._prepare(frame, due, prepared)
         assert self._builder is not None
         self._builder.add_frame(frame, detections if due else None)
         if due:
@@ -375,6 +396,12 @@ class Mapper:
         # the Mapper's own share (checks, schedule, growth check): with the builder's stages, the whole call
         self._builder.timer.host_since("mapper", start, recorded_before)
         return due
+
+    def prepare(self, frame: RGBDFrame) -> PreparedFrame:
+        """`frame` with the host work that needs only the config done (its block extent for the growth check),
+        for `integrate`. Reads nothing of the map, so another thread may call it while frames are integrated."""
+        layout = self._layout(*frame.depth.shape)
+        return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout))
 
     def detection_due(self, T_world_camera) -> bool:
         """Whether the next frame, taken at this pose, would have its detections fused (the schedule)."""
@@ -473,7 +500,7 @@ class Mapper:
         )
         builder.restore_progress(progress)
         mapper._builder = builder
-        mapper._ceiling = mapper._capacity_ceiling(saved.map_config)
+        mapper._ceiling = mapper._layout(saved.map_config.image_height, saved.map_config.image_width)
         mapper._schedule.restore(progress.get("schedule", progress))  # older files: the detection pose alone
         if progress.get("finalized"):
             mapper._result = builder.snapshot(builder.state)
@@ -487,11 +514,24 @@ class Mapper:
             raise UserError("the map is empty: integrate at least one frame first")
         return self._builder
 
-    def _capacity_ceiling(self, map_config: MapConfig) -> MapConfig:
-        """The config's capacities for frames of `map_config`'s size (the ceiling of growth)."""
-        return build_map_config(self.config, np.zeros(3), np.ones(3), map_config.image_height, map_config.image_width)
+    def _layout(self, height: int, width: int) -> MapConfig:
+        """The config's map for frames of this size before any bounds: its capacities are the ceiling of growth
+        (cached: `prepare` asks for it per frame)."""
+        key = (height, width)
+        if key not in self._layouts:
+            self._layouts[key] = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
+        return self._layouts[key]
 
-    def _prepare(self, frame: RGBDFrame, detections_due: bool) -> None:
+    @staticmethod
+    def _block_extent(
+        frame: RGBDFrame, map_config: MapConfig, prepared: PreparedFrame | None
+    ) -> tuple[int, np.ndarray, np.ndarray]:
+        """`frame_block_extent(frame, map_config)`, from `prepared` when it was counted alike."""
+        if prepared is not None and prepared.extent_parameters == _extent_parameters(map_config):
+            return prepared.block_extent
+        return frame_block_extent(frame, map_config)
+
+    def _prepare(self, frame: RGBDFrame, detections_due: bool, prepared: PreparedFrame | None = None) -> None:
         """Makes the map ready for `frame`: built on the first frame, grown when it might not fit."""
         height, width = frame.depth.shape
         if self._builder is not None:
@@ -500,20 +540,20 @@ class Mapper:
                 raise UserError(
                     f"{frame.name}: image {width}x{height}, the map's frames are {built.image_width}x{built.image_height}"
                 )
-            self._grow_for(frame, detections_due)
+            self._grow_for(frame, detections_due, prepared)
             return
         # the config's capacities for these frames: a fixed map's sizes, a growing map's ceiling
-        layout = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
+        layout = self._layout(height, width)
         self._ceiling = layout
         if self._bounds is not None:
             expected = self._expected_blocks
             if expected is not None:  # at least what the first frame needs
                 index = build_map_config(self.config, *self._bounds, height, width)
-                expected = max(expected, frame_block_extent(frame, index)[0])
+                expected = max(expected, self._block_extent(frame, index, prepared)[0])
             map_config = bounded_map_config(self.config, self._bounds, height, width, expected)
         else:
             # the frame's blocks padded (a frame without depth: the padding around the origin)
-            count, lo, hi = frame_block_extent(frame, layout)
+            count, lo, hi = self._block_extent(frame, layout, prepared)
             map_config = dataclasses.replace(
                 growth.config_for_block_range(layout, lo - INDEX_PAD_BLOCKS, hi + INDEX_PAD_BLOCKS),
                 block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * count + 1))),
@@ -540,7 +580,7 @@ class Mapper:
         self._recent = [entry for entry in self._recent if entry[0] > known.position]
         return known.blocks + sum(entry[1] for entry in self._recent), known.instances + sum(entry[2] for entry in self._recent)
 
-    def _grow_for(self, frame: RGBDFrame, detections_due: bool) -> None:
+    def _grow_for(self, frame: RGBDFrame, detections_due: bool, prepared: PreparedFrame | None = None) -> None:
         """Enlarges the pool or the table (doubling) and, without bounds, the index (by at least half a side)
         if `frame` might not fit.
 
@@ -556,7 +596,7 @@ class Mapper:
         full_pool, full_table = old.block_capacity >= ceiling.block_capacity, old.instance_capacity >= ceiling.instance_capacity
         if full_pool and full_table and not grows_index:
             return  # nothing left to grow: the capacity monitor reports an overflow
-        new_blocks, keys_lo, keys_hi = frame_block_extent(frame, old)
+        new_blocks, keys_lo, keys_hi = self._block_extent(frame, old, prepared)
         new_rows = self.config.detections.max_detections if detections_due else 0
 
         pool, rows = old.block_capacity, old.instance_capacity
@@ -787,4 +827,13 @@ class MapperBatch:
         return jax.tree.map(lambda leaf: leaf[index], self.states)
 
 
-__all__ = ["Mapper", "MapperBatch", "as_config", "as_frame", "as_intrinsics", "frame_block_extent", "frame_block_keys"]
+__all__ = [
+    "Mapper",
+    "MapperBatch",
+    "PreparedFrame",
+    "as_config",
+    "as_frame",
+    "as_intrinsics",
+    "frame_block_extent",
+    "frame_block_keys",
+]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -143,11 +144,34 @@ class HostAdapter:
 
 def small_tree_to_host(tree):
     """A tree of small device arrays as numpy arrays: on the CPU each leaf read in place (`np.asarray`, no copy:
-    `jax.device_get` took 0.28 ms per frame for the step's eight statistics there, this 0.08), elsewhere by
-    `jax.device_get` (all transfers in flight at once)."""
-    if jax.default_backend() != "cpu":
-        return jax.device_get(tree)
-    return jax.tree.map(np.asarray, tree)
+    `jax.device_get` took 0.28 ms per frame for the step's eight statistics there, this 0.08); elsewhere the
+    leaves joined on the device into one array per dtype and those copied (a GPU profile: each leaf's copy
+    cost ~0.09 ms of host time, one per frame's ten statistics)."""
+    if jax.default_backend() == "cpu":
+        return jax.tree.map(np.asarray, tree)
+    return joined_tree_to_host(tree)
+
+
+def joined_tree_to_host(tree):
+    """`tree`'s device arrays as numpy arrays, joined on the device first (one copy per dtype)."""
+    leaves, treedef = jax.tree.flatten(tree)
+    if not leaves:
+        return tree
+    dtypes = sorted({leaf.dtype.name for leaf in leaves})
+    joined = jax.device_get(_join_by_dtype(leaves, tuple(dtypes)))
+    offsets = dict.fromkeys(dtypes, 0)
+    host = []
+    for leaf in leaves:
+        start = offsets[leaf.dtype.name]
+        offsets[leaf.dtype.name] = start + leaf.size
+        host.append(joined[dtypes.index(leaf.dtype.name)][start : start + leaf.size].reshape(leaf.shape))
+    return jax.tree.unflatten(treedef, host)
+
+
+@functools.partial(jax.jit, static_argnames=("dtypes",))
+def _join_by_dtype(leaves: list[jax.Array], dtypes: tuple[str, ...]) -> tuple[jax.Array, ...]:
+    """The leaves raveled and joined, one 1-d array per dtype of `dtypes` (in its order; leaves in theirs)."""
+    return tuple(jnp.concatenate([leaf.ravel() for leaf in leaves if leaf.dtype.name == name]) for name in dtypes)
 
 
 @dataclasses.dataclass

@@ -15,7 +15,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
@@ -26,8 +26,10 @@ from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
 from fmfusion_jax.pipeline import DetectionSource, FusionResult, extract_map_instances
-from fmfusion_jax.types import RGBDFrame
 from fmfusion_jax.viz import overview
+
+if TYPE_CHECKING:
+    from fmfusion_jax.mapper import PreparedFrame
 
 log = logging.getLogger(__name__)
 
@@ -138,13 +140,14 @@ class SceneFusion:
             check_depth_units(scene, sample)
             self.mapper = mapper_for_scene(scene, config, sample, time_stages=time_stages)
 
-    #: Frames read and decoded ahead, in a background thread, while the device fuses the current one.
+    #: Frames read, decoded and prepared (`Mapper.prepare`) ahead, in a background thread, while the current one
+    #: is fused.
     READ_AHEAD = 2
 
     def run(self, progress: Callable[[int], None] | None = None, should_stop: Callable[[], bool] | None = None) -> bool:
         """Fuses the frames from `position` on; True when the scene is done, False when `should_stop()` said
         stop (checked between frames; a checkpoint is written then, when the run has one). The next frames'
-        images are read and decoded in a background thread meanwhile."""
+        images are read, decoded and prepared in a background thread meanwhile."""
         if progress and self.position:
             progress(self.position)
         with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
@@ -170,9 +173,9 @@ class SceneFusion:
                     self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
         return True
 
-    def _read_frame(self, i: int) -> RGBDFrame | DataError:
+    def _read_frame(self, i: int) -> PreparedFrame | DataError:
         try:
-            return self.scene.read_frame(i)
+            return self.mapper.prepare(self.scene.read_frame(i))
         except DataError as error:
             return error
 
@@ -185,22 +188,22 @@ class SceneFusion:
             )
         return self.mapper.finalize()
 
-    def _fuse_frame(self, i: int, frame: RGBDFrame | DataError) -> None:
+    def _fuse_frame(self, i: int, prepared: PreparedFrame | DataError) -> None:
         name = self.scene.frame_names[i]
-        if isinstance(frame, DataError):
-            self._bad_input(name, str(frame), "skipping frame")
+        if isinstance(prepared, DataError):
+            self._bad_input(name, str(prepared), "skipping frame")
             if self.mapper.frames_integrated == 0 and len(self.skipped) - len(self.scene.skipped) >= _MAX_LEADING_BAD_FRAMES:
                 raise UserError(
                     f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: {self.skipped[len(self.scene.skipped)][1]}"
                 ) from None
             return
-        detections = None
+        frame, detections = prepared.frame, None
         if self.mapper.detection_due(frame.T_world_camera):
             try:
                 detections = self.detection_source(frame)
             except DataError as error:  # the frame's geometry is still fused
                 self._bad_input(name, f"detections skipped: {error}", "frame")
-        fused = self.mapper.integrate(frame, detections)
+        fused = self.mapper.integrate(prepared, detections)
         if self.observer is not None:
             self.observer(i, frame, detections if fused else None, self.mapper)
 

@@ -3,6 +3,7 @@ the map grows from a small allocation, saves and resumes, and bad inputs are cle
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import importlib.util
 import time
@@ -195,6 +196,29 @@ def test_frame_block_extent_counts_the_distinct_blocks_of_a_frame(room):
         np.testing.assert_array_equal(hi, keys.max(axis=0) + 1)
     blank = dataclasses.replace(frame, depth=np.zeros_like(frame.depth))
     assert frame_block_extent(blank, layout)[0] == 0 and len(frame_block_keys(blank, layout)) == 0
+
+
+def test_frames_prepared_in_a_reader_thread_make_the_same_map(room):
+    """`Mapper.prepare` counts the growth check's block extent ahead, in another thread as `fmfusion run`'s reader
+    does: the map is the one plain frames make. A frame prepared under other block parameters (here a wider
+    truncation band) is counted again: the first frame sizes the map, so its stale extent would size it wrong."""
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    frames = _frames(scene_dir, config)
+    plain, fed_prepared = Mapper(config), Mapper(config)
+    wider = config.model_copy(update={"tsdf": config.tsdf.model_copy(update={"sdf_trunc": 3 * config.tsdf.sdf_trunc})})
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as reader:
+        prepared = list(reader.map(fed_prepared.prepare, frames))
+    stale = Mapper(wider).prepare(frames[0])
+    assert stale.block_extent[0] > prepared[0].block_extent[0]
+    prepared[0] = stale
+    for frame, ready in zip(frames, prepared):
+        plain.integrate(frame, folder.get(frame.name))
+        fed_prepared.integrate(ready, folder.get(frame.name))
+    assert fed_prepared.growths == plain.growths >= 1 and fed_prepared.map_config == plain.map_config
+    for a, b in zip(jax.tree.leaves(fed_prepared.state), jax.tree.leaves(plain.state)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert _key(fed_prepared.instances()) == _key(plain.instances())
 
 
 def test_sample_block_count_matches_the_frames_it_samples(room):

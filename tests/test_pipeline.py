@@ -18,7 +18,7 @@ from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step
 from fmfusion_jax.labels import load_label_sets, load_likelihood
-from fmfusion_jax.pipeline import MapBuilder, build_map_config, extract_map_instances, fuse_sequence
+from fmfusion_jax.pipeline import MapBuilder, build_map_config, extract_map_instances, fuse_sequence, joined_tree_to_host
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 
 H, W = 120, 160
@@ -504,3 +504,21 @@ def test_count_separated_counts_each_pair_of_distinct_instances_once_per_frame()
     expected = np.zeros((k, k), np.int32)
     expected[2, 4] = expected[4, 2] = 2  # (det 0, det 1) and (det 2, det 1): two detection pairs
     assert np.array_equal(got, expected)
+
+
+def test_a_tree_joined_on_the_device_reads_back_leaf_for_leaf():
+    """The statistics' read off a GPU (`small_tree_to_host` there): leaves joined per dtype on the device, copied
+    once per dtype and split again, each leaf its value, dtype and shape, None kept."""
+    tree = {
+        "stats": (jax.numpy.asarray(3, np.int32), jax.numpy.asarray([-1, 7], np.int32)),
+        "mean": jax.numpy.asarray([[0.5, 1.5]], np.float32),
+        "flags": jax.numpy.asarray([True, False, True]),
+        "refine": None,
+        "last": jax.numpy.asarray(2**30 + 1, np.int32),
+    }
+    host = joined_tree_to_host(tree)
+    assert jax.tree.structure(host) == jax.tree.structure(tree) and host["refine"] is None
+    for got, want in zip(jax.tree.leaves(host), jax.tree.leaves(tree)):
+        assert isinstance(got, np.ndarray) and got.dtype == want.dtype and got.shape == want.shape
+        np.testing.assert_array_equal(got, np.asarray(want))
+    assert joined_tree_to_host((None, None)) == (None, None)

@@ -214,11 +214,12 @@ def _as_run_pass(
     mapper, opened, folder, config, progress: bool, scene: BenchScene, profile: dict | None = None
 ) -> tuple[list, list]:
     """Fuses the frames into `mapper` (a `Mapper` without timers) as `fmfusion run` drives it: each step is dispatched
-    without waiting and the host's work for a frame (checks, growth check, packing) overlaps the device's work on
-    the one before.
+    without waiting, the host's work for a frame (checks, growth check, packing) overlaps the device's work on
+    the one before, and a reader thread prepares the next frames (`Mapper.prepare`) meanwhile.
 
-    Returns per-frame `{"call": ms}` (the wall time of `Mapper.integrate`: its host work, then the wait for the
-    previous frame's steps, then the dispatch of its own; in a steady run their median is the time per frame)
+    Returns per-frame `{"call": ms}` (the wall time of waiting for the frame's preparation and of `Mapper.integrate`:
+    its host work, then the wait for the previous frame's steps, then the dispatch of its own; in a steady run
+    their median is the time per frame)
     and, in the same layout, the calls left out: the first of each chunk of `AS_RUN_CHUNK` frames read ahead
     (it finds the device idle) and those in which the map grew (their steps compiled in the first pass).
     The frames of a chunk are read before its calls: reading between two calls would give the device time that a
@@ -226,12 +227,14 @@ def _as_run_pass(
     With `profile` (`{"frames": N, "trace": path}`, `--profile`), the last N frames are traced with `jax.profiler`
     and left out; `profile` gains the trace's summary (`bench.profile.summarize_trace`).
     """
+    import concurrent.futures
     import itertools
 
     import jax
 
     from fmfusion_jax.bench import profile as tracing
     from fmfusion_jax.bench.report import AS_RUN_CHUNK
+    from fmfusion_jax.runner import SceneFusion
 
     frames: list[dict] = []
     left_out: list[dict] = []
@@ -239,21 +242,26 @@ def _as_run_pass(
     traced_from = len(opened) - min(int(profile["frames"]), len(opened) // 2) if profile else None
     trace_dir = Path(profile["trace"]).with_suffix(".tmp") if profile else None
     stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
-    while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
-        for position, (frame, detections) in enumerate(chunk):
-            if len(frames) == traced_from and profile is not None:
-                try:
-                    tracing.start_trace(trace_dir)  # type: ignore[arg-type]
-                except Exception as error:  # noqa: BLE001 - a profiler that cannot start leaves the bench as it was
-                    profile["error"] = f"jax.profiler did not start: {error}"
-                    traced_from = None
-            growths = mapper.growths
-            start = time.perf_counter()
-            mapper.integrate(frame, detections)
-            elapsed = {"call": (time.perf_counter() - start) * 1e3}
-            skip = position == 0 or mapper.growths != growths or (traced_from is not None and len(frames) >= traced_from)
-            frames.append({} if skip else elapsed)
-            left_out.append(elapsed if skip else {})
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
+        while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
+            ahead: dict[int, concurrent.futures.Future] = {}
+            for position, (_, detections) in enumerate(chunk):
+                if len(frames) == traced_from and profile is not None:
+                    try:
+                        tracing.start_trace(trace_dir)  # type: ignore[arg-type]
+                    except Exception as error:  # noqa: BLE001 - a profiler that cannot start leaves the bench as it was
+                        profile["error"] = f"jax.profiler did not start: {error}"
+                        traced_from = None
+                for i in range(position, min(position + 1 + SceneFusion.READ_AHEAD, len(chunk))):
+                    if i not in ahead:  # as `fmfusion run`'s reader: a few frames ahead of the one fused
+                        ahead[i] = reader.submit(mapper.prepare, chunk[i][0])
+                growths = mapper.growths
+                start = time.perf_counter()
+                mapper.integrate(ahead.pop(position).result(), detections)
+                elapsed = {"call": (time.perf_counter() - start) * 1e3}
+                skip = position == 0 or mapper.growths != growths or (traced_from is not None and len(frames) >= traced_from)
+                frames.append({} if skip else elapsed)
+                left_out.append(elapsed if skip else {})
     jax.block_until_ready(mapper.state)
     if profile is not None and traced_from is not None and traced_from < len(frames):
         kept = tracing.stop_trace(trace_dir, Path(profile["trace"]))  # type: ignore[arg-type]
