@@ -225,7 +225,7 @@ def run_demo(
     log.info("detections simulated into %s (%.1f s)", detections_dir, seconds["simulate_detections"])
 
     folder = DetectionFolder(detections_dir, image_shape=(opened.intrinsics.height, opened.intrinsics.width))
-    result = fuse_scene(opened, lambda frame: folder.get(frame.name), config, progress=progress)
+    result = fuse_scene(opened, folder, config, progress=progress)
     lap("fuse")
     summary = write_outputs(result, opened, out_dir)
     lap("write_and_score")

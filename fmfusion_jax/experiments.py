@@ -362,7 +362,7 @@ def run_method(
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
     if not len(folder):
         raise UserError(f"{detections_dir} holds no detections")
-    source = lambda frame: folder.get(frame.name)  # noqa: E731
+    source = folder
     start = time.perf_counter()
     result: KimeraResult | FusionResult
     if method.baseline == "kimera":

@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike
 from fmfusion_jax.config import PipelineConfig, load_config
 from fmfusion_jax.engine import extraction, growth, step
 from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance
@@ -44,6 +45,7 @@ from fmfusion_jax.pipeline import (
     CapacityMonitor,
     DetectionSchedule,
     FusionResult,
+    HostAdapter,
     MapBuilder,
     MapSizes,
     StageTimer,
@@ -233,14 +235,18 @@ def _extent_parameters(map_config: MapConfig) -> tuple:
 
 @dataclasses.dataclass(frozen=True)
 class PreparedFrame:
-    """A frame with the host work that needs only the config done ahead (`Mapper.prepare`): its
-    `frame_block_extent`, which the growth check needs before the frame's step. `fmfusion run` prepares the next
-    frames in its reader thread, so that this NumPy work overlaps the fusion of the frame before."""
+    """A frame (and its detections) with the host work that needs only the config done ahead (`Mapper.prepare`):
+    its `frame_block_extent`, which the growth check needs before the frame's step, and the detections packed.
+    `fmfusion run` prepares the next frames in its reader thread, so that this NumPy work overlaps the fusion of
+    the frame before."""
 
     frame: RGBDFrame
     block_extent: tuple[int, np.ndarray, np.ndarray]
     #: `_extent_parameters` of the config the extent was counted with (a map with others counts again)
     extent_parameters: tuple
+    detections: FrameDetections | None = None
+    #: `detections` packed (`HostAdapter.detections`) at the config's pixel stride (None without detections)
+    batch: DetectionBatch | None = None
 
 
 #: Bits per axis of a packed block key (block coordinates within +-2^20 blocks: +-131 km at 12.5 cm blocks).
@@ -367,18 +373,24 @@ class Mapper:
         """Integrates one frame into the global TSDF and, when the detection schedule says the frame is due,
         fuses its `detections`. Returns whether the detections were fused.
 
-        `frame` is an `RGBDFrame` (or a `PreparedFrame` of one, see `prepare`), or give the arrays: `depth`
-        `(H, W)` float metres, `color` `(H, W, 3)` uint8 RGB (optional), `T_world_camera` `(4, 4)` and
-        `intrinsics` (default: the Mapper's). Detections of a frame that is not due are ignored (ask
-        `detection_due` first to skip running the detectors).
+        `frame` is an `RGBDFrame` (or a `PreparedFrame` of one and its detections, see `prepare`), or give the
+        arrays: `depth` `(H, W)` float metres, `color` `(H, W, 3)` uint8 RGB (optional), `T_world_camera`
+        `(4, 4)` and `intrinsics` (default: the Mapper's). Detections of a frame that is not due are ignored
+        (ask `detection_due` first to skip running the detectors).
         """
         if self._result is not None:
             raise UserError("this map is finalized: integrate frames before finalize(), or start a new Mapper")
         timer = self._builder.timer if self._builder is not None else self._timer
         start, recorded_before = time.perf_counter(), (timer.recorded_ms if timer is not None else 0.0)
-        prepared = frame if isinstance(frame, PreparedFrame) else None
+        prepared, batch = None, None
+        if isinstance(frame, PreparedFrame):
+            prepared, frame = frame, frame.frame
+            if prepared.detections is not None:
+                if detections is not None:
+                    raise UserError(f"{frame.name}: detections given twice (to prepare and to integrate)")
+                detections, batch = prepared.detections, prepared.batch
         frame = as_frame(
-            prepared.frame if prepared is not None else frame,
+            frame,
             depth=depth,
             color=color,
             T_world_camera=T_world_camera,
@@ -389,7 +401,7 @@ class Mapper:
         due = detections is not None and self.detection_due(frame.T_world_camera)
         self._prepare(frame, due, prepared)
         assert self._builder is not None
-        self._builder.add_frame(frame, detections if due else None)
+        self._builder.add_frame(frame, detections if due else None, batch)
         if due:
             self._schedule.fused(frame.T_world_camera)
         self._schedule.advance(frame.T_world_camera)
@@ -397,11 +409,15 @@ class Mapper:
         self._builder.timer.host_since("mapper", start, recorded_before)
         return due
 
-    def prepare(self, frame: RGBDFrame) -> PreparedFrame:
-        """`frame` with the host work that needs only the config done (its block extent for the growth check),
-        for `integrate`. Reads nothing of the map, so another thread may call it while frames are integrated."""
+    def prepare(self, frame: RGBDFrame, detections: FrameDetections | None = None) -> PreparedFrame:
+        """`frame` and its `detections` with the host work that needs only the config done (the frame's block
+        extent for the growth check, the detections packed), for `integrate`, which still applies the detection
+        schedule. Reads nothing of the map, so another thread may call it while frames are integrated."""
         layout = self._layout(*frame.depth.shape)
-        return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout))
+        batch = None
+        if detections is not None:
+            batch = HostAdapter.for_map(self.config, layout, self.label_sets).detections(detections)
+        return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout), detections, batch)
 
     def detection_due(self, T_world_camera) -> bool:
         """Whether the next frame, taken at this pose, would have its detections fused (the schedule)."""

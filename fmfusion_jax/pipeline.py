@@ -33,7 +33,10 @@ from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 log = logging.getLogger(__name__)
 
-#: Gives the detections of a frame, or None when the frame has none (not a detection frame, no file).
+#: Gives the detections of a frame, or None when the frame has none (not a detection frame, no file). A source
+#: whose attribute `reads_ahead` is true (a folder of detection files: no state, cheap to call for a frame that
+#: turns out not due) is called by `fmfusion run`'s reader thread for the next frames; others (the detectors,
+#: whose prompt window counts the detection frames) only on due frames, in order.
 DetectionSource = Callable[[RGBDFrame], "FrameDetections | None"]
 
 
@@ -375,9 +378,10 @@ class MapBuilder:
         index lies elsewhere share the compiled steps (the state carries the origin)."""
         return self.map_config.compiled_layout()
 
-    def add_frame(self, frame: RGBDFrame, detections: FrameDetections | None) -> None:
+    def add_frame(self, frame: RGBDFrame, detections: FrameDetections | None, batch: DetectionBatch | None = None) -> None:
         """Integrates a frame; fuses its detections when given (the caller applies the detection schedule,
-        e.g. `scheduled_detections`).
+        e.g. `scheduled_detections`). `batch`: the detections already packed for this map's image size and
+        pixel stride (`Mapper.prepare`), else they are packed here.
 
         The steps are dispatched without waiting for the device: the frame's statistics (counters, log line)
         are read at the next call, after it dispatched its own steps (or at `flush`), so the caller may read and
@@ -389,7 +393,10 @@ class MapBuilder:
         # packed while the device may still run the previous step; the step is given the host arrays (its C++
         # dispatch copies them in: a jax.device_put first cost 0.5 ms more per frame in Python on the CPU)
         inputs = adapter.frame(frame)
-        batch = None if detections is None else adapter.detections(detections)
+        if detections is None:
+            batch = None
+        elif batch is None:
+            batch = adapter.detections(detections)
         unread = None  # this frame's statistics (a detection frame's)
         if batch is None:
             self.state = self.timer.run("tsdf", step.integrate_frame, self.state, inputs, self.step_config)

@@ -10,6 +10,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import os
 import shutil
 import sys
 import time
@@ -140,9 +141,11 @@ class SceneFusion:
             check_depth_units(scene, sample)
             self.mapper = mapper_for_scene(scene, config, sample, time_stages=time_stages)
 
-    #: Frames read, decoded and prepared (`Mapper.prepare`) ahead, in a background thread, while the current one
-    #: is fused.
+    #: Frames read, decoded and prepared (`Mapper.prepare`) ahead per reader thread, while the current one is fused.
     READ_AHEAD = 2
+    #: Reader threads: one on a small machine (its cores run the device's work), up to four where cores are many (a
+    #: GPU's host: reading a ScanNet frame and its detection files takes ~10 ms of one core, the fusion ~5 ms).
+    READ_WORKERS = max(1, min(4, (os.cpu_count() or 1) // 4))
 
     def run(self, progress: Callable[[int], None] | None = None, should_stop: Callable[[], bool] | None = None) -> bool:
         """Fuses the frames from `position` on; True when the scene is done, False when `should_stop()` said
@@ -150,14 +153,15 @@ class SceneFusion:
         images are read, decoded and prepared in a background thread meanwhile."""
         if progress and self.position:
             progress(self.position)
-        with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
+        workers = self.READ_WORKERS
+        with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fmfusion-read") as reader:
             ahead: dict[int, concurrent.futures.Future] = {}
             while self.position < len(self.scene):
                 if should_stop and should_stop():
                     if self.checkpoint is not None:
                         self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
                     return False
-                for i in range(self.position, min(self.position + 1 + self.READ_AHEAD, len(self.scene))):
+                for i in range(self.position, min(self.position + 1 + self.READ_AHEAD * workers, len(self.scene))):
                     if i not in ahead:
                         ahead[i] = reader.submit(self._read_frame, i)
                 self._fuse_frame(self.position, ahead.pop(self.position).result())
@@ -173,11 +177,20 @@ class SceneFusion:
                     self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
         return True
 
-    def _read_frame(self, i: int) -> PreparedFrame | DataError:
+    def _read_frame(self, i: int) -> tuple[PreparedFrame, DataError | None] | DataError:
+        """Frame `i` prepared (`Mapper.prepare`) with its detections when the source reads ahead (and the error
+        reading them gave, reported if the frame turns out due), or the error reading the frame gave."""
         try:
-            return self.mapper.prepare(self.scene.read_frame(i))
+            frame = self.scene.read_frame(i)
         except DataError as error:
             return error
+        detections, detection_error = None, None
+        if getattr(self.detection_source, "reads_ahead", False):
+            try:
+                detections = self.detection_source(frame)
+            except DataError as failure:
+                detection_error = failure
+        return self.mapper.prepare(frame, detections), detection_error
 
     def finalize(self) -> FusionResult:
         """The finalized map of the frames fused so far (no frame can be added afterwards)."""
@@ -188,24 +201,28 @@ class SceneFusion:
             )
         return self.mapper.finalize()
 
-    def _fuse_frame(self, i: int, prepared: PreparedFrame | DataError) -> None:
+    def _fuse_frame(self, i: int, read: tuple[PreparedFrame, DataError | None] | DataError) -> None:
         name = self.scene.frame_names[i]
-        if isinstance(prepared, DataError):
-            self._bad_input(name, str(prepared), "skipping frame")
+        if isinstance(read, DataError):
+            self._bad_input(name, str(read), "skipping frame")
             if self.mapper.frames_integrated == 0 and len(self.skipped) - len(self.scene.skipped) >= _MAX_LEADING_BAD_FRAMES:
                 raise UserError(
                     f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: {self.skipped[len(self.scene.skipped)][1]}"
                 ) from None
             return
+        prepared, detection_error = read
         frame, detections = prepared.frame, None
         if self.mapper.detection_due(frame.T_world_camera):
-            try:
-                detections = self.detection_source(frame)
-            except DataError as error:  # the frame's geometry is still fused
-                self._bad_input(name, f"detections skipped: {error}", "frame")
+            if not getattr(self.detection_source, "reads_ahead", False):
+                try:
+                    detections = self.detection_source(frame)
+                except DataError as failure:
+                    detection_error = failure
+            if detection_error is not None:  # the frame's geometry is still fused
+                self._bad_input(name, f"detections skipped: {detection_error}", "frame")
         fused = self.mapper.integrate(prepared, detections)
         if self.observer is not None:
-            self.observer(i, frame, detections if fused else None, self.mapper)
+            self.observer(i, frame, (detections or prepared.detections) if fused else None, self.mapper)
 
     def _bad_input(self, name: str, reason: str, action: str) -> None:
         if self.on_error == "stop":

@@ -199,22 +199,28 @@ def test_frame_block_extent_counts_the_distinct_blocks_of_a_frame(room):
 
 
 def test_frames_prepared_in_a_reader_thread_make_the_same_map(room):
-    """`Mapper.prepare` counts the growth check's block extent ahead, in another thread as `fmfusion run`'s reader
-    does: the map is the one plain frames make. A frame prepared under other block parameters (here a wider
-    truncation band) is counted again: the first frame sizes the map, so its stale extent would size it wrong."""
+    """`Mapper.prepare` counts the growth check's block extent and packs the detections ahead, in other threads as
+    `fmfusion run`'s readers do: the map is the one plain frames make. A frame prepared under other block
+    parameters (here a wider truncation band) is counted again: the first frame sizes the map, so its stale extent
+    would size it wrong. Frames prepared without detections take them at `integrate`, never twice."""
     scene_dir, detections, config = room
     folder = DetectionFolder(detections)
     frames = _frames(scene_dir, config)
     plain, fed_prepared = Mapper(config), Mapper(config)
     wider = config.model_copy(update={"tsdf": config.tsdf.model_copy(update={"sdf_trunc": 3 * config.tsdf.sdf_trunc})})
-    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as reader:
-        prepared = list(reader.map(fed_prepared.prepare, frames))
+    with concurrent.futures.ThreadPoolExecutor(max_workers=2) as reader:
+        # odd frames prepared with their detections, even ones without (given to integrate)
+        prepared = list(reader.map(lambda f: fed_prepared.prepare(f, folder(f) if f.index % 2 else None), frames))
+    assert prepared[1].batch is not None and prepared[0].batch is None
     stale = Mapper(wider).prepare(frames[0])
     assert stale.block_extent[0] > prepared[0].block_extent[0]
     prepared[0] = stale
+    with pytest.raises(UserError, match="detections given twice"):
+        Mapper(config).integrate(prepared[1], folder(frames[1]))
     for frame, ready in zip(frames, prepared):
         plain.integrate(frame, folder.get(frame.name))
-        fed_prepared.integrate(ready, folder.get(frame.name))
+        fed_prepared.integrate(ready, None if ready.detections is not None else folder(frame))
+    assert fed_prepared.detection_frames == plain.detection_frames == len(frames)
     assert fed_prepared.growths == plain.growths >= 1 and fed_prepared.map_config == plain.map_config
     for a, b in zip(jax.tree.leaves(fed_prepared.state), jax.tree.leaves(plain.state)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

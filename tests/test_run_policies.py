@@ -18,7 +18,7 @@ from fmfusion_jax.demo import demo_config, demo_noise
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.runner import Checkpoint, partial_dir, run_and_export
+from fmfusion_jax.runner import Checkpoint, SceneFusion, partial_dir, run_and_export
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
 SPEC = GeneratedSceneSpec(seed=3, num_objects=4, num_frames=14, width=160, height=120)
@@ -114,6 +114,34 @@ def test_bad_frames_are_skipped_and_listed_or_stop_the_run(room, tmp_path):
     ]
     with pytest.raises(UserError, match=r"frame-000004\.png: unreadable or corrupt image"):
         _run((broken, detections, config), tmp_path / "stop", on_error="stop")
+
+
+def test_a_folder_is_read_ahead_and_other_sources_only_on_due_frames(room, tmp_path, monkeypatch):
+    """A detection folder (`reads_ahead`) is read by the run's reader threads (three here, as on a GPU's host):
+    a corrupt file is reported only if its frame is due. Any other source (the detectors: their prompt window
+    counts the detection frames) is called on the due frames alone, in order. Both make the same map."""
+    scene_dir, detections, config = room
+    config = config.model_copy(update={"detections": config.detections.model_copy(update={"schedule": "every", "every": 2})})
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    broken = tmp_path / "detections"
+    shutil.copytree(detections, broken)
+    for name in ("frame-000003", "frame-000006"):  # frame 3 is not due, frame 6 is
+        (broken / f"{name}_label.json").write_text("{not json")
+    folder, clean = DetectionFolder(broken), DetectionFolder(detections)
+    calls: list[str] = []
+
+    def detector(frame):
+        calls.append(frame.name)
+        return None if frame.name == "frame-000006" else clean.get(frame.name)
+
+    monkeypatch.setattr(SceneFusion, "READ_WORKERS", 3)
+    read_ahead = run_and_export(scene, folder, config, tmp_path / "ahead", progress=False)
+    in_order = run_and_export(scene, detector, config, tmp_path / "order", progress=False)
+    assert calls == [f"frame-{i:06d}" for i in range(0, SPEC.num_frames, 2)]
+    skipped = json.loads((tmp_path / "ahead" / "run.json").read_text())["skipped_frames"]
+    assert [entry["frame"] for entry in skipped] == ["frame-000006"] and "detections skipped" in skipped[0]["reason"]
+    assert read_ahead.complete and in_order.complete
+    assert _instances(tmp_path / "ahead") == _instances(tmp_path / "order")
 
 
 def test_ctrl_c_stops_between_frames_writes_a_checkpoint_and_exits_130(tmp_path):

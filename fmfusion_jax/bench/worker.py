@@ -85,7 +85,7 @@ def _frames_with_detections(opened, folder, config, progress: bool, desc: str):
     frames = tqdm(
         opened.frames(), total=len(opened), desc=desc, unit="frame", disable=not progress, dynamic_ncols=True, leave=False
     )
-    yield from scheduled_detections(frames, lambda frame: folder.get(frame.name), config)
+    yield from scheduled_detections(frames, folder, config)
 
 
 def device_description() -> dict:
@@ -245,7 +245,7 @@ def _as_run_pass(
     with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
         while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
             ahead: dict[int, concurrent.futures.Future] = {}
-            for position, (_, detections) in enumerate(chunk):
+            for position in range(len(chunk)):
                 if len(frames) == traced_from and profile is not None:
                     try:
                         tracing.start_trace(trace_dir)  # type: ignore[arg-type]
@@ -254,10 +254,10 @@ def _as_run_pass(
                         traced_from = None
                 for i in range(position, min(position + 1 + SceneFusion.READ_AHEAD, len(chunk))):
                     if i not in ahead:  # as `fmfusion run`'s reader: a few frames ahead of the one fused
-                        ahead[i] = reader.submit(mapper.prepare, chunk[i][0])
+                        ahead[i] = reader.submit(mapper.prepare, *chunk[i])
                 growths = mapper.growths
                 start = time.perf_counter()
-                mapper.integrate(ahead.pop(position).result(), detections)
+                mapper.integrate(ahead.pop(position).result())
                 elapsed = {"call": (time.perf_counter() - start) * 1e3}
                 skip = position == 0 or mapper.growths != growths or (traced_from is not None and len(frames) >= traced_from)
                 frames.append({} if skip else elapsed)

@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
                 f"no detection file in {args.detections} matches a frame of {scene.name} "
                 f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})"
             )
-        source = lambda frame: folder.get(frame.name)  # noqa: E731
+        source = folder
     observer = None
     if args.viewer or args.viewer_save:
         from fmfusion_jax.viz.live import RerunView

@@ -39,7 +39,7 @@ import numpy as np
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.image_file import read_image
-from fmfusion_jax.types import FrameDetections
+from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 logger = logging.getLogger(__name__)
 
@@ -262,7 +262,11 @@ def write_frame_detections(folder: str | Path, detections: FrameDetections, mask
 
 
 class DetectionFolder:
-    """A folder of detection files: `.get(frame_name)` reads one frame (None when it has none)."""
+    """A folder of detection files: `.get(frame_name)` reads one frame (None when it has none). Called with a
+    frame it is a detection source (`pipeline.DetectionSource`) that `fmfusion run` reads ahead."""
+
+    #: no state and no model to run: a reader thread may read frames that the schedule then leaves out
+    reads_ahead = True
 
     def __init__(self, folder: str | Path, image_shape: tuple[int, int] | None = None):
         self.folder = Path(folder)
@@ -283,6 +287,9 @@ class DetectionFolder:
         if frame_name not in self._names:
             return None
         return read_frame_detections(self.folder, frame_name, self.image_shape)
+
+    def __call__(self, frame: RGBDFrame) -> FrameDetections | None:
+        return self.get(frame.name)
 
 
 def _check_labels(labels: Any, where: str, error: type[Exception] = DataError) -> dict[str, float]:

@@ -190,7 +190,7 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     dataset = config.dataset
     scene = open_dataset_scene(case.scene_dir, dataset)
     folder = DetectionFolder(case.detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
-    result = fuse_scene(scene, lambda frame: folder.get(frame.name), config, progress=progress)
+    result = fuse_scene(scene, folder, config, progress=progress)
     gt = load_scannet_ground_truth(case.scene_dir)
     # Unprocessed instances keep `distribution = class_distribution(h @ L)`; the small ones are dropped as
     # the export drops them. The export's are the same instances post-processed (as
