@@ -346,7 +346,7 @@ def test_the_memory_target_is_judged_on_the_cpu_and_reported_with_the_device_pea
 
 
 def test_the_gpu_target_says_by_how_much_it_is_missed_and_what_bounds_the_frame():
-    frames = [{"fusion": 2.0, "refine": 1.5, "host": 1.0, "mapper": 0.8}] * 6
+    frames = [{"prepare": 1.3, "fusion": 2.0, "refine": 1.5, "host": 1.0, "mapper": 0.8}] * 6
     ours = {"frames": frames, "compiled": [{}] * 6, "geometry_fusion_every": 11}
     main = {"scene": {"kind": "generated", "frames": 6, "name": "room"}, "ours": ours, "peer": None}
     summary = {"stages": report.stage_table(ours, None), "device": {"platform": "gpu", "device_kind": "H100"}}
@@ -355,6 +355,7 @@ def test_the_gpu_target_says_by_how_much_it_is_missed_and_what_bounds_the_frame(
     whole = report.whole_frame_row(summary["stages"])["ours_all"]
     assert f"{whole / 3:.2f}x the target" in row["figure"]
     assert "bound by: fusion step 2.00 ms, merge 1.50 ms" in row["figure"] and "the host's work 1.80 ms" in row["figure"]
+    assert "the reader thread's 1.30 ms beside them" in row["figure"]  # `fmfusion run` prepares frames in another thread
     summary["device"]["platform"] = "cpu"
     assert report.targets(summary, main)[-1] == {"target": row["target"], "figure": "n/a (no GPU in this run)", "met": None}
 
