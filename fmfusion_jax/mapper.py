@@ -237,7 +237,7 @@ def _extent_parameters(map_config: MapConfig) -> tuple:
 class PreparedFrame:
     """A frame (and its detections) with the host work that needs only the config done ahead (`Mapper.prepare`):
     its `frame_block_extent`, which the growth check needs before the frame's step, and the detections packed.
-    `fmfusion run` prepares the next frames in its reader thread, so that this NumPy work overlaps the fusion of
+    `fmfusion run` prepares the next frames in its reader threads, so that this NumPy work overlaps the fusion of
     the frame before."""
 
     frame: RGBDFrame
@@ -399,7 +399,7 @@ class Mapper:
             name=name,
         )
         due = detections is not None and self.detection_due(frame.T_world_camera)
-        self._prepare(frame, due, prepared)
+        self._fit_map_to(frame, due, prepared)
         assert self._builder is not None
         self._builder.add_frame(frame, detections if due else None, batch)
         if due:
@@ -547,7 +547,7 @@ class Mapper:
             return prepared.block_extent
         return frame_block_extent(frame, map_config)
 
-    def _prepare(self, frame: RGBDFrame, detections_due: bool, prepared: PreparedFrame | None = None) -> None:
+    def _fit_map_to(self, frame: RGBDFrame, detections_due: bool, prepared: PreparedFrame | None = None) -> None:
         """Makes the map ready for `frame`: built on the first frame, grown when it might not fit."""
         height, width = frame.depth.shape
         if self._builder is not None:

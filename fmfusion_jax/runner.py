@@ -222,7 +222,8 @@ class SceneFusion:
                 self._bad_input(name, f"detections skipped: {detection_error}", "frame")
         fused = self.mapper.integrate(prepared, detections)
         if self.observer is not None:
-            self.observer(i, frame, (detections or prepared.detections) if fused else None, self.mapper)
+            fused_detections = detections if detections is not None else prepared.detections
+            self.observer(i, frame, fused_detections if fused else None, self.mapper)
 
     def _bad_input(self, name: str, reason: str, action: str) -> None:
         if self.on_error == "stop":

@@ -217,8 +217,8 @@ def _as_run_pass(
     mapper, opened, folder, config, progress: bool, scene: BenchScene, profile: dict | None = None
 ) -> tuple[list, list]:
     """Fuses the frames into `mapper` (a `Mapper` without timers) as `fmfusion run` drives it: each step is dispatched
-    without waiting, the host's work for a frame (checks, growth check, packing) overlaps the device's work on
-    the one before, and a reader thread prepares the next frames (`Mapper.prepare`) meanwhile.
+    without waiting, the main thread's work for a frame (checks, growth check, dispatch) overlaps the device's work
+    on the one before, and a reader thread prepares the next frames (`Mapper.prepare`: block extent, packing).
 
     Returns per-frame `{"call": ms}` (the wall time of waiting for the frame's preparation and of `Mapper.integrate`:
     its host work, then the wait for the previous frame's steps, then the dispatch of its own; in a steady run
