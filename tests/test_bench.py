@@ -361,24 +361,33 @@ def test_the_gpu_target_says_by_how_much_it_is_missed_and_what_bounds_the_frame(
 
 
 def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_path):
-    """Nested events (a call and the calls it makes) add to the busy time once; time and calls per frame."""
+    """Nested events (a call and the calls it makes) add to the busy time once, a thread's waits on locks and
+    queues not at all (an idle reader thread); time and calls per frame."""
     from fmfusion_jax.bench.profile import profile_lines, summarize_trace
 
     meta = [
         {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/host:CPU"}},
         {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "python"}},
         {"ph": "M", "name": "thread_name", "pid": 1, "tid": 8, "args": {"name": "worker|1"}},
+        {"ph": "M", "name": "thread_name", "pid": 1, "tid": 9, "args": {"name": "reader"}},
     ]
     spans = [  # µs: python busy 0-1000 and 3000-3500 (a nested call inside the first), the worker 500-700
         {"ph": "X", "pid": 1, "tid": 7, "ts": 0, "dur": 1000, "name": "integrate"},
         {"ph": "X", "pid": 1, "tid": 7, "ts": 100, "dur": 400, "name": "pack"},
         {"ph": "X", "pid": 1, "tid": 7, "ts": 3000, "dur": 500, "name": "integrate"},
         {"ph": "X", "pid": 1, "tid": 8, "ts": 500, "dur": 200, "name": "fusion"},
+        # the reader: its worker loop spans the trace, idle in the queue's get but for one frame prepared
+        {"ph": "X", "pid": 1, "tid": 9, "ts": 0, "dur": 4000, "name": "$thread.py:69 _worker"},
+        {"ph": "X", "pid": 1, "tid": 9, "ts": 0, "dur": 2000, "name": "$<unknown> get"},
+        {"ph": "X", "pid": 1, "tid": 9, "ts": 2000, "dur": 600, "name": "$mapper.py:412 prepare"},
+        {"ph": "X", "pid": 1, "tid": 9, "ts": 2600, "dur": 1400, "name": "$<unknown> get"},
+        {"ph": "X", "pid": 1, "tid": 9, "ts": 2100, "dur": 50, "name": "$threading.py:355 wait"},
     ]
     path = tmp_path / "trace.json.gz"
     with gzip.open(path, "wt") as stream:
         json.dump({"traceEvents": meta + spans}, stream)
-    python, worker = summarize_trace(path, frames=2)
+    python, reader, worker = summarize_trace(path, frames=2)
+    assert reader["thread"] == "/host:CPU / reader" and reader["busy_ms"] == pytest.approx(0.275)  # 600 - 50 µs
     assert python["thread"] == "/host:CPU / python" and python["busy_ms"] == pytest.approx(0.75) and python["events"] == 1.5
     assert python["top"][0] == {"name": "integrate", "ms": pytest.approx(0.75), "calls": 1.0}
     assert python["top"][1]["name"] == "pack" and python["top"][1]["ms"] == pytest.approx(0.2)

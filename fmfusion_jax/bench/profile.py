@@ -1,8 +1,9 @@
 """`fmfusion bench --profile N`: a `jax.profiler` trace of the last N frames of the as-run pass, summarized.
 
-The summary says, per thread of the trace (the host's Python thread, XLA's worker threads on a CPU, a GPU's
-streams), how busy it was per frame (the union of its events' intervals) and on what (the events with the most
-time, inclusive: a Python call holds the calls it makes). The trace itself (Perfetto's JSON) is kept beside the
+The summary says, per thread of the trace (the host's Python thread, the reader thread, XLA's worker threads on
+a CPU, a GPU's streams), how busy it was per frame (the union of its events' intervals, less its waits on Python
+locks and queues: an idle reader thread waits in its queue's `get`) and on what (the events with the most time,
+inclusive: a Python call holds the calls it makes). The trace itself (Perfetto's JSON) is kept beside the
 report: open it in https://ui.perfetto.dev to follow a frame.
 """
 
@@ -11,11 +12,14 @@ from __future__ import annotations
 import collections
 import gzip
 import json
+import re
 import shutil
 from pathlib import Path
 
 #: Threads listed in the report, busiest first, and events listed per thread.
 THREADS_SHOWN, EVENTS_SHOWN = 6, 5
+#: The Python tracer's names of a thread's waits on a lock, a condition or a queue (C calls are "$<unknown> NAME").
+_WAIT_EVENT = re.compile(r"^\$(<unknown> (acquire|get)|threading\.py:\d+ wait)$")
 
 
 def start_trace(folder: Path) -> None:
@@ -61,6 +65,7 @@ def summarize_trace(path: Path, frames: int) -> list[dict]:
             tid = event.get("tid") if event["name"] == "thread_name" else None
             names[(event["pid"], tid)] = str(event.get("args", {}).get("name", ""))
     intervals: dict[str, list] = collections.defaultdict(list)
+    waits: dict[str, list] = collections.defaultdict(list)
     time_by_name: dict[str, collections.Counter[str]] = collections.defaultdict(collections.Counter)
     calls_by_name: dict[str, collections.Counter[str]] = collections.defaultdict(collections.Counter)
     for event in events:
@@ -70,6 +75,8 @@ def summarize_trace(path: Path, frames: int) -> list[dict]:
         thread = f"{names.get((pid, None), pid)} / {names.get((pid, tid), tid)}"
         start, length = float(event["ts"]), float(event.get("dur", 0.0))
         intervals[thread].append((start, start + length))
+        if _WAIT_EVENT.match(event["name"]):
+            waits[thread].append((start, start + length))
         time_by_name[thread][event["name"]] += int(round(length * 1e3))  # ns: the counter holds integers
         calls_by_name[thread][event["name"]] += 1
     frames = max(frames, 1)
@@ -79,7 +86,8 @@ def summarize_trace(path: Path, frames: int) -> list[dict]:
             {"name": name, "ms": ns / frames / 1e6, "calls": calls_by_name[thread][name] / frames}
             for name, ns in time_by_name[thread].most_common(EVENTS_SHOWN)
         ]
-        rows.append({"thread": thread, "busy_ms": _busy(spans) / frames / 1e3, "events": len(spans) / frames, "top": top})
+        busy = _busy(spans) - _busy(waits[thread])  # the waits lie inside the thread's other events
+        rows.append({"thread": thread, "busy_ms": busy / frames / 1e3, "events": len(spans) / frames, "top": top})
     return sorted(rows, key=lambda row: -row["busy_ms"])
 
 
@@ -96,8 +104,9 @@ def profile_lines(profile: dict | None) -> list[str]:
         return lines + [f"No profile: {profile['error']}", ""]
     lines += [
         f"`jax.profiler` trace: `{profile['trace']}` (open it in https://ui.perfetto.dev). These frames are left out of "
-        "the as-run figures (tracing slows them). Per thread, busiest first: busy = the union of its events, per "
-        "frame; the events with the most time, inclusive (a call holds the calls it makes).",
+        "the as-run figures (tracing slows them). Per thread, busiest first: busy = the union of its events less "
+        "its waits on Python locks and queues, per frame; the events with the most time, inclusive (a call holds "
+        "the calls it makes).",
         "",
         "| thread | busy, ms/frame | events/frame | most time (ms/frame, calls/frame) |",
         "|---|---:|---:|---|",
