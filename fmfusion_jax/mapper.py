@@ -413,6 +413,10 @@ class Mapper:
         """`frame` and its `detections` with the host work that needs only the config done (the frame's block
         extent for the growth check, the detections packed), for `integrate`, which still applies the detection
         schedule. Reads nothing of the map, so another thread may call it while frames are integrated."""
+        if not isinstance(frame, RGBDFrame):
+            raise UserError(
+                f"prepare: expected an RGBDFrame (fmfusion_jax.mapper.as_frame makes one of arrays), got {type(frame).__name__}"
+            )
         layout = self._layout(*frame.depth.shape)
         batch = None
         if detections is not None:

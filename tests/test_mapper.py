@@ -24,6 +24,7 @@ from fmfusion_jax.mapper import Mapper, as_config, frame_block_extent, frame_blo
 from fmfusion_jax.pipeline import build_map_config, extract_map_instances
 from fmfusion_jax.runner import fuse_scene
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
+from fmfusion_jax.types import FrameDetections
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fuse_with_mapper.py"
 SPEC = GeneratedSceneSpec(seed=5, num_objects=4, num_frames=16, width=320, height=240)
@@ -329,6 +330,10 @@ def test_bad_inputs_are_clear_errors(room):
         Mapper(config, intrinsics=frame.intrinsics).integrate(depth=frame.depth[:100], T_world_camera=frame.T_world_camera)
     with pytest.raises(UserError, match="empty"):
         Mapper(config).instances()
+    with pytest.raises(UserError, match="prepare: expected an RGBDFrame"):
+        mapper.prepare(frame.depth)
+    with pytest.raises(UserError, match="detection masks are"):  # masks of another image size
+        mapper.prepare(frame, FrameDetections("x", np.zeros((1, 8, 8), bool), [{"chair": 0.9}], np.zeros((1, 4), np.float32)))
     with pytest.raises(UserError):
         as_config({"detections": {"no_such_knob": 1}})
 
