@@ -348,7 +348,6 @@ class Mapper:
         self._schedule = DetectionSchedule(self.config)
         self._result: FusionResult | None = None
         self._expected_blocks = expected_blocks
-        self._ceiling: MapConfig | None = None  # the config's capacities: how far a growing map may grow
         self._layouts: dict[tuple[int, int], MapConfig] = {}  # `_layout` by image size
         # per frame since the last known sizes (`MapBuilder.sizes_after`): (position, bound of the blocks it adds,
         # bound of the rows it adds), so that the growth check reads the device only near a capacity
@@ -520,7 +519,6 @@ class Mapper:
         )
         builder.restore_progress(progress)
         mapper._builder = builder
-        mapper._ceiling = mapper._layout(saved.map_config.image_height, saved.map_config.image_width)
         mapper._schedule.restore(progress.get("schedule", progress))  # older files: the detection pose alone
         if progress.get("finalized"):
             mapper._result = builder.snapshot(builder.state)
@@ -564,7 +562,6 @@ class Mapper:
             return
         # the config's capacities for these frames: a fixed map's sizes, a growing map's ceiling
         layout = self._layout(height, width)
-        self._ceiling = layout
         if self._bounds is not None:
             expected = self._expected_blocks
             if expected is not None:  # at least what the first frame needs
@@ -610,8 +607,8 @@ class Mapper:
         only when a bound would pass a capacity, so most frames are checked without waiting for the previous one.
         """
         builder = self._require_builder()
-        old, ceiling = builder.map_config, self._ceiling
-        assert ceiling is not None
+        old = builder.map_config
+        ceiling = self._layout(old.image_height, old.image_width)  # the config's capacities: how far the map may grow
         grows_index = self._bounds is None
         full_pool, full_table = old.block_capacity >= ceiling.block_capacity, old.instance_capacity >= ceiling.instance_capacity
         if full_pool and full_table and not grows_index:
@@ -837,7 +834,7 @@ class MapperBatch:
             state=jax.tree.map(jnp.copy, self._map_state(index)),
         )
         own.restore_progress(builder.snapshot(own.state).progress())
-        mapper._builder, mapper._ceiling = own, self.map_config
+        mapper._builder = own
         mapper._schedule.restore(self._schedules[index].state())
         if self._results is not None:
             mapper._result = own.snapshot(own.state)

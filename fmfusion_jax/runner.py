@@ -5,6 +5,7 @@ Shared by `fmfusion run`, `fmfusion demo` and the experiments; the loop itself i
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import contextlib
 import dataclasses
@@ -14,9 +15,9 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
@@ -33,6 +34,8 @@ if TYPE_CHECKING:
     from fmfusion_jax.mapper import PreparedFrame
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 #: What a bad frame (unreadable image, malformed detection file) does: `skip` it with a warning naming the file,
@@ -111,6 +114,8 @@ class SceneFusion:
         if on_error not in ON_ERROR_POLICIES:
             raise UserError(f"on_error {on_error!r}: expected one of {ON_ERROR_POLICIES}")
         self.scene, self.detection_source, self.config = scene, detection_source, config
+        # a source of files is read with its frame in the reader threads; others on due frames, in order
+        self._source_reads_ahead = bool(getattr(detection_source, "reads_ahead", False))
         self.on_error, self.checkpoint, self.observer = on_error, checkpoint, observer
         #: `(frame name, reason)` of the frames left out: bad poses (found when the scene was opened) and
         #: frames whose files failed to read
@@ -155,16 +160,13 @@ class SceneFusion:
             progress(self.position)
         workers = self.READ_WORKERS
         with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fmfusion-read") as reader:
-            ahead: dict[int, concurrent.futures.Future] = {}
+            frames = read_ahead(self._read_frame, range(self.position, len(self.scene)), reader, self.READ_AHEAD * workers)
             while self.position < len(self.scene):
                 if should_stop and should_stop():
                     if self.checkpoint is not None:
                         self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
                     return False
-                for i in range(self.position, min(self.position + 1 + self.READ_AHEAD * workers, len(self.scene))):
-                    if i not in ahead:
-                        ahead[i] = reader.submit(self._read_frame, i)
-                self._fuse_frame(self.position, ahead.pop(self.position).result())
+                self._fuse_frame(self.position, next(frames))
                 self.position += 1
                 if progress:
                     progress(1)
@@ -185,7 +187,7 @@ class SceneFusion:
         except DataError as error:
             return error
         detections, detection_error = None, None
-        if getattr(self.detection_source, "reads_ahead", False):
+        if self._source_reads_ahead:
             try:
                 detections = self.detection_source(frame)
             except DataError as failure:
@@ -213,7 +215,7 @@ class SceneFusion:
         prepared, detection_error = read
         frame, detections = prepared.frame, None
         if self.mapper.detection_due(frame.T_world_camera):
-            if not getattr(self.detection_source, "reads_ahead", False):
+            if not self._source_reads_ahead:
                 try:
                     detections = self.detection_source(frame)
                 except DataError as failure:
@@ -230,6 +232,18 @@ class SceneFusion:
             raise UserError(f"{reason} (frame {name}; --on-error skip would skip it)")
         log.warning("%s %s: %s", action, name, reason)
         self.skipped.append((name, reason))
+
+
+def read_ahead(read: Callable[[Any], T], items: Iterable[Any], reader: concurrent.futures.Executor, window: int) -> Iterator[T]:
+    """`read(item)` of each item, in order, run in `reader` up to `window` items ahead of the one taken: the next
+    frames are read while the current one is fused, never the whole sequence at once."""
+    pending: collections.deque[concurrent.futures.Future[T]] = collections.deque()
+    for item in items:
+        pending.append(reader.submit(read, item))
+        if len(pending) > window:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
 
 
 def scene_extent(scene: Scene, config: PipelineConfig, sample: DepthSample | None = None):

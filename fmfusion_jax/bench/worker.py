@@ -237,7 +237,7 @@ def _as_run_pass(
 
     from fmfusion_jax.bench import profile as tracing
     from fmfusion_jax.bench.report import AS_RUN_CHUNK
-    from fmfusion_jax.runner import SceneFusion
+    from fmfusion_jax.runner import SceneFusion, read_ahead
 
     frames: list[dict] = []
     left_out: list[dict] = []
@@ -247,7 +247,8 @@ def _as_run_pass(
     stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
     with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
         while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
-            ahead: dict[int, concurrent.futures.Future] = {}
+            # as `fmfusion run`'s reader: a few frames ahead of the one fused
+            prepared = read_ahead(lambda pair: mapper.prepare(*pair), chunk, reader, SceneFusion.READ_AHEAD)
             for position in range(len(chunk)):
                 if len(frames) == traced_from and profile is not None:
                     try:
@@ -255,12 +256,9 @@ def _as_run_pass(
                     except Exception as error:  # noqa: BLE001 - a profiler that cannot start leaves the bench as it was
                         profile["error"] = f"jax.profiler did not start: {error}"
                         traced_from = None
-                for i in range(position, min(position + 1 + SceneFusion.READ_AHEAD, len(chunk))):
-                    if i not in ahead:  # as `fmfusion run`'s reader: a few frames ahead of the one fused
-                        ahead[i] = reader.submit(mapper.prepare, *chunk[i])
                 growths = mapper.growths
                 start = time.perf_counter()
-                mapper.integrate(ahead.pop(position).result())
+                mapper.integrate(next(prepared))
                 elapsed = {"call": (time.perf_counter() - start) * 1e3}
                 skip = position == 0 or mapper.growths != growths or (traced_from is not None and len(frames) >= traced_from)
                 frames.append({} if skip else elapsed)
