@@ -18,7 +18,14 @@ from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step
 from fmfusion_jax.labels import load_label_sets, load_likelihood
-from fmfusion_jax.pipeline import MapBuilder, build_map_config, extract_map_instances, fuse_sequence, joined_tree_to_host
+from fmfusion_jax.pipeline import (
+    MapBuilder,
+    StageTimer,
+    build_map_config,
+    extract_map_instances,
+    fuse_sequence,
+    joined_tree_to_host,
+)
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 
 H, W = 120, 160
@@ -136,6 +143,26 @@ def test_no_recompilation_after_the_first_frames(room_frames):
         builder.add_frame(frame, clean_detections(frame))
         builder.add_frame(frame, None)
     assert (step.fuse_detections._cache_size(), step.integrate_frame._cache_size(), step._merge_step._cache_size()) == sizes
+
+
+def test_one_call_per_detection_frame_makes_the_same_map(room_frames, monkeypatch):
+    # untimed, a detection frame the merge is due after is one executable (fuse_and_refine); timed, its two steps
+    room, frames = room_frames
+    config = small_config()
+    timed = MapBuilder(config, build(config, room).map_config, timer=StageTimer(enabled=True))
+    untimed = MapBuilder(config, timed.map_config, timer=StageTimer(enabled=False))
+    calls = []
+    one_call = step.fuse_and_refine
+    monkeypatch.setattr(step, "fuse_and_refine", lambda *args: calls.append(1) or one_call(*args))
+    for builder in (timed, untimed):
+        for frame in frames:
+            builder.add_frame(frame, clean_detections(frame))
+        if builder is timed:
+            assert not calls and len(timed.timer.samples_ms["refine"]) == len(frames) - 1  # the first call compiled
+    assert len(calls) == len(frames)
+    assert timed.counters == untimed.counters and timed.counters["created"] >= 5
+    for one, other in zip(jax.tree.leaves(jax.device_get(timed.state)), jax.tree.leaves(jax.device_get(untimed.state))):
+        np.testing.assert_array_equal(one, other)
 
 
 def test_fusion_thresholds_go_to_the_device_once_per_config():
