@@ -51,6 +51,7 @@ from fmfusion_jax.pipeline import (
     StageTimer,
     build_map_config,
     extract_map_instances,
+    frame_inputs,
 )
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 
@@ -133,6 +134,7 @@ def as_frame(
             raise UserError(
                 f"integrate: expected an RGBDFrame (or depth=..., T_world_camera=... arrays), got {type(frame).__name__}"
             )
+        checked_pose(frame.T_world_camera, frame.name)
         return frame
     if depth is None or T_world_camera is None or intrinsics is None:
         raise UserError("integrate: give a frame, or depth=, T_world_camera= and intrinsics=")
@@ -153,17 +155,26 @@ def as_frame(
     color = np.asarray(color)
     if color.shape != (height, width, 3) or color.dtype != np.uint8:
         raise UserError(f"{name}: colour must be ({height}, {width}, 3) uint8 RGB, got {color.shape} {color.dtype}")
+    pose = checked_pose(T_world_camera, name)
+    return RGBDFrame(
+        index=index, name=name, color=color, depth=depth, T_world_camera=pose, intrinsics=as_intrinsics(intrinsics, height, width)
+    )
+
+
+def checked_pose(T_world_camera, name: str) -> np.ndarray:
+    """float64 `(4, 4)` camera-to-world pose; a non-finite or non-rigid one is a UserError naming frame `name` (a NaN
+    pose would otherwise size the map from NaN block coordinates)."""
     pose = np.asarray(T_world_camera, np.float64)
-    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-        raise UserError(f"{name}: T_world_camera must be a finite 4x4 matrix, got shape {pose.shape}")
+    if pose.shape != (4, 4):
+        raise UserError(f"{name}: T_world_camera must be a 4x4 matrix, got shape {pose.shape}")
+    if not np.all(np.isfinite(pose)):
+        raise UserError(f"{name}: T_world_camera is not finite (a lost track? skip the frame)")
     rotation = pose[:3, :3]
     if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
         raise UserError(
             f"{name}: T_world_camera's rotation is not a rotation (check the pose's convention and that it maps camera to world)"
         )
-    return RGBDFrame(
-        index=index, name=name, color=color, depth=depth, T_world_camera=pose, intrinsics=as_intrinsics(intrinsics, height, width)
-    )
+    return pose
 
 
 @functools.lru_cache(maxsize=8)
@@ -247,6 +258,8 @@ class PreparedFrame:
     detections: FrameDetections | None = None
     #: `detections` packed (`HostAdapter.detections`) at the config's pixel stride (None without detections)
     batch: DetectionBatch | None = None
+    #: the frame as engine arrays (`pipeline.frame_inputs`), put on the device with `batch` (None: made at `integrate`)
+    inputs: step.FrameInputs | None = None
 
 
 #: Bits per axis of a packed block key (block coordinates within +-2^20 blocks: +-131 km at 12.5 cm blocks).
@@ -381,26 +394,28 @@ class Mapper:
             raise UserError("this map is finalized: integrate frames before finalize(), or start a new Mapper")
         timer = self._builder.timer if self._builder is not None else self._timer
         start, recorded_before = time.perf_counter(), (timer.recorded_ms if timer is not None else 0.0)
-        prepared, batch = None, None
-        if isinstance(frame, PreparedFrame):
-            prepared, frame = frame, frame.frame
+        prepared, batch, inputs = None, None, None
+        if isinstance(frame, PreparedFrame):  # checked by `prepare`
+            prepared, inputs = frame, frame.inputs
+            frame = prepared.frame
             if prepared.detections is not None:
                 if detections is not None:
                     raise UserError(f"{frame.name}: detections given twice (to prepare and to integrate)")
                 detections, batch = prepared.detections, prepared.batch
-        frame = as_frame(
-            frame,
-            depth=depth,
-            color=color,
-            T_world_camera=T_world_camera,
-            intrinsics=self._intrinsics if intrinsics is None else intrinsics,
-            index=self.frames_integrated,
-            name=name,
-        )
+        else:
+            frame = as_frame(
+                frame,
+                depth=depth,
+                color=color,
+                T_world_camera=T_world_camera,
+                intrinsics=self._intrinsics if intrinsics is None else intrinsics,
+                index=self.frames_integrated,
+                name=name,
+            )
         due = detections is not None and self.detection_due(frame.T_world_camera)
         self._fit_map_to(frame, due, prepared)
         assert self._builder is not None
-        self._builder.add_frame(frame, detections if due else None, batch)
+        self._builder.add_frame(frame, detections if due else None, batch, inputs)
         if due:
             self._schedule.fused(frame.T_world_camera)
         self._schedule.advance(frame.T_world_camera)
@@ -416,11 +431,14 @@ class Mapper:
             raise UserError(
                 f"prepare: expected an RGBDFrame (fmfusion_jax.mapper.as_frame makes one of arrays), got {type(frame).__name__}"
             )
+        checked_pose(frame.T_world_camera, frame.name)
         layout = self._layout(*frame.depth.shape)
         batch = None
         if detections is not None:
             batch = HostAdapter.for_map(self.config, layout, self.label_sets).detections(detections)
-        return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout), detections, batch)
+        # sent to the device here, off the thread that calls the steps (on a GPU that thread bounds the frame)
+        inputs, batch = jax.device_put((frame_inputs(frame, layout), batch))
+        return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout), detections, batch, inputs)
 
     def detection_due(self, T_world_camera) -> bool:
         """Whether the next frame, taken at this pose, would have its detections fused (the schedule)."""

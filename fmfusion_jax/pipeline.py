@@ -378,10 +378,16 @@ class MapBuilder:
         index lies elsewhere share the compiled steps (the state carries the origin)."""
         return self.map_config.compiled_layout()
 
-    def add_frame(self, frame: RGBDFrame, detections: FrameDetections | None, batch: DetectionBatch | None = None) -> None:
+    def add_frame(
+        self,
+        frame: RGBDFrame,
+        detections: FrameDetections | None,
+        batch: DetectionBatch | None = None,
+        inputs: step.FrameInputs | None = None,
+    ) -> None:
         """Integrates a frame; fuses its detections when given (the caller applies the detection schedule,
-        e.g. `scheduled_detections`). `batch`: the detections already packed for this map's image size and
-        pixel stride (`Mapper.prepare`), else they are packed here.
+        e.g. `scheduled_detections`). `batch`, `inputs`: the detections packed and the frame's arrays, made ahead
+        (`Mapper.prepare`) for this map's pixel stride and image size, else they are made here.
 
         The steps are dispatched without waiting for the device: the frame's statistics (counters, log line)
         are read at the next call, after it dispatched its own steps (or at `flush`), so the caller may read and
@@ -391,9 +397,11 @@ class MapBuilder:
         """
         adapter = self.adapter
         start, recorded_before = time.perf_counter(), self.timer.recorded_ms
-        # packed while the device may still run the previous step; the step is given the host arrays (its C++
-        # dispatch copies them in: a jax.device_put first cost 0.5 ms more per frame in Python on the CPU)
-        inputs = adapter.frame(frame)
+        # packed while the device may still run the previous step; unless prepared (and sent) by a reader thread, the
+        # step is given host arrays (its C++ dispatch copies them in: a jax.device_put here cost 0.5 ms more per frame
+        # in Python on the CPU)
+        if inputs is None or inputs.depth.shape != adapter.image_shape:
+            inputs = adapter.frame(frame)  # checks the frame (a wrong image size is an error naming it)
         if detections is None:
             batch = None
         elif batch is None:

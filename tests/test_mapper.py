@@ -213,6 +213,7 @@ def test_frames_prepared_in_a_reader_thread_make_the_same_map(room):
         # odd frames prepared with their detections, even ones without (given to integrate)
         prepared = list(reader.map(lambda f: fed_prepared.prepare(f, folder(f) if f.index % 2 else None), frames))
     assert prepared[1].batch is not None and prepared[0].batch is None
+    assert all(isinstance(leaf, jax.Array) for leaf in jax.tree.leaves((prepared[1].inputs, prepared[1].batch)))  # sent
     stale = Mapper(wider).prepare(frames[0])
     assert stale.block_extent[0] > prepared[0].block_extent[0]
     prepared[0] = stale
@@ -332,6 +333,10 @@ def test_bad_inputs_are_clear_errors(room):
         Mapper(config).instances()
     with pytest.raises(UserError, match="prepare: expected an RGBDFrame"):
         mapper.prepare(frame.depth)
+    lost = dataclasses.replace(frame, T_world_camera=np.full((4, 4), np.nan))  # checked before it can size the map
+    for call in (mapper.prepare, mapper.integrate):
+        with pytest.raises(UserError, match="T_world_camera is not finite"):
+            call(lost)
     with pytest.raises(UserError, match="detection masks are"):  # masks of another image size
         mapper.prepare(frame, FrameDetections("x", np.zeros((1, 8, 8), bool), [{"chair": 0.9}], np.zeros((1, 4), np.float32)))
     with pytest.raises(UserError):
