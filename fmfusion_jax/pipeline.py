@@ -13,8 +13,10 @@ import collections
 import dataclasses
 import functools
 import logging
+import math
 import time
 from collections.abc import Callable, Iterable, Iterator
+from statistics import median
 from typing import Any, NamedTuple
 
 import jax
@@ -365,7 +367,7 @@ class MapBuilder:
         self.frames_integrated = 0
         self.detection_frames = 0
         self._counters = {"created": 0, "matched": 0, "merged": 0, "removed": 0, "detections": 0}
-        self._pending: tuple[str, Any, Any, int] | None = None  # the last detection frame's unread statistics
+        self._pending: tuple[str, Any, int] | None = None  # the last detection frame's unread statistics
         #: the map's sizes after a recent frame, from its statistics (None: none read since the map was built)
         self.sizes_after: MapSizes | None = None
 
@@ -412,22 +414,24 @@ class MapBuilder:
         else:
             fusion = step.fusion_on_device(self.fusion_config)
             merge_due, geometry_due = self.count_detection_frame()
-            refine_stats = None
+            statistics: Any
             if merge_due and self._one_call_per_frame:
-                self.state, stats, refine_stats = step.fuse_and_refine(
+                self.state, statistics = step.fuse_and_refine(
                     self.state, inputs, batch, self.likelihood, self.step_config, fusion
                 )
             else:
                 self.state, stats = self.timer.run(
                     "fusion", self.fuse_detections, self.state, inputs, batch, self.likelihood, self.step_config, fusion
                 )
+                refine_stats = None
                 if merge_due:
                     self.state, refine_stats = self.timer.run(
                         "refine", step.refine, self.state, self.step_config, self.fusion_config
                     )
+                statistics = (stats, refine_stats)
             if geometry_due:
                 self.state = self.timer.run("geometry_fusion", step.fuse_geometry, self.state, self.step_config, fusion)
-            unread = (frame.name, stats, refine_stats, self.frames_integrated)
+            unread = (frame.name, statistics, self.frames_integrated)
         # the last detection frame's statistics, read while the device runs this frame's steps (its dispatch first)
         pending, self._pending = self._pending, unread
         self._read_statistics(pending)
@@ -441,13 +445,17 @@ class MapBuilder:
         pending, self._pending = self._pending, None
         self._read_statistics(pending)
 
-    def _read_statistics(self, pending: tuple[str, Any, Any, int] | None) -> None:
-        """Counts and logs a detection frame's `(name, stats, refine_stats, position)` (device values: waits for
-        them), and keeps the map's sizes after it (`sizes_after`)."""
+    def _read_statistics(self, pending: tuple[str, Any, int] | None) -> None:
+        """Counts and logs a detection frame's `(name, statistics, position)` (device values: waits for them), and
+        keeps the map's sizes after it (`sizes_after`). `statistics`: `(FrameStats, RefineStats | None)`, or
+        `fuse_and_refine`'s packed vector."""
         if pending is None:
             return
-        name, stats, refine_stats, position = pending
-        stats, refine_stats = small_tree_to_host((stats, refine_stats))
+        name, statistics, position = pending
+        if isinstance(statistics, jax.Array):
+            stats, refine_stats = step.unpack_statistics(np.asarray(statistics))
+        else:
+            stats, refine_stats = small_tree_to_host(statistics)
         if self.sizes_after is None or position > self.sizes_after.position:  # not older than a direct read
             self.sizes_after = MapSizes(position, int(stats.blocks), int(stats.instances))
         self.add_frame_counts(stats)
@@ -538,10 +546,14 @@ class MapBuilder:
 
 
 def camera_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> tuple[float, float]:
-    """`(metres, degrees)`: translation and rotation angle of camera b relative to camera a (4x4 poses)."""
-    T_a_b = np.linalg.inv(np.asarray(T_world_a, np.float64)) @ np.asarray(T_world_b, np.float64)
-    cos = np.clip((np.trace(T_a_b[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(T_a_b[:3, 3])), float(np.degrees(np.arccos(cos)))
+    """`(metres, degrees)`: translation and rotation angle of camera b relative to camera a (4x4 rigid poses).
+
+    Without forming `inv(T_world_a) @ T_world_b` (the schedule asks this three times a frame, in the thread that
+    calls the steps): its translation is `R_a^T (t_b - t_a)`, as long as `t_b - t_a`, and the trace of its rotation
+    `R_a^T R_b` is the sum of `R_a * R_b`."""
+    a, b = np.asarray(T_world_a, np.float64), np.asarray(T_world_b, np.float64)
+    cos = min(1.0, max(-1.0, (float(np.sum(a[:3, :3] * b[:3, :3])) - 1.0) / 2.0))
+    return math.dist(a[:3, 3], b[:3, 3]), math.degrees(math.acos(cos))
 
 
 class DetectionSchedule:
@@ -589,7 +601,7 @@ class DetectionSchedule:
         steps = list(self._steps)
         if T_world_camera is not None and self._previous_pose is not None:
             steps.append(self._detection_steps(self._previous_pose, T_world_camera))
-        return bool(steps) and float(np.median(steps)) >= self.detections.sparse_motion
+        return bool(steps) and median(steps) >= self.detections.sparse_motion
 
     def fused(self, T_world_camera: np.ndarray) -> None:
         """Records that a frame's detections were fused at this pose."""

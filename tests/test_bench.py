@@ -370,6 +370,7 @@ def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_pa
         {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "python"}},
         {"ph": "M", "name": "thread_name", "pid": 1, "tid": 8, "args": {"name": "worker|1"}},
         {"ph": "M", "name": "thread_name", "pid": 1, "tid": 9, "args": {"name": "reader"}},
+        {"ph": "M", "name": "thread_name", "pid": 1, "tid": 10, "args": {"name": "python"}},  # another, named alike
     ]
     spans = [  # µs: python busy 0-1000 and 3000-3500 (a nested call inside the first), the worker 500-700
         {"ph": "X", "pid": 1, "tid": 7, "ts": 0, "dur": 1000, "name": "integrate"},
@@ -382,13 +383,15 @@ def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_pa
         {"ph": "X", "pid": 1, "tid": 9, "ts": 2000, "dur": 600, "name": "$mapper.py:412 prepare"},
         {"ph": "X", "pid": 1, "tid": 9, "ts": 2600, "dur": 1400, "name": "$<unknown> get"},
         {"ph": "X", "pid": 1, "tid": 9, "ts": 2100, "dur": 50, "name": "$threading.py:355 wait"},
+        {"ph": "X", "pid": 1, "tid": 10, "ts": 0, "dur": 20, "name": "log"},
     ]
     path = tmp_path / "trace.json.gz"
     with gzip.open(path, "wt") as stream:
         json.dump({"traceEvents": meta + spans}, stream)
-    python, reader, worker = summarize_trace(path, frames=2)
+    python, reader, worker, other = summarize_trace(path, frames=2)
     assert reader["thread"] == "/host:CPU / reader" and reader["busy_ms"] == pytest.approx(0.275)  # 600 - 50 µs
-    assert python["thread"] == "/host:CPU / python" and python["busy_ms"] == pytest.approx(0.75) and python["events"] == 1.5
+    assert other["thread"] == "/host:CPU / python #10" and other["busy_ms"] == pytest.approx(0.01)
+    assert python["thread"] == "/host:CPU / python #7" and python["busy_ms"] == pytest.approx(0.75) and python["events"] == 1.5
     assert python["top"][0] == {"name": "integrate", "ms": pytest.approx(0.75), "calls": 1.0}
     assert python["top"][1]["name"] == "pack" and python["top"][1]["ms"] == pytest.approx(0.2)
     assert worker["busy_ms"] == pytest.approx(0.1)

@@ -64,6 +64,8 @@ def summarize_trace(path: Path, frames: int) -> list[dict]:
         if event.get("ph") == "M" and event.get("name") in ("process_name", "thread_name"):
             tid = event.get("tid") if event["name"] == "thread_name" else None
             names[(event["pid"], tid)] = str(event.get("args", {}).get("name", ""))
+    # threads of a process that share a name (Python's threads all show as the interpreter's) keep their ids apart
+    shared = collections.Counter((pid, name) for (pid, tid), name in names.items() if tid is not None)
     intervals: dict[str, list] = collections.defaultdict(list)
     waits: dict[str, list] = collections.defaultdict(list)
     time_by_name: dict[str, collections.Counter[str]] = collections.defaultdict(collections.Counter)
@@ -72,7 +74,8 @@ def summarize_trace(path: Path, frames: int) -> list[dict]:
         if event.get("ph") != "X":
             continue
         pid, tid = event["pid"], event.get("tid")
-        thread = f"{names.get((pid, None), pid)} / {names.get((pid, tid), tid)}"
+        name = names.get((pid, tid), tid)
+        thread = f"{names.get((pid, None), pid)} / {name}" + (f" #{tid}" if shared[pid, name] > 1 else "")
         start, length = float(event["ts"]), float(event.get("dur", 0.0))
         intervals[thread].append((start, start + length))
         if _WAIT_EVENT.match(event["name"]):

@@ -555,11 +555,12 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
 @functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
 def fuse_and_refine(
     state: MapState, frame: FrameInputs, batch: DetectionBatch, likelihood: jax.Array, config: MapConfig, fusion: FusionConfig
-) -> tuple[MapState, FrameStats, RefineStats]:
+) -> tuple[MapState, jax.Array]:
     """`fuse_detections`, then `refine`: the same map, from one executable instead of two.
 
     On a GPU each executable's call costs the host thread about a millisecond (its CUDA graph updated and
-    launched) while the device works for far less: a detection frame the merge is due after is one call.
+    launched) while the device works for far less: a detection frame the merge is due after is one call, and
+    its statistics one int32 vector (`unpack_statistics`), read with one copy and no further executable.
     `fusion` as for `fuse_detections` (`fusion_on_device`); the merge's thresholds are read from it on the device.
     """
     state, stats = fuse_detections(state, frame, batch, likelihood, config, fusion)
@@ -567,7 +568,13 @@ def fuse_and_refine(
     state, refine_stats = _merge_step(
         state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0
     )
-    return state, stats, refine_stats
+    return state, jnp.stack([jnp.asarray(x, jnp.int32) for x in (*stats, *refine_stats)])
+
+
+def unpack_statistics(packed: np.ndarray) -> tuple[FrameStats, RefineStats]:
+    """`fuse_and_refine`'s int32[10] statistics (on the host) as the two steps' `FrameStats` and `RefineStats`."""
+    frame_fields = len(FrameStats._fields)
+    return FrameStats(*packed[:frame_fields]), RefineStats(*packed[frame_fields:])
 
 
 @functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
