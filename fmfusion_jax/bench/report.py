@@ -551,7 +551,7 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
             f"instance), {peer_note}. Stage rows time each stage jitted apart; the fusion step is the same "
             "stages in one jit. Timing a stage waits for its result, so in the timed rows the host's work and the "
             "device's add up; the last row is a pass without timers, as `fmfusion run` fuses (each step dispatched "
-            "without waiting while a reader thread prepares the next frames, and waits only to read the frame "
+            "without waiting while reader threads prepare the next frames, and waits only to read the frame "
             f"before's statistics; the first call after each {AS_RUN_CHUNK} frames read ahead left out). "
             "The targets judge that row; the peer runs synchronously, so its whole frame is the same in both.",
             "",

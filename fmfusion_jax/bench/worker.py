@@ -218,7 +218,8 @@ def _as_run_pass(
 ) -> tuple[list, list]:
     """Fuses the frames into `mapper` (a `Mapper` without timers) as `fmfusion run` drives it: each step is dispatched
     without waiting, the main thread's work for a frame (checks, growth check, dispatch) overlaps the device's work
-    on the one before, and a reader thread prepares the next frames (`Mapper.prepare`: block extent, packing).
+    on the one before, and reader threads (as many as `fmfusion run` has here) prepare the next frames
+    (`Mapper.prepare`: block extent, packing, sent to the device).
 
     Returns per-frame `{"call": ms}` (the wall time of waiting for the frame's preparation and of `Mapper.integrate`:
     its host work, then the wait for the previous frame's steps, then the dispatch of its own; in a steady run
@@ -245,10 +246,11 @@ def _as_run_pass(
     traced_from = len(opened) - min(int(profile["frames"]), len(opened) // 2) if profile else None
     trace_dir = Path(profile["trace"]).with_suffix(".tmp") if profile else None
     stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
-    with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
+    workers = SceneFusion.READ_WORKERS  # as `fmfusion run`: one reader on a small machine, up to four on many cores
+    with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fmfusion-read") as reader:
         while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
-            # as `fmfusion run`'s reader: a few frames ahead of the one fused
-            prepared = read_ahead(lambda pair: mapper.prepare(*pair), chunk, reader, SceneFusion.READ_AHEAD)
+            # as `fmfusion run`'s readers: a few frames ahead of the one fused
+            prepared = read_ahead(lambda pair: mapper.prepare(*pair), chunk, reader, SceneFusion.READ_AHEAD * workers)
             for position in range(len(chunk)):
                 if len(frames) == traced_from and profile is not None:
                     try:
