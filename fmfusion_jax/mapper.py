@@ -53,7 +53,7 @@ from fmfusion_jax.pipeline import (
     extract_map_instances,
     frame_inputs,
 )
-from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
+from fmfusion_jax.types import ROTATION_TOLERANCE, CameraIntrinsics, FrameDetections, RGBDFrame, rotation_error
 
 log = logging.getLogger(__name__)
 
@@ -169,8 +169,7 @@ def checked_pose(T_world_camera, name: str) -> np.ndarray:
         raise UserError(f"{name}: T_world_camera must be a 4x4 matrix, got shape {pose.shape}")
     if not np.all(np.isfinite(pose)):
         raise UserError(f"{name}: T_world_camera is not finite (a lost track? skip the frame)")
-    rotation = pose[:3, :3]
-    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
+    if rotation_error(pose) > ROTATION_TOLERANCE or np.linalg.det(pose[:3, :3]) < 0:  # the readers' rule
         raise UserError(
             f"{name}: T_world_camera's rotation is not a rotation (check the pose's convention and that it maps camera to world)"
         )

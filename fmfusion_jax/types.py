@@ -17,6 +17,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
+#: How far a pose's rotation may be from orthonormal (max |R^T R - I|) and still be taken as a camera pose.
+ROTATION_TOLERANCE = 1e-2
+
+
+def rotation_error(T_world_camera: np.ndarray) -> float:
+    """max |R^T R - I| of a 4x4 pose's rotation block (0 for a rotation; see `ROTATION_TOLERANCE`)."""
+    rotation = np.asarray(T_world_camera, np.float64)[:3, :3]
+    return float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+
 
 @dataclasses.dataclass(frozen=True)
 class CameraIntrinsics:

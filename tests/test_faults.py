@@ -32,6 +32,24 @@ def test_a_reflected_pose_is_refused_naming_its_file(tmp_path):
         open_scene(root)
 
 
+def test_the_readers_and_the_mapper_take_a_pose_by_one_rule(tmp_path):
+    # a rotation a little off orthonormal (a pose file written with few digits) is read and fused; one further off is
+    # refused by both, the reader naming its file, the Mapper (arrays or a frame of one's own) naming the frame
+    from fmfusion_jax.mapper import checked_pose
+
+    rounded, skewed = np.eye(4), np.eye(4)
+    rounded[:3, :3] *= 1.003  # |R^T R - I| = 0.006
+    skewed[:3, :3] *= 1.01  # 0.02
+    root = make_scene(tmp_path / "s", poses=[np.eye(4), rounded, np.eye(4)], num_frames=3)
+    assert len(open_scene(root)) == 3
+    checked_pose(rounded, "frame-000001")
+    with pytest.raises(UserError, match="frame-000001: T_world_camera's rotation is not a rotation"):
+        checked_pose(skewed, "frame-000001")
+    root = make_scene(tmp_path / "t", poses=[np.eye(4), skewed, np.eye(4)], num_frames=3)
+    with pytest.raises(DataError, match=r"frame-000001\.txt: not a rigid transform"):
+        open_scene(root)
+
+
 def test_a_principal_point_outside_the_image_is_refused(tmp_path):
     root = make_scene(tmp_path / "s", num_frames=2)
     K = np.eye(4)

@@ -32,7 +32,7 @@ import numpy as np
 
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
-from fmfusion_jax.types import CameraIntrinsics, RGBDFrame
+from fmfusion_jax.types import ROTATION_TOLERANCE, CameraIntrinsics, RGBDFrame, rotation_error
 
 if TYPE_CHECKING:
     from fmfusion_jax.config import DatasetConfig
@@ -40,9 +40,6 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 LAYOUTS = ("scannet", "scenenn")
-
-#: How far a pose's rotation may be from orthonormal (max |R^T R - I|) before the file is called corrupt.
-_ROTATION_TOLERANCE = 1e-2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,8 +126,8 @@ def read_pose(path: Path) -> np.ndarray | None:
     pose = values.reshape(4, 4)
     if np.all(np.isfinite(pose)):
         rotation = pose[:3, :3]
-        error = np.abs(rotation.T @ rotation - np.eye(3)).max()
-        if error > _ROTATION_TOLERANCE or not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6):
+        error = rotation_error(pose)
+        if error > ROTATION_TOLERANCE or not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6):
             raise DataError(f"{path}: not a rigid transform (|R^T R - I| = {error:.3g}, last row {pose[3]})")
         if np.linalg.det(rotation) < 0:
             raise DataError(f"{path}: the rotation is a reflection (det R = {np.linalg.det(rotation):.3g}), not a camera pose")
