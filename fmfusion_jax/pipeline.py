@@ -346,13 +346,14 @@ class MapBuilder:
         *,
         timer: StageTimer | None = None,
         fuse_detections: Callable[..., Any] = step.fuse_detections,
+        one_call_per_frame: bool | None = None,
     ):
         """`state`: start from this map (e.g. `map_file.load_map`) instead of an empty one; it must have
         been made with the same `map_config`. Its buffers are donated to the first step.
 
         Hooks: `timer` times each step (default: a `StageTimer`); `fuse_detections` is the detection-frame
         step, with the signature of `step.fuse_detections` (`fmfusion_jax.bench` passes its stage-by-stage
-        twin)."""
+        twin). `one_call_per_frame`: see `one_call_per_frame` (None: off the CPU)."""
         self.config = config
         self.map_config = map_config
         self.fusion_config = build_fusion_config(config)
@@ -363,6 +364,11 @@ class MapBuilder:
         self.state = init_map_state(map_config) if state is None else state
         self.timer = StageTimer() if timer is None else timer
         self.fuse_detections = fuse_detections
+        #: Whether a detection frame the merge is due after is one call (`step.fuse_and_refine`) where the stages are
+        #: not timed and the fusion step is not replaced: the same map. Off the CPU by default: there each call costs
+        #: the stepping thread ~1 ms (a CUDA graph updated and launched); on a CPU two calls cost no more and compile
+        #: sooner (the merge step alone is compiled for `finalize` anyway).
+        self.one_call_per_frame = jax.default_backend() != "cpu" if one_call_per_frame is None else one_call_per_frame
         self.monitor = CapacityMonitor()
         self.frames_integrated = 0
         self.detection_frames = 0
@@ -394,8 +400,8 @@ class MapBuilder:
         The steps are dispatched without waiting for the device: the frame's statistics (counters, log line)
         are read at the next call, after it dispatched its own steps (or at `flush`), so the caller may read and
         decode the next frame while the device works, and the device has the next steps queued when it finishes;
-        the merge and geometry-fusion schedules count detection frames on the host. Unless the stages are timed, a
-        detection frame the merge is due after is one call (`step.fuse_and_refine`).
+        the merge and geometry-fusion schedules count detection frames on the host. Off the CPU, unless the stages are
+        timed, a detection frame the merge is due after is one call (`step.fuse_and_refine`).
         """
         adapter = self.adapter
         start, recorded_before = time.perf_counter(), self.timer.recorded_ms
@@ -478,9 +484,7 @@ class MapBuilder:
 
     @property
     def _one_call_per_frame(self) -> bool:
-        """Whether a detection frame the merge is due after is one call (`step.fuse_and_refine`): unless its stages
-        are timed apart or the fusion step is replaced (the benchmark's hooks). The same map either way."""
-        return not self.timer.enabled and self.fuse_detections is step.fuse_detections
+        return self.one_call_per_frame and not self.timer.enabled and self.fuse_detections is step.fuse_detections
 
     @property
     def adapter(self) -> HostAdapter:

@@ -146,11 +146,13 @@ def test_no_recompilation_after_the_first_frames(room_frames):
 
 
 def test_one_call_per_detection_frame_makes_the_same_map(room_frames, monkeypatch):
-    # untimed, a detection frame the merge is due after is one executable (fuse_and_refine); timed, its two steps
+    # untimed, a detection frame the merge is due after is one executable (fuse_and_refine; by default off the CPU);
+    # timed, its two steps
     room, frames = room_frames
     config = small_config()
-    timed = MapBuilder(config, build(config, room).map_config, timer=StageTimer(enabled=True))
-    untimed = MapBuilder(config, timed.map_config, timer=StageTimer(enabled=False))
+    timed = MapBuilder(config, build(config, room).map_config, timer=StageTimer(enabled=True), one_call_per_frame=True)
+    untimed = MapBuilder(config, timed.map_config, timer=StageTimer(enabled=False), one_call_per_frame=True)
+    assert MapBuilder(config, timed.map_config).one_call_per_frame == (jax.default_backend() != "cpu")
     calls = []
     one_call = step.fuse_and_refine
     monkeypatch.setattr(step, "fuse_and_refine", lambda *args: calls.append(1) or one_call(*args))

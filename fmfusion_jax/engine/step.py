@@ -5,7 +5,8 @@ The Python loop (`fmfusion_jax.pipeline`) calls, per frame:
 - `integrate_frame`: global TSDF (every frame);
 - `fuse_detections`: TSDF + association + instance integration + label fusion (detection frames);
 - `refine`: removal of repeatedly missed instances and the online merge (on its schedule);
-- `fuse_and_refine`: `fuse_detections` then `refine`, one executable (a detection frame the merge is due after);
+- `fuse_and_refine`: `fuse_detections` then `refine`, one executable (off the CPU, a detection frame the merge is
+  due after);
 - `fuse_geometry`: instance-geometry fusion against the global surface (on its schedule);
 - `finalize`: before export, geometry fusion and the post-processing 3D-IoU merge.
 
