@@ -399,3 +399,20 @@ def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_pa
     assert lines[0] == "## Profile: the last 2 frames as run (`--profile`)"
     assert "| /host:CPU / worker\\|1 | 0.10 | 0.5 | `fusion` 0.10 (0.5) |" in lines
     assert profile_lines(None) == [] and "No profile: why" in profile_lines({"frames": 2, "error": "why"})[2]
+
+
+def test_the_as_run_passes_alone_report_each_pass(tmp_path, capsys):
+    """`python -m fmfusion_jax.bench.as_run`: the bench's as-run pass, repeated, one line per pass; bad input is a
+    message and exit status 2, not a traceback."""
+    from fmfusion_jax.bench import as_run
+    from fmfusion_jax.bench.scenes import prepare_generated_scene
+
+    scene = prepare_generated_scene(tmp_path / "cache", 2, 6, 160, 120, 0, False, ())
+    rows = as_run.as_run_passes(scene, passes=2)
+    assert [row["pass"] for row in rows] == [0, 1]
+    assert all(row["frames"] > 0 and 0 < row["median_ms"] <= row["p90_ms"] for row in rows)
+    assert [json.loads(line)["pass"] for line in capsys.readouterr().out.splitlines()] == [0, 1]
+    assert as_run.main(["--scene", str(tmp_path / "missing"), "--cache", str(tmp_path / "c2"), "--passes", "1"]) == 2
+    assert "scene folder not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        as_run.main(["--scene", str(tmp_path), "--passes", "0"])
