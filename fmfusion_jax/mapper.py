@@ -246,9 +246,9 @@ def _extent_parameters(map_config: MapConfig) -> tuple:
 @dataclasses.dataclass(frozen=True)
 class PreparedFrame:
     """A frame (and its detections) with the host work that needs only the config done ahead (`Mapper.prepare`):
-    its `frame_block_extent`, which the growth check needs before the frame's step, and the detections packed.
-    `fmfusion run` prepares the next frames in its reader threads, so that this NumPy work overlaps the fusion of
-    the frame before."""
+    its `frame_block_extent`, which the growth check needs before the frame's step, the detections packed, and they
+    and the frame's arrays sent to the device. `fmfusion run` prepares the next frames in its reader threads, so that
+    this work overlaps the fusion of the frame before."""
 
     frame: RGBDFrame
     block_extent: tuple[int, np.ndarray, np.ndarray]
@@ -424,8 +424,9 @@ class Mapper:
 
     def prepare(self, frame: RGBDFrame, detections: FrameDetections | None = None) -> PreparedFrame:
         """`frame` and its `detections` with the host work that needs only the config done (the frame's block
-        extent for the growth check, the detections packed), for `integrate`, which still applies the detection
-        schedule. Reads nothing of the map, so another thread may call it while frames are integrated."""
+        extent for the growth check, the detections packed, they and the frame's arrays sent to the device), for
+        `integrate`, which still applies the detection schedule. Reads nothing of the map, so another thread may
+        call it while frames are integrated. A non-finite or non-rigid pose is a UserError naming the frame."""
         if not isinstance(frame, RGBDFrame):
             raise UserError(
                 f"prepare: expected an RGBDFrame (fmfusion_jax.mapper.as_frame makes one of arrays), got {type(frame).__name__}"
