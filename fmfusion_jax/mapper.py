@@ -51,7 +51,6 @@ from fmfusion_jax.pipeline import (
     StageTimer,
     build_map_config,
     extract_map_instances,
-    frame_inputs,
 )
 from fmfusion_jax.types import ROTATION_TOLERANCE, CameraIntrinsics, FrameDetections, RGBDFrame, rotation_error
 
@@ -257,7 +256,7 @@ class PreparedFrame:
     detections: FrameDetections | None = None
     #: `detections` packed (`HostAdapter.detections`) at the config's pixel stride (None without detections)
     batch: DetectionBatch | None = None
-    #: the frame as engine arrays (`pipeline.frame_inputs`), put on the device with `batch` (None: made at `integrate`)
+    #: the frame as engine arrays (`HostAdapter.frame`), put on the device with `batch` (None: made at `integrate`)
     inputs: step.FrameInputs | None = None
 
 
@@ -433,11 +432,10 @@ class Mapper:
             )
         checked_pose(frame.T_world_camera, frame.name)
         layout = self._layout(*frame.depth.shape)
-        batch = None
-        if detections is not None:
-            batch = HostAdapter.for_map(self.config, layout, self.label_sets).detections(detections)
+        adapter = HostAdapter.for_map(self.config, layout, self.label_sets)
+        batch = None if detections is None else adapter.detections(detections)
         # sent to the device here, off the thread that calls the steps (on a GPU that thread bounds the frame)
-        inputs, batch = jax.device_put((frame_inputs(frame, layout), batch))
+        inputs, batch = jax.device_put((adapter.frame(frame), batch))
         return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout), detections, batch, inputs)
 
     def detection_due(self, T_world_camera) -> bool:
