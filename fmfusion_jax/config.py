@@ -93,6 +93,16 @@ class DetectionConfig(_Section):
     depth_percentiles: tuple[Float, Float] = knob(
         (0.1, 0.9), "a mask's depth outside these quantiles is dropped (mask border bleed)", "engine"
     )
+    floor_up_axis: Literal["+z", "-z", "+y", "-y", "+x", "-x", "off"] = knob(
+        "+z",
+        "the world's up axis (ScanNet, SceneNN: +z): mask pixels on the floor are not the object's, and a "
+        "detection mostly on the floor is dropped (off: no floor filter)",
+        "engine",
+    )
+    floor_band: Float = knob(0.05, "m above the floor that still counts as floor (floor filter)", "engine", gt=0)
+    floor_max_share: Float = knob(
+        0.5, "a detection with more of its mask on the floor is dropped whole (floor filter)", "engine", ge=0, le=1
+    )
 
     @model_validator(mode="after")
     def _check(self) -> "DetectionConfig":

@@ -82,7 +82,28 @@ def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
         reunite_min_frames=config.refinement.reunite_min_frames,
         separate_min_frames=config.refinement.separate_min_frames,
         geometry_min_weight=config.refinement.geometry_min_weight,
+        floor_up=UP_AXES[config.detections.floor_up_axis],
+        floor_class=floor_class_index(load_label_sets()),
+        floor_band=config.detections.floor_band,
+        floor_max_share=config.detections.floor_max_share,
     )
+
+
+def floor_class_index(label_sets: LabelSets) -> int:
+    """The closed class whose detections keep their floor pixels (-1: the label sets have no floor)."""
+    return label_sets.class_names.index("floor") if "floor" in label_sets.class_names else -1
+
+
+#: `detections.floor_up_axis` as the engine's unit vector (None: the floor filter is off).
+UP_AXES: dict[str, tuple[float, float, float] | None] = {
+    "+x": (1.0, 0.0, 0.0),
+    "-x": (-1.0, 0.0, 0.0),
+    "+y": (0.0, 1.0, 0.0),
+    "-y": (0.0, -1.0, 0.0),
+    "+z": (0.0, 0.0, 1.0),
+    "-z": (0.0, 0.0, -1.0),
+    "off": None,
+}
 
 
 def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:

@@ -46,7 +46,10 @@ def staged_fuse_detections(timer: StageTimer):
         fusion: step.FusionConfig,
     ) -> tuple[MapState, step.FrameStats]:
         state = timer.run("tsdf", step.integrate_frame, state, frame, config)
-        det_image = timer.run("detections", detection_image, frame, batch, config, fusion)
+        det_image, up_heights = timer.run(
+            "detections", detection_image, frame, batch, likelihood, state.blocks.up_heights, config, fusion
+        )
+        state = state._replace(blocks=state.blocks._replace(up_heights=up_heights))
         seen = timer.run("projection", project_instances, state.blocks, frame, config)
         matches = timer.run("association", associate, det_image, seen, batch.valid, state.instances.valid, config, fusion)
         table, update = timer.run(

@@ -75,6 +75,7 @@ def grow_state(state: MapState, old: MapConfig, new: MapConfig) -> MapState:
         instance_weight=pool("instance_weight"),
         instance_bits=pool("instance_bits"),
         geometry_stale=pool("geometry_stale"),
+        up_heights=blocks.up_heights,
         cell_owner=pool("cell_owner"),
         dropped_blocks=blocks.dropped_blocks,
         out_of_bounds=blocks.out_of_bounds,

@@ -37,6 +37,7 @@ UNSAVED_FILL = {"blocks.cell_owner": -1}
 #: not valid (the next merge step counts it), and every block stale (the next geometry fusion visits all).
 MISSING_FILL = {
     "blocks.geometry_stale": True,
+    "blocks.up_heights": 0,
     "instances.census_counts": 0,
     "instances.census_overlap": 0,
     "instances.census_overfull": 0,

@@ -34,6 +34,8 @@ from fmfusion_jax.engine.config import MAX_INSTANCE_CAPACITY, MapConfig
 INSTANCE_ID_DTYPE = jnp.int16
 assert MAX_INSTANCE_CAPACITY <= np.iinfo(np.int16).max
 
+#: Bins of `VoxelBlocks.up_heights` (2 cm each; `engine.support` reads and writes them).
+UP_HEIGHT_BINS = 2048
 #: Bits per block of `VoxelBlocks.instance_bits` (a Bloom filter of the ids the block holds).
 INSTANCE_BITS = 128
 
@@ -70,6 +72,9 @@ class VoxelBlocks(NamedTuple):
     # bool[B]: the block's TSDF changed, or one of its voxels took a new instance id, since the last geometry
     # fusion (which visits only these blocks: elsewhere every id it holds was supported then and still is)
     geometry_stale: jax.Array
+    # int32[support.HEIGHT_BINS]: up-facing surface samples per height along the world's up axis (the floor
+    # filter's histogram, `engine.support`; added to on detection frames while the filter is on)
+    up_heights: jax.Array
     # int32[B, V / 8]: scratch of the steps that keep the merge's census (one entry per 2x2x2 cell, -1 between
     # steps; see `occupied_cells.census_after_votes`); not saved in map files
     cell_owner: jax.Array
@@ -164,6 +169,7 @@ def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
         origin_block=jnp.asarray(config.origin_block, jnp.int32),
         instance_bits=jnp.zeros((b, INSTANCE_BITS), bool),
         geometry_stale=jnp.zeros((b,), bool),
+        up_heights=jnp.zeros((UP_HEIGHT_BINS,), jnp.int32),
         cell_owner=jnp.full((b, v // 8), -1, jnp.int32),
     )
 

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from fmfusion_jax.engine import _geometry, association, detections, label_fusion, maintenance, merge, occupied_cells
+from fmfusion_jax.engine import _geometry, association, detections, label_fusion, maintenance, merge, occupied_cells, support
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.instance_volume import integrate_instances_unjitted, pixel_cells, pixel_instance_slots, pixel_voxels
@@ -41,7 +41,7 @@ from fmfusion_jax.engine.tsdf import integrate_tsdf
 #: Fields of `FusionConfig` that choose code paths (static: a change compiles another step); every other
 #: field is a threshold, traced (a change reuses the compiled step, and the thresholds can be differentiated
 #: or swept without recompiling).
-FUSION_MODES = ("association_metric", "label_mode", "contrary_vote_weight", "separate_min_frames")
+FUSION_MODES = ("association_metric", "label_mode", "contrary_vote_weight", "separate_min_frames", "floor_up", "floor_class")
 
 
 @functools.partial(
@@ -59,6 +59,8 @@ FUSION_MODES = ("association_metric", "label_mode", "contrary_vote_weight", "sep
         "post_merge_similarity",
         "geometry_min_weight",
         "reunite_min_frames",
+        "floor_band",
+        "floor_max_share",
     ],
     meta_fields=list(FUSION_MODES),
 )
@@ -94,6 +96,13 @@ class FusionConfig:
     # many frames and at least as often as one detection covered both (0: off, the paper's tests alone).
     # Static: 0 leaves the separation counts out of the compiled steps.
     separate_min_frames: int = 0
+    # The floor filter (`engine.support`): the world's up axis (a unit vector; None: off), the pixels of a
+    # detection on the floor (up-facing, within `floor_band` m above it) are not the object's, and a detection
+    # with more than `floor_max_share` of its pixels there is dropped, unless its labels favour `floor_class`.
+    floor_up: tuple[float, float, float] | None = None
+    floor_class: int = -1
+    floor_band: float = 0.05
+    floor_max_share: float = 0.5
 
 
 class FrameInputs(NamedTuple):
@@ -147,7 +156,8 @@ def fuse_detections(
       likelihood: float32[O, C] label likelihood (a traced argument, so it can be differentiated or swapped).
     """
     state = integrate_frame(state, frame, config)
-    det_image = detection_image(frame, batch, config, fusion)
+    det_image, up_heights = detection_image(frame, batch, likelihood, state.blocks.up_heights, config, fusion)
+    state = state._replace(blocks=state.blocks._replace(up_heights=up_heights))
     seen = project_instances(state.blocks, frame, config)
     matches = associate(det_image, seen, batch.valid, state.instances.valid, config, fusion)
     table, update = fuse_table(state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config, fusion)
@@ -165,15 +175,36 @@ def fuse_detections(
 FILTERED_PIXEL = -2
 
 
-def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig, fusion: FusionConfig) -> jax.Array:
-    """int32[Hs, Ws]: the detection each subsampled pixel belongs to (-1 none), each mask's depth outliers
-    removed (mask borders that bleed onto the background would otherwise smear instances along the rays);
-    removed pixels are `FILTERED_PIXEL`."""
+def detection_image(
+    frame: FrameInputs,
+    batch: DetectionBatch,
+    likelihood: jax.Array,
+    up_heights: jax.Array,
+    config: MapConfig,
+    fusion: FusionConfig,
+) -> tuple[jax.Array, jax.Array]:
+    """int32[Hs, Ws]: the detection each subsampled pixel belongs to (-1 none), and the floor histogram
+    `up_heights` with this frame's samples.
+
+    Removed from the masks, in this order (removed pixels are `FILTERED_PIXEL`): with the floor filter on
+    (`fusion.floor_up`), the pixels on the floor, or every pixel of a detection that lies mostly on it (a box
+    around a bed whose mask is the rug in front of it), except for detections whose labels say floor
+    (`engine.support`); then each mask's depth outliers (mask borders that bleed onto the background would
+    otherwise smear instances along the rays)."""
     stride = config.pixel_stride
     image_shape = (config.image_height, config.image_width)
     raw = detections.batch_pixel_image(batch, image_shape, stride)
+    kept = raw
+    if fusion.floor_up is not None:
+        samples = support.surface_samples(frame.depth, frame.T_world_camera, frame.intrinsics, fusion.floor_up, config)
+        up_heights = support.add_heights(up_heights, samples)
+        T = jnp.asarray(frame.T_world_camera, jnp.float32)
+        camera_height = sum(T[i, 3] * fusion.floor_up[i] for i in range(3))
+        on_floor = support.floor_pixels(samples, support.floor_height(up_heights), camera_height, fusion.floor_band)
+        says_floor = jnp.argmax(jnp.asarray(batch.label_scores) @ likelihood, axis=1) == fusion.floor_class
+        kept = support.filter_floor_pixels(raw, on_floor, says_floor, fusion.floor_max_share, FILTERED_PIXEL)
     kept = detections.filter_detection_depth(
-        raw,
+        kept,
         frame.depth[::stride, ::stride],
         batch.valid.shape[0],
         fusion.depth_low,
@@ -181,7 +212,7 @@ def detection_image(frame: FrameInputs, batch: DetectionBatch, config: MapConfig
         depth_max=config.depth_max,
     )
     # computed once: association, the pixel instance image and the votes all read it
-    return _geometry.materialize(jnp.where((raw >= 0) & (kept < 0), FILTERED_PIXEL, kept))
+    return _geometry.materialize(jnp.where((raw >= 0) & (kept < 0), FILTERED_PIXEL, kept)), up_heights
 
 
 def project_instances(blocks: VoxelBlocks, frame: FrameInputs, config: MapConfig) -> list[jax.Array]:
