@@ -19,6 +19,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from fmfusion_jax.engine._geometry import subsampled_rays, valid_depth
 from fmfusion_jax.engine.config import MapConfig
@@ -126,7 +127,7 @@ def floor_height(up_heights: jax.Array) -> Floor:
     return Floor(height, jnp.any(strong))
 
 
-def floor_pixels(samples: SurfaceSamples, floor: Floor, camera_height: jax.Array, band: jax.Array) -> jax.Array:
+def floor_pixels(samples: SurfaceSamples, floor: Floor, camera_height: ArrayLike, band: ArrayLike) -> jax.Array:
     """bool `(Hs, Ws)`: up-facing points within `band` metres above the floor (none when no floor is found, or
     when the found floor is not well below the camera)."""
     usable = floor.found & (camera_height - floor.height >= FLOOR_MIN_DEPTH_BELOW_CAMERA)
@@ -137,7 +138,7 @@ def filter_floor_pixels(
     det_image: jax.Array,
     on_floor: jax.Array,
     floor_detection: jax.Array,
-    max_share: jax.Array,
+    max_share: ArrayLike,
     filtered_value: int,
 ) -> jax.Array:
     """A detection image without its floor pixels.
