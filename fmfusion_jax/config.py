@@ -215,6 +215,39 @@ class ExportConfig(_Section):
     )
 
 
+class FrontEndConfig(_Section):
+    """Settings of the models a run detects with (`fmfusion run --models`, `fmfusion detect`): null keeps what the
+    models folder's models.yaml (or the folder's layout) says; see docs/detectors.md."""
+
+    detector_score_threshold: Float | None = knob(
+        None, "COCO detector: boxes scoring below this are dropped (null: 0.35 NanoDet-g, 0.4 SSD)", ge=0, le=1
+    )
+    proposals: Bool | None = knob(
+        None,
+        "class-agnostic SAM proposals named by the classifier, for objects a COCO detector cannot name (null: as the folder)",
+    )
+    proposal_grid: tuple[Int, Int] | None = knob(None, "point prompts across x down of the proposals (null: 6 x 4)")
+    classify_boxes: Bool | None = knob(
+        None, "the classifier also names each detector box; agreeing labels are added at box_label_weight (null: true)"
+    )
+    threads: Int | None = knob(None, "onnxruntime threads per model (null: 2)", ge=1)
+
+    def manifest_overrides(self) -> dict[str, Any]:
+        """The settings that are set, as `models.yaml` keys (`detectors.read_manifest`'s overrides)."""
+        overrides: dict[str, Any] = {}
+        if self.threads is not None:
+            overrides["threads"] = self.threads
+        if self.detector_score_threshold is not None:
+            overrides["detector"] = {"score_threshold": self.detector_score_threshold}
+        if self.classify_boxes is not None:
+            overrides["classifier"] = {"classify_boxes": self.classify_boxes}
+        if self.proposals is False:
+            overrides["proposals"] = None
+        elif self.proposals or self.proposal_grid is not None:
+            overrides["proposals"] = {} if self.proposal_grid is None else {"grid": list(self.proposal_grid)}
+        return overrides
+
+
 class PipelineConfig(BaseModel):
     """The whole configuration: one section per part of the system, each knob defined once (`knob`)."""
 
@@ -232,6 +265,9 @@ class PipelineConfig(BaseModel):
         default_factory=RefinementConfig, description="merging, geometry fusion and removal of instances"
     )
     export: ExportConfig = Field(default_factory=ExportConfig, description="post-processing and the benchmark export")
+    front_end: FrontEndConfig = Field(
+        default_factory=FrontEndConfig, description="the models a run detects with (--models), over the models folder's settings"
+    )
 
     def to_dict(self) -> dict[str, Any]:
         return _plain(self.model_dump())

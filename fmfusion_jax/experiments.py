@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Any
 
 from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, PreparedScene
 
 if TYPE_CHECKING:
     from fmfusion_jax.baselines.kimera import KimeraResult
@@ -53,7 +53,6 @@ if TYPE_CHECKING:
     from fmfusion_jax.io.ground_truth import SceneGroundTruth
     from fmfusion_jax.io.scene import Scene
     from fmfusion_jax.pipeline import FusionResult
-    from fmfusion_jax.simulation.scene_sets import PreparedScene
 
 log = logging.getLogger(__name__)
 
@@ -511,9 +510,11 @@ def prepare_source(
     base_config: PipelineConfig,
     progress: bool,
     report: Callable[[str], None],
+    given: Path | None = None,
 ) -> PreparedSource:
     """Makes (or finds in `cache_dir`) the scene and its simulated detections of each variant, on the
-    detection frames of `base_config`, then opens the scene and reads its ground truth."""
+    detection frames of `base_config`, then opens the scene and reads its ground truth. `given`: a folder of
+    (real) detections every variant reads instead."""
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
     from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.simulation.scene_sets import prepare_generated, prepare_real
@@ -528,6 +529,11 @@ def prepare_source(
             f"preparing {source.name}: {'scene and ' if source.kind == 'generated' else ''}{variant} detections "
             f"(cached in {cache_dir})"
         )
+        if given is not None:
+            assert source.path is not None  # detections are given for real scenes only
+            detections[variant] = PreparedScene(source.name, source.path, given)
+            noise[variant] = {"detections": str(given), "simulated": False}
+            continue
         if source.kind == "real":
             assert source.path is not None  # a real scene has its folder
             detections[variant] = prepare_real(source.path, cache_dir, variant_noise, every, variant, progress)
@@ -542,6 +548,16 @@ def prepare_source(
     return PreparedSource(source, detections, noise, scene, gt, round(time.perf_counter() - start, 2))
 
 
+def given_detections(source: SceneSource, pattern: str | None) -> Path | None:
+    """The detection folder `pattern` names for a real scene (`{scene}`: its name), checked; None otherwise."""
+    if pattern is None or source.kind != "real":
+        return None
+    folder = Path(pattern.replace("{scene}", source.name))
+    if not folder.is_dir():
+        raise UserError(f"--detections {pattern}: no folder {folder} for scene {source.name}")
+    return folder
+
+
 def run_experiment(
     out_dir: str | Path = DEFAULT_OUT,
     real_scenes: Sequence[str | Path] = (),
@@ -553,6 +569,7 @@ def run_experiment(
     real_max_frames: int | None = None,
     progress: bool = True,
     report: Callable[[str], None] | None = None,
+    real_detections: str | None = None,
 ) -> ExperimentResult:
     """Runs every method on every scene, scores them, and writes experiment.md / experiment.json.
 
@@ -567,6 +584,8 @@ def run_experiment(
       real_max_frames: use only the first frames of real scenes (smoke tests).
       progress: progress bars and one line per run (`report`, default stderr).
       report: receives the progress lines (default: stderr when `progress`, else the log).
+      real_detections: detection folder of the real scenes (`{scene}` in it is each scene's name) read by every
+        method instead of simulated detections; the generated rooms keep theirs.
     """
     from fmfusion_jax.runner import prepare_output_dir
 
@@ -587,7 +606,9 @@ def run_experiment(
     configs: dict[str, dict[str, dict[str, Any]]] = {}
     total_runs = len(sources) * len(chosen)
     for source in sources:
-        ready = prepare_source(source, variants, cache_dir, seed, source.config(overrides, real_max_frames), progress, report)
+        given = given_detections(source, real_detections)
+        base = source.config(overrides, real_max_frames)
+        ready = prepare_source(source, variants, cache_dir, seed, base, progress, report, given)
         gt_ids[source.name] = ready.gt.benchmark_ids()
         timings[source.name] = {"prepare": ready.seconds}
         runs[source.name], configs[source.name] = {}, {}
@@ -770,12 +791,21 @@ def experiment_markdown(
             else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
             f"{s['spec']['width']}x{s['spec']['height']}"
         )
+        given = next((n["detections"] for n in s["noise"].values() if n.get("simulated") is False), None)
+        if given:
+            what += f", detections read from `{given}` (every method the same files)"
         scene_lines.append(f"- `{s['name']}`: {what}, {s['frames']} frames, config {s['config']}")
+    simulated = all(n.get("simulated", True) for s in scenes for n in s["noise"].values())
+    detections = (
+        "detections simulated from each scene's ground truth"
+        if simulated
+        else "detections as listed per scene (real scenes may read given detection files; generated rooms simulate)"
+    )
     return "\n".join(
         [
             "# FM-Fusion: baseline and ablations",
             "",
-            f"Scenes ({len(scenes)}); detections simulated from each scene's ground truth (noise preset `default`, "
+            f"Scenes ({len(scenes)}); {detections} (noise preset `default`, "
             f"seed {seed}; ablation B: the same without prompt augmentation):",
             "",
             *scene_lines,

@@ -44,6 +44,7 @@ from fmfusion_jax.map_file import read_map_file, write_map_file
 from fmfusion_jax.pipeline import (
     CapacityMonitor,
     DetectionSchedule,
+    DetectionSource,
     FusionResult,
     HostAdapter,
     MapBuilder,
@@ -372,7 +373,7 @@ class Mapper:
     def integrate(
         self,
         frame: RGBDFrame | PreparedFrame | None = None,
-        detections: FrameDetections | None = None,
+        detections: FrameDetections | DetectionSource | None = None,
         *,
         depth=None,
         color=None,
@@ -386,7 +387,9 @@ class Mapper:
         `frame` is an `RGBDFrame` (or a `PreparedFrame` of one and its detections, see `prepare`), or give the
         arrays: `depth` `(H, W)` float metres, `color` `(H, W, 3)` uint8 RGB (optional), `T_world_camera`
         `(4, 4)` and `intrinsics` (default: the Mapper's). Detections of a frame that is not due are ignored
-        (ask `detection_due` first to skip running the detectors).
+        (ask `detection_due` first to skip running the detectors). `detections` may also be a detection source
+        (`pipeline.DetectionSource`: a `DetectionFolder`, `sources.ModelSource`, any function of the frame), which
+        is called on due frames only.
         """
         if self._result is not None:
             raise UserError("this map is finalized: integrate frames before finalize(), or start a new Mapper")
@@ -410,6 +413,14 @@ class Mapper:
                 index=self.frames_integrated,
                 name=name,
             )
+        if detections is not None and not isinstance(detections, FrameDetections):
+            if not callable(detections):
+                raise UserError(
+                    f"{frame.name}: detections must be FrameDetections or a detection source (a function of the "
+                    f"frame), got {type(detections).__name__}"
+                )
+            source = detections
+            detections = source(frame) if self.detection_due(frame.T_world_camera) else None
         due = detections is not None and self.detection_due(frame.T_world_camera)
         self._fit_map_to(frame, due, prepared)
         assert self._builder is not None

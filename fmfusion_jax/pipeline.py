@@ -17,7 +17,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from statistics import median
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -35,11 +35,18 @@ from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 log = logging.getLogger(__name__)
 
-#: Gives the detections of a frame, or None when the frame has none (not a detection frame, no file). A source
-#: whose attribute `reads_ahead` is true (a folder of detection files: no state, cheap to call for a frame that
-#: turns out not due) is called by `fmfusion run`'s reader thread for the next frames; others (the detectors,
-#: whose prompt window counts the detection frames) only on due frames, in order.
-DetectionSource = Callable[[RGBDFrame], "FrameDetections | None"]
+
+class DetectionSource(Protocol):
+    """Gives the detections of a frame, or None when the frame has none (not a detection frame, no file).
+
+    A folder of detection files (`io.detections.DetectionFolder`), models run online (`sources.ModelSource`) or
+    any function of a frame. A source whose attribute `reads_ahead` is true (a folder of files: no state, cheap
+    to call for a frame that turns out not due) is called by `fmfusion run`'s reader threads for the next frames;
+    others (the models, whose prompt window counts the detection frames) only on due frames, in order.
+    `sources.open_detection_source` chooses one from a run's arguments.
+    """
+
+    def __call__(self, frame: RGBDFrame, /) -> FrameDetections | None: ...
 
 
 def build_map_config(config: PipelineConfig, bounds_min, bounds_max, height: int, width: int) -> MapConfig:
@@ -579,6 +586,18 @@ def camera_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> tuple[float, 
     a, b = np.asarray(T_world_a, np.float64), np.asarray(T_world_b, np.float64)
     cos = min(1.0, max(-1.0, (float(np.sum(a[:3, :3] * b[:3, :3])) - 1.0) / 2.0))
     return math.dist(a[:3, 3], b[:3, 3]), math.degrees(math.acos(cos))
+
+
+def scheduled_positions(poses: np.ndarray, config: PipelineConfig) -> list[int]:
+    """Positions of the frames (of `poses`, `(N, 4, 4)` T_world_camera in reading order) whose detections the
+    detection schedule fuses when every frame has detections: the frames worth running the models on."""
+    schedule, positions = DetectionSchedule(config), []
+    for position, pose in enumerate(np.asarray(poses, np.float64)):
+        if schedule.due(position, pose):
+            schedule.fused(pose)
+            positions.append(position)
+        schedule.advance(pose)
+    return positions
 
 
 class DetectionSchedule:

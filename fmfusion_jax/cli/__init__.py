@@ -36,6 +36,7 @@ SUBCOMMANDS = (
     "synth",
     "simulate",
     "detect",
+    "models",
     "run",
     "batch",
     "query",

@@ -1,23 +1,30 @@
-"""`fmfusion detect SCENE --models DIR --out DIR`: run RAM + GroundingDINO + SAM on a scene's frames."""
+"""`fmfusion detect SCENE --models DIR --out DIR`: run the detection models on a scene's frames, into files."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
 from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
 
+#: What `fmfusion detect` records in its output folder: the run's settings, so that a rerun continues (skipping
+#: the frames done) only when it would make the same detections.
+RECORD_FILE = "detect.json"
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "detect",
-        help="make detection files with the foundation models (ONNX)",
-        description="Runs the foundation-model front end (RAM tagger -> prompt augmentation -> GroundingDINO -> "
-        "SAM, as ONNX models) on every N-th frame of a scene and writes one detection pair per frame "
-        "(<frame>_label.json + <frame>_mask.png/.npy, the authors' format) for `fmfusion run "
-        "--detections`. The models folder layout and how to export the models: docs/detectors.md.",
+        help="make detection files with the detection models (ONNX)",
+        description="Runs a models folder's front end (a COCO detector + SAM + classifier, or RAM -> GroundingDINO "
+        "-> SAM; see docs/detectors.md) on the frames of a scene that `fmfusion run` fuses (with the same "
+        "--config and --set: by default the frames the camera-motion schedule picks; all of them on a sequence "
+        "already subsampled in time) and writes one detection pair per frame (<frame>_label.json + "
+        "<frame>_mask.png/.npy, the authors' format) for `fmfusion run --detections`. Rerun with the same "
+        "arguments, it continues where it stopped (frames already written are kept).",
         formatter_class=HelpFormatter,
     )
     parser.add_argument("scene", type=Path, help="scene folder (ScanNet or SceneNN layout)")
@@ -26,7 +33,8 @@ def register(subparsers) -> None:
         type=Path,
         required=True,
         metavar="DIR",
-        help="folder with ram.onnx, ram_tag_list.txt, groundingdino.onnx, vocab.txt, sam_encoder.onnx, sam_decoder.onnx",
+        help="models folder: a models.yaml naming each model's file, the shared layout (detector/, sam/, classifier/) "
+        "or ram.onnx, groundingdino.onnx, sam_encoder.onnx, sam_decoder.onnx (docs/detectors.md)",
     )
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="detection folder to write (created)")
     parser.add_argument("--layout", default="auto", choices=("auto", "scannet", "scenenn"), help="scene layout")
@@ -34,10 +42,9 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--every",
         type=int,
-        default=10,
+        default=None,
         metavar="N",
-        help="detect on every N-th frame read (0, N, 2N, ...: the frames `fmfusion run` fuses with "
-        "detections.every=N and the same stride)",
+        help="detect on every N-th frame read instead of the frames the detection schedule fuses",
     )
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="read at most N frames")
     parser.add_argument(
@@ -49,22 +56,34 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--mask-format", default="png", choices=("png", "npy"), help="png (overlapping masks fall back to npy) or npy"
     )
-    parser.add_argument(
+    grounded = parser.add_argument_group("RAM -> GroundingDINO -> SAM folders only")
+    grounded.add_argument(
         "--box-threshold", type=float, default=0.35, metavar="T", help="GroundingDINO: a box needs a token score above this"
     )
-    parser.add_argument(
+    grounded.add_argument(
         "--text-threshold",
         type=float,
         default=0.25,
         metavar="T",
         help="GroundingDINO: a label needs all its token scores above this",
     )
-    parser.add_argument(
+    grounded.add_argument(
         "--prompt-window",
         type=int,
         default=5,
         metavar="N",
         help="detection frames whose labels augment the prompt (0: no augmentation)",
+    )
+    parser.add_argument(
+        "--config", default="scannet", help="config of the `fmfusion run` to detect for (its schedule and front_end section)"
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set front_end.proposals=false (repeatable)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
@@ -73,32 +92,93 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from detectors import DetectorConfig, FoundationModels
-    from fmfusion_jax.io.detections import write_frame_detections
+    from detectors import DetectorConfig, FoundationModels, FrontEnd, load_front_end, read_manifest
+    from fmfusion_jax.config import load_config
+    from fmfusion_jax.io.detections import label_path, write_frame_detections
     from fmfusion_jax.io.scene import open_scene
+    from fmfusion_jax.pipeline import scheduled_positions
 
-    if args.every < 1:
+    if args.every is not None and args.every < 1:
         raise UserError(f"--every must be a positive integer, got {args.every}")
+    config = load_config(args.config, args.overrides)
     scene = open_scene(args.scene, layout=args.layout, stride=args.stride, max_frames=args.max_frames)
-    config = DetectorConfig(
-        box_threshold=args.box_threshold, text_threshold=args.text_threshold, prompt_window=args.prompt_window
-    )
-    models = FoundationModels.from_folder(args.models, providers=args.providers, config=config)
-    positions = list(range(0, len(scene), args.every))
+    overrides = config.front_end.manifest_overrides()
+    manifest = read_manifest(args.models, overrides)
+    models: FrontEnd
+    if manifest.front_end == "grounded_sam":
+        detector_config = DetectorConfig(
+            box_threshold=args.box_threshold, text_threshold=args.text_threshold, prompt_window=args.prompt_window
+        )
+        models = FoundationModels.from_folder(args.models, providers=args.providers, config=detector_config)
+    else:
+        models = load_front_end(args.models, providers=args.providers, overrides=overrides)
+    if args.every is not None:
+        positions, rule = list(range(0, len(scene), args.every)), f"every {args.every} of {len(scene)} read"
+    else:
+        positions = scheduled_positions(scene.poses(), config)
+        rule = f"the {len(positions)} of {len(scene)} frames the detection schedule fuses"
+    record = {
+        "scene": str(args.scene.resolve()),
+        "models": str(args.models.resolve()),
+        "front_end": manifest.front_end,
+        "settings": {"overrides": overrides, "stride": args.stride, "mask_format": args.mask_format}
+        | (
+            {"box_threshold": args.box_threshold, "text_threshold": args.text_threshold, "prompt_window": args.prompt_window}
+            if manifest.front_end == "grounded_sam"
+            else {}
+        ),
+    }
+    done = _frames_done(args.out, record, [scene.frame_names[p] for p in positions], label_path)
+    todo = [p for p in positions if scene.frame_names[p] not in done]
+    if done and manifest.front_end == "grounded_sam":
+        # the prompt window needs the frames before: a continued run starts the window afresh (noted)
+        print(f"continuing: {len(done)} frames already in {args.out}; the prompt window restarts at the first new frame")
+    elif done:
+        print(f"continuing: {len(done)} of {len(positions)} frames already in {args.out}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / RECORD_FILE).write_text(json.dumps(record, indent=1) + "\n")
     detections_total, started = 0, time.perf_counter()
-    with tqdm(positions, desc=f"detect {scene.name}", unit="frame", disable=args.no_progress) as bar:
-        for position in bar:
+    with tqdm(todo, desc=f"detect {scene.name}", unit="frame", disable=args.no_progress) as bar:
+        for count, position in enumerate(bar, start=1):
             name = scene.frame_names[position]
             detections = models.detect(scene.read_color(position), name)
             write_frame_detections(args.out, detections, mask_format=args.mask_format)
             detections_total += detections.num_detections
-            bar.set_postfix(detections=detections.num_detections)
+            per_model = " ".join(f"{stage} {1000 * s / count:.0f}" for stage, s in models.timings.items())
+            bar.set_postfix_str(f"{detections.num_detections} det; ms/frame {per_model}")
     elapsed = time.perf_counter() - started
-    frames = max(len(positions), 1)
+    frames = max(len(todo), 1)
     stages = ", ".join(f"{stage} {1000 * seconds / frames:.0f} ms" for stage, seconds in models.timings.items())
     print(
-        f"{len(positions)} frames of {scene.name} (every {args.every} of {len(scene)} read, stride {args.stride}) "
-        f"-> {detections_total} detections in {args.out}"
+        f"{len(todo)} frames of {scene.name} detected ({rule}, stride {args.stride}) -> "
+        f"{detections_total} detections in {args.out}"
     )
-    print(f"per frame: {1000 * elapsed / frames:.0f} ms ({stages}); providers {', '.join(models.providers)}")
+    if todo:
+        print(f"per frame: {1000 * elapsed / frames:.0f} ms ({stages}); providers {', '.join(models.providers)}")
     return 0
+
+
+def _frames_done(out: Path, record: dict, names: list[str], label_path) -> set[str]:
+    """The frames of `names` already written to `out` by a `fmfusion detect` with the same settings; a folder
+    written with other settings (or not by `fmfusion detect`) is refused rather than mixed or overwritten."""
+    if not out.exists():
+        return set()
+    if not out.is_dir():
+        raise UserError(f"--out {out} exists and is not a folder")
+    record_path = out / RECORD_FILE
+    if not record_path.exists():
+        if any(out.iterdir()):
+            raise UserError(
+                f"--out {out} is a folder that `fmfusion detect` did not write (no {RECORD_FILE}): choose a new folder"
+            )
+        return set()
+    try:
+        previous = json.loads(record_path.read_text())
+    except (OSError, ValueError) as error:
+        raise UserError(f"{record_path}: unreadable ({error}); choose a new --out folder") from None
+    if previous != record:
+        changed = sorted(k for k in set(previous) | set(record) if previous.get(k) != record.get(k))
+        raise UserError(
+            f"--out {out} holds detections made with other settings ({', '.join(changed)} differ): choose a new folder"
+        )
+    return {name for name in names if label_path(out, name).exists()}

@@ -47,6 +47,15 @@ def register(subparsers) -> None:
         "`--scenes` alone: none",
     )
     parser.add_argument(
+        "--detections",
+        type=str,
+        default=None,
+        metavar="DIR",
+        help="detection files of the real scenes instead of simulated ones (real detections made with `fmfusion "
+        "detect`): a folder, or a pattern with {scene} for several scenes; every method reads the same files "
+        "(ablation B too: their prompts are whatever the detector used); not with --robustness",
+    )
+    parser.add_argument(
         "--generated",
         type=int,
         default=None,
@@ -148,6 +157,8 @@ def run(args: argparse.Namespace) -> int:
         run_experiment,
     )
 
+    if args.detections is not None and args.robustness:
+        raise UserError("--detections: the robustness evaluation simulates its detections (the noise zoo)")
     if args.robustness:
         if args.seed is not None:
             raise UserError("--seed is the plain experiment's; with --robustness the zoo's seed is --noise-seed")
@@ -200,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
         overrides=args.overrides,
         real_max_frames=QUICK_REAL_FRAMES if args.quick else None,
         progress=not args.no_progress,
+        real_detections=args.detections,
     )
     print(result.text)
     return 0

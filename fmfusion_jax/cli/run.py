@@ -5,13 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
-
-if TYPE_CHECKING:
-    from fmfusion_jax.pipeline import DetectionSource
 
 
 def register(subparsers) -> None:
@@ -81,39 +77,18 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.cli.interrupt import StopRequest
     from fmfusion_jax.config import load_config
-    from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.runner import prepare_output_dir, run_and_export
+    from fmfusion_jax.sources import open_detection_source
 
     if not args.scene.is_dir():
         raise UserError(f"scene folder {args.scene} does not exist")
-    if args.detections is not None and not args.detections.is_dir():
-        raise UserError(f"detections folder {args.detections} does not exist (make one with `fmfusion simulate`)")
     if args.checkpoint_every < 0:
         raise UserError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
     config = load_config(args.config, args.overrides)
     prepare_output_dir(args.out, create=False)  # a bad --out fails now, not after the fusion
     scene = open_dataset_scene(args.scene, config.dataset)
-    source: DetectionSource
-    if args.models is not None:
-        from detectors import FoundationModels
-
-        models = FoundationModels.from_folder(args.models, providers=args.providers)
-        source = models.detect  # called on detection frames only, so the prompt window counts those
-    else:
-        folder = DetectionFolder(args.detections, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
-        if not len(folder):
-            raise UserError(
-                f"{args.detections} holds no detection files (frame-XXXXXX_label.json + mask); "
-                "make them with `fmfusion simulate` or `fmfusion detect`"
-            )
-        missing = [name for name in scene.frame_names if name not in folder]
-        if len(missing) == len(scene.frame_names):
-            raise UserError(
-                f"no detection file in {args.detections} matches a frame of {scene.name} "
-                f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})"
-            )
-        source = folder
+    source = open_detection_source(scene, detections=args.detections, models=args.models, providers=args.providers, config=config)
     observer = None
     if args.viewer or args.viewer_save:
         from fmfusion_jax.viz.live import RerunView

@@ -1,0 +1,138 @@
+"""Detection sources: one chooser for a run's detections, the Mapper calling a source on due frames only, the
+frames the schedule picks for the models, and `fmfusion detect`'s continue-or-refuse rule for its output folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fmfusion_jax.cli.detect import RECORD_FILE, _frames_done
+from fmfusion_jax.config import load_config
+from fmfusion_jax.demo import demo_config, demo_noise
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import DetectionFolder, label_path
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.mapper import Mapper, as_config
+from fmfusion_jax.pipeline import scheduled_positions
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
+from fmfusion_jax.sources import ModelSource, open_detection_source
+
+SPEC = GeneratedSceneSpec(seed=7, num_objects=3, num_frames=10, width=160, height=120)
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sources")
+    scene_dir = generated_scene(SPEC, root)
+    detections = simulated_detections(scene_dir, root / "detections", demo_noise(0, SPEC.width, SPEC.height))
+    config = demo_config(SPEC.num_frames, SPEC.width, SPEC.height)
+    return scene_dir, detections, config
+
+
+def test_one_chooser_for_files_and_clear_errors(room, tmp_path):
+    scene_dir, detections, _ = room
+    scene = open_scene(scene_dir)
+    source = open_detection_source(scene, detections=detections)
+    assert isinstance(source, DetectionFolder) and source.reads_ahead
+    with pytest.raises(UserError, match="exactly one"):
+        open_detection_source(scene)
+    with pytest.raises(UserError, match="exactly one"):
+        open_detection_source(scene, detections=detections, models=tmp_path)
+    with pytest.raises(UserError, match="does not exist"):
+        open_detection_source(scene, detections=tmp_path / "missing")
+    with pytest.raises(UserError, match="no detection files"):
+        open_detection_source(scene, detections=tmp_path)
+    other = tmp_path / "other"
+    other.mkdir()
+    for file in Path(detections).iterdir():
+        (other / file.name.replace("frame-", "image-")).write_bytes(file.read_bytes())
+    with pytest.raises(UserError, match="matches a frame"):
+        open_detection_source(scene, detections=other)
+    with pytest.raises(UserError, match="models folder|neither"):
+        open_detection_source(scene, models=tmp_path)  # an empty folder is no models folder
+
+
+def test_the_mapper_calls_a_source_on_due_frames_only(room):
+    scene_dir, detections, _ = room
+    folder = DetectionFolder(detections)
+    frames = list(open_scene(scene_dir).frames())
+    config = as_config({"base": "demo", "detections": {"schedule": "every", "every": 3}})
+    called: list[str] = []
+
+    def source(frame):
+        called.append(frame.name)
+        return folder.get(frame.name)
+
+    by_source, by_detections = Mapper(config), Mapper(config)
+    fused = [by_source.integrate(frame, source) for frame in frames]
+    for frame in frames:
+        by_detections.integrate(frame, folder.get(frame.name))
+    assert called == [f.name for f in frames[::3]]
+    assert fused == [i % 3 == 0 for i in range(len(frames))]
+    assert [i.points.tobytes() for i in by_source.instances()] == [i.points.tobytes() for i in by_detections.instances()]
+    with pytest.raises(UserError, match="detection source"):
+        Mapper(config).integrate(frames[0], {"chair": 0.9})
+
+
+def test_scheduled_positions_are_the_frames_the_mapper_fuses(room):
+    scene_dir, detections, config = room
+    scene = open_scene(scene_dir)
+    motion = load_config("scannet", ["detections.schedule=motion", "detections.sparse_motion=0"])
+    poses = scene.poses()
+    positions = scheduled_positions(poses, motion)
+    assert positions[0] == 0 and positions == sorted(set(positions))
+    mapper = Mapper(config.model_copy(update={"detections": motion.detections}))
+    folder = DetectionFolder(detections)
+    fused = [i for i, frame in enumerate(scene.frames()) if mapper.integrate(frame, folder.get(frame.name))]
+    assert fused == positions
+    # a fixed stride: every 4th
+    every = load_config("scannet", ["detections.schedule=every", "detections.every=4"])
+    assert scheduled_positions(poses, every) == list(range(0, len(poses), 4))
+
+
+def test_model_source_times_the_front_end():
+    class FrontEnd:
+        timings = {"detector": 0.0}
+
+        def detect(self, frame):
+            self.timings["detector"] += 0.002
+            return frame
+
+    source = ModelSource(FrontEnd())
+    assert not source.reads_ahead
+    assert source("a frame") == "a frame" and source("another") == "another"
+    timings = source.timings_ms()
+    assert source.frames == 2 and timings["detector"] == pytest.approx(2.0) and timings["front_end"] >= 0
+
+
+def test_detect_continues_its_own_folder_and_refuses_others(tmp_path):
+    record = {"scene": "s", "models": "m", "front_end": "closed_set", "settings": {"stride": 1}}
+    out = tmp_path / "det"
+    assert _frames_done(out, record, ["frame-000000"], label_path) == set()
+    out.mkdir()
+    (out / "thesis.tex").write_text("mine")
+    with pytest.raises(UserError, match="did not write"):
+        _frames_done(out, record, ["frame-000000"], label_path)
+    (out / "thesis.tex").unlink()
+    (out / RECORD_FILE).write_text(json.dumps(record))
+    label_path(out, "frame-000000").write_text("{}")
+    assert _frames_done(out, record, ["frame-000000", "frame-000001"], label_path) == {"frame-000000"}
+    changed = {**record, "settings": {"stride": 2}}
+    with pytest.raises(UserError, match="other settings"):
+        _frames_done(out, changed, ["frame-000000"], label_path)
+    assert np.array_equal(np.asarray(sorted(p.name for p in out.iterdir())), [RECORD_FILE, "frame-000000_label.json"])
+
+
+def test_front_end_settings_become_manifest_overrides():
+    config = load_config(
+        "scannet", ["front_end.detector_score_threshold=0.3", "front_end.proposals=false", "front_end.threads=1"]
+    )
+    assert config.front_end.manifest_overrides() == {"threads": 1, "detector": {"score_threshold": 0.3}, "proposals": None}
+    grid = load_config("scannet", ["front_end.proposal_grid=[4, 3]"]).front_end.manifest_overrides()
+    assert grid == {"proposals": {"grid": [4, 3]}}
+    assert load_config("scannet").front_end.manifest_overrides() == {}
+    with pytest.raises(UserError):
+        load_config("scannet", ["front_end.detector_score_threshold=1.5"])
