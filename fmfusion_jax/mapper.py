@@ -449,6 +449,13 @@ class Mapper:
         inputs, batch = jax.device_put((adapter.frame(frame), batch))
         return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout), detections, batch, inputs)
 
+    def schedule_copy(self) -> DetectionSchedule:
+        """A copy of the detection schedule as it stands, for a thread that decides ahead which of the next frames
+        are due (with `frames_integrated` as the position of the next one)."""
+        copy = DetectionSchedule(self.config)
+        copy.restore(self._schedule.state())
+        return copy
+
     def detection_due(self, T_world_camera) -> bool:
         """Whether the next frame, taken at this pose, would have its detections fused (the schedule)."""
         return self._schedule.due(self.frames_integrated, np.asarray(T_world_camera, np.float64))

@@ -42,7 +42,8 @@ class DetectionSource(Protocol):
     A folder of detection files (`io.detections.DetectionFolder`), models run online (`sources.ModelSource`) or
     any function of a frame. A source whose attribute `reads_ahead` is true (a folder of files: no state, cheap
     to call for a frame that turns out not due) is called by `fmfusion run`'s reader threads for the next frames;
-    others (the models, whose prompt window counts the detection frames) only on due frames, in order.
+    others (the models, whose prompt window counts the detection frames) only on due frames, in order: in a
+    detection thread of their own when their attribute `detects_ahead` is true.
     `sources.open_detection_source` chooses one from a run's arguments.
     """
 

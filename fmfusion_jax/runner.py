@@ -9,6 +9,7 @@ import collections
 import concurrent.futures
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
 import os
@@ -116,6 +117,9 @@ class SceneFusion:
         self.scene, self.detection_source, self.config = scene, detection_source, config
         # a source of files is read with its frame in the reader threads; others on due frames, in order
         self._source_reads_ahead = bool(getattr(detection_source, "reads_ahead", False))
+        # a source of models runs in a detection thread of its own, in frame order, on the frames a copy of the
+        # detection schedule says are due, while the main thread fuses the frames before
+        self._source_detects_ahead = bool(getattr(detection_source, "detects_ahead", False))
         self.on_error, self.checkpoint, self.observer = on_error, checkpoint, observer
         #: `(frame name, reason)` of the frames left out: bad poses (found when the scene was opened) and
         #: frames whose files failed to read
@@ -159,8 +163,16 @@ class SceneFusion:
         if progress and self.position:
             progress(self.position)
         workers = self.READ_WORKERS
-        with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fmfusion-read") as reader:
-            frames = read_ahead(self._read_frame, range(self.position, len(self.scene)), reader, self.READ_AHEAD * workers)
+        with (
+            concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fmfusion-read") as reader,
+            concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-detect") as detector,
+        ):
+            frames: Iterator[Any] = read_ahead(
+                self._read_frame, range(self.position, len(self.scene)), reader, self.READ_AHEAD * workers
+            )
+            if self._source_detects_ahead:
+                lookahead = Lookahead(self.mapper.schedule_copy(), self.mapper.frames_integrated)
+                frames = read_ahead(functools.partial(self._detect_ahead, lookahead), frames, detector, 1)
             while self.position < len(self.scene):
                 if should_stop and should_stop():
                     if self.checkpoint is not None:
@@ -194,6 +206,26 @@ class SceneFusion:
                 detection_error = failure
         return self.mapper.prepare(frame, detections), detection_error
 
+    def _detect_ahead(self, lookahead: Lookahead, read: Any) -> Any:
+        """In the detection thread, in frame order: a read frame with the detections of the models when the
+        schedule's copy says it is due (the main thread's schedule decides again; the two agree, as every due
+        frame gets detections)."""
+        if isinstance(read, DataError):
+            return read
+        prepared, detection_error = read
+        frame, detections = prepared.frame, None
+        schedule = lookahead.schedule
+        if schedule.due(lookahead.position, frame.T_world_camera):
+            try:
+                detections = self.detection_source(frame)
+            except DataError as failure:
+                detection_error = failure
+            if detections is not None:
+                schedule.fused(frame.T_world_camera)
+        schedule.advance(frame.T_world_camera)
+        lookahead.position += 1
+        return prepared, detection_error, detections
+
     def finalize(self) -> FusionResult:
         """The finalized map of the frames fused so far (no frame can be added afterwards)."""
         if self.mapper.frames_integrated == 0:
@@ -203,7 +235,7 @@ class SceneFusion:
             )
         return self.mapper.finalize()
 
-    def _fuse_frame(self, i: int, read: tuple[PreparedFrame, DataError | None] | DataError) -> None:
+    def _fuse_frame(self, i: int, read: tuple[Any, ...] | DataError) -> None:
         name = self.scene.frame_names[i]
         if isinstance(read, DataError):
             self._bad_input(name, str(read), "skipping frame")
@@ -212,10 +244,11 @@ class SceneFusion:
                     f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: {self.skipped[len(self.scene.skipped)][1]}"
                 ) from None
             return
-        prepared, detection_error = read
-        frame, detections = prepared.frame, None
+        # (prepared, error) from the readers, plus the detections made ahead when the detection thread ran
+        prepared, detection_error = read[0], read[1]
+        frame, detections = prepared.frame, (read[2] if len(read) > 2 else None)
         if self.mapper.detection_due(frame.T_world_camera):
-            if not self._source_reads_ahead:
+            if not self._source_reads_ahead and detections is None and detection_error is None:
                 try:
                     detections = self.detection_source(frame)
                 except DataError as failure:
@@ -232,6 +265,14 @@ class SceneFusion:
             raise UserError(f"{reason} (frame {name}; --on-error skip would skip it)")
         log.warning("%s %s: %s", action, name, reason)
         self.skipped.append((name, reason))
+
+
+@dataclasses.dataclass
+class Lookahead:
+    """The detection thread's copy of the detection schedule and the frames it has integrated (its position)."""
+
+    schedule: Any  # pipeline.DetectionSchedule
+    position: int
 
 
 def read_ahead(read: Callable[[Any], T], items: Iterable[Any], reader: concurrent.futures.Executor, window: int) -> Iterator[T]:

@@ -30,9 +30,10 @@ log = logging.getLogger(__name__)
 class ModelSource:
     """Detections made by a front end of `detectors` (`detectors.load_front_end`) on the frames it is called with.
 
-    Not read ahead: a front end may keep state across the detection frames of a sequence (GroundingDINO's
-    prompt window), so it is called on due frames only, in order. The fusion's steps are dispatched without
-    waiting, so the device fuses the previous frame while the models run on this one.
+    Not read ahead with the frames: a front end may keep state across the detection frames of a sequence
+    (GroundingDINO's prompt window), so it is called on due frames only, in order. `fmfusion run` calls it in a
+    detection thread of its own (`detects_ahead`), on the frames a copy of the detection schedule says are due,
+    while the main thread fuses the frames before.
 
     Attributes:
       front_end: the models (`detectors.FrontEnd`).
@@ -41,6 +42,7 @@ class ModelSource:
     """
 
     reads_ahead = False
+    detects_ahead = True
 
     def __init__(self, front_end: Any, folder: Path | None = None):
         self.front_end, self.folder = front_end, folder

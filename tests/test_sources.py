@@ -136,3 +136,34 @@ def test_front_end_settings_become_manifest_overrides():
     assert load_config("scannet").front_end.manifest_overrides() == {}
     with pytest.raises(UserError):
         load_config("scannet", ["front_end.detector_score_threshold=1.5"])
+
+
+def test_models_run_in_a_detection_thread_on_due_frames_in_order_and_make_the_same_map(room):
+    import threading
+
+    from fmfusion_jax.runner import fuse_scene
+
+    scene_dir, detections, config = room
+    motion = config.model_copy(update={"detections": load_config("scannet", ["detections.sparse_motion=0"]).detections})
+    scene = open_scene(scene_dir)
+    folder = DetectionFolder(detections)
+    calls: list[tuple[str, str]] = []
+
+    class Models:
+        """Stands for a ModelSource: reads the files, as models would detect, in the detection thread."""
+
+        reads_ahead, detects_ahead = False, True
+
+        def __call__(self, frame):
+            calls.append((frame.name, threading.current_thread().name))
+            return folder.get(frame.name)
+
+    by_models = fuse_scene(scene, Models(), motion, progress=False)
+    by_files = fuse_scene(scene, folder, motion, progress=False)
+    due = [scene.frame_names[p] for p in scheduled_positions(scene.poses(), motion)]
+    assert [name for name, _ in calls] == due
+    assert all(thread.startswith("fmfusion-detect") for _, thread in calls)
+    assert by_models.detection_frames == by_files.detection_frames == len(due)
+    for name in ("label_evidence", "observations", "valid"):
+        np.testing.assert_array_equal(getattr(by_models.state.instances, name), getattr(by_files.state.instances, name))
+    np.testing.assert_array_equal(by_models.state.blocks.instance_id, by_files.state.blocks.instance_id)

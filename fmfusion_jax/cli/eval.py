@@ -84,6 +84,14 @@ def register(subparsers) -> None:
         "file, else ./explain",
     )
     parser.add_argument(
+        "--detections",
+        type=Path,
+        metavar="DIR",
+        help="the detections the map was made from (one scene folder as GT): also say which ground-truth objects "
+        "the detector ever saw (a mask with IoU >= 0.5 in some frame) and the detector-limited ceiling of mAP50, "
+        "beside what the map found; written as reach.md / reach.json with --explain",
+    )
+    parser.add_argument(
         "--export-gt",
         type=Path,
         metavar="OUT_DIR",
@@ -121,11 +129,17 @@ def run(args: argparse.Namespace) -> int:
     explain_dir = args.explain
     if explain_dir is _EXPLAIN_DEFAULT:
         explain_dir = args.json.parent if args.json is not None else Path("explain")
-    return _evaluate(pairs, args.labels_tsv, args.json, explain_dir)
+    if args.detections is not None and (len(pairs) != 1 or pairs[0][1].kind != "scene"):
+        raise UserError("--detections needs exactly one scene, given as its scene folder (--gt SCENE)")
+    return _evaluate(pairs, args.labels_tsv, args.json, explain_dir, args.detections)
 
 
 def _evaluate(
-    pairs: list[tuple[Path, _GroundTruthSource]], labels_tsv: Path | None, json_path: Path | None, explain_dir: Path | None = None
+    pairs: list[tuple[Path, _GroundTruthSource]],
+    labels_tsv: Path | None,
+    json_path: Path | None,
+    explain_dir: Path | None = None,
+    detections: Path | None = None,
 ) -> int:
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
     from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
@@ -154,20 +168,40 @@ def _evaluate(
         except OSError as error:
             raise UserError(f"cannot write {json_path}: {error}") from error
         print(f"wrote {json_path}")
-    if explain_dir is not None:
-        _explain(scenes, names, meshes, explain_dir)
+    found = _explain(scenes, names, meshes, explain_dir) if explain_dir is not None else None
+    if detections is not None:
+        _reach(pairs[0][1].path, detections, found, explain_dir)
     return 0
 
 
-def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) -> None:
+def _reach(scene_dir: Path, detections: Path, found: dict[int, bool] | None, out_dir: Path | None) -> None:
+    """The detector's reach (`likelihood.reach`) printed, and written beside the error analysis."""
+    from fmfusion_jax.likelihood.reach import detector_reach
+
+    reach = detector_reach(scene_dir, detections, progress=True)
+    text = reach.markdown(found)
+    print(text)
+    if out_dir is not None:
+        record = reach.to_json() | ({"found": {str(k): v for k, v in found.items()}} if found is not None else {})
+        try:
+            (out_dir / "reach.md").write_text(text)
+            (out_dir / "reach.json").write_text(json.dumps(record, indent=1) + "\n")
+        except OSError as error:
+            raise UserError(f"cannot write the detector reach into {out_dir}: {error}") from error
+        print(f"wrote {out_dir / 'reach.md'}, {out_dir / 'reach.json'}")
+
+
+def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) -> dict[int, bool]:
     """The error analysis of each scene (`evaluation.explain`): files in `explain_dir` (one scene) or
-    `explain_dir/<scene>/`, and its counts printed."""
+    `explain_dir/<scene>/`, and its counts printed. Returns whether each object (benchmark id) was found."""
     from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
 
     print("error analysis (objects by status | predictions by kind; docs/error-analysis.md):")
+    found: dict[int, bool] = {}
     for (gt_ids, preds), name, mesh in zip(scenes, names, meshes):
         vertices, faces = mesh if mesh is not None else (None, None)
         explanation = explain_scene(gt_ids, preds, vertices, scene_name=name)
+        found |= {g.gt_id: g.status == "found" for g in explanation.ground_truth}
         out_dir = explain_dir if len(scenes) == 1 else explain_dir / name
         try:
             written = write_explanation(out_dir, explanation, gt_ids, preds, vertices, faces)
@@ -176,6 +210,7 @@ def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) ->
         print(f"  {name}: {explanation.summary_line()}")
         note = "" if mesh is not None else " (no explain.png: the ground truth has no mesh; pass its scene folder)"
         print(f"  wrote {', '.join(str(p) for p in written)}{note}")
+    return found
 
 
 def _export_ground_truth(sources: list[_GroundTruthSource], out_dir: Path, labels_tsv: Path | None) -> int:
