@@ -364,6 +364,7 @@ def run_method(
     source = folder
     start = time.perf_counter()
     result: KimeraResult | FusionResult
+    floor = None  # the map's floor, for the transfer (FM-Fusion's maps; the baseline keeps the reference transfer)
     if method.baseline == "kimera":
         from fmfusion_jax.baselines.kimera import run_kimera
 
@@ -382,6 +383,7 @@ def run_method(
 
         result = fuse_scene(scene, source, config, progress=progress, time_stages=True)
         instances = extract_map_instances(result, label_sets)
+        floor = result.floor()
         details = {
             "frames": result.frames_integrated,
             "detection_frames": result.detection_frames,
@@ -393,7 +395,7 @@ def run_method(
     del result  # the map (up to ~1 GB for a ScanNet room) is not needed any more
 
     _replace_run_dir(out_dir)
-    predictions, score = score_instances(instances, gt, scene.name, config, label_sets)
+    predictions, score = score_instances(instances, gt, scene.name, config, label_sets, floor=floor)
     write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
     map_outputs.write_instances_json(out_dir / "instances.json", map_outputs.instances_json(instances, label_sets))
     (out_dir / "config.yaml").write_text(config.to_yaml())

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fmfusion_jax.config import PipelineConfig
-from fmfusion_jax.engine import extraction, step
+from fmfusion_jax.engine import extraction, step, support
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch, pack_detections
 from fmfusion_jax.engine.state import MapState, init_map_state
@@ -348,6 +348,15 @@ class FusionResult:
     frames_integrated: int
     detection_frames: int
     counters: dict[str, int]
+
+    def floor(self) -> tuple[tuple[float, float, float], float] | None:
+        """`(up, height)` of the floor the fusion found (`engine.support`), or None (floor filter off, or no
+        floor seen)."""
+        up = self.fusion_config.floor_up
+        if up is None:
+            return None
+        floor = support.floor_height(jnp.asarray(self.state.blocks.up_heights))
+        return (up, float(floor.height)) if bool(floor.found) else None
 
     def progress(self) -> dict:
         """How far fusion got (what a saved map keeps so that `MapBuilder.restore_progress` continues it)."""

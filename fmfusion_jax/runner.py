@@ -539,16 +539,22 @@ def _write_overview(path: Path, scene_name: str, instances, mesh, gt, result: Fu
         log.warning("no overview: %s", error)
 
 
-def score_instances(instances, gt, scene_name: str, config: PipelineConfig, label_sets, gt_ids=None):
+def score_instances(instances, gt, scene_name: str, config: PipelineConfig, label_sets, gt_ids=None, floor=None):
     """`(predictions, BenchmarkResult)`: the ScanNet benchmark predictions of `instances` over the scene's
     mesh vertices (transfer radius `config.export.transfer_radius`), and their score on this scene alone.
 
     Args:
       gt: the scene's `SceneGroundTruth`.
       gt_ids: `gt.benchmark_ids()` when the caller already has it (computed here otherwise).
+      floor: the map's floor (`FusionResult.floor()`: `(up, height)`), whose mesh vertices no object claims.
     """
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+    from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
 
+    on_floor = None
+    if floor is not None:
+        up, height = floor
+        on_floor = floor_vertices(gt.vertices, gt.faces, up, height, config.detections.floor_band)
     predictions = map_outputs.benchmark_predictions(
         instances,
         label_sets,
@@ -556,6 +562,7 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
         config.export.transfer_radius,
         config.export.structure_claims_vertices,
         config.export.transfer_neighbours,
+        on_floor,
     )
     gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
     return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
@@ -566,7 +573,9 @@ def _export_and_score(instances, gt, scene: Scene, result: FusionResult, out_dir
     from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
 
     gt_ids = gt.benchmark_ids()
-    predictions, score = score_instances(instances, gt, scene.name, result.config, label_sets, gt_ids=gt_ids)
+    predictions, score = score_instances(
+        instances, gt, scene.name, result.config, label_sets, gt_ids=gt_ids, floor=result.floor()
+    )
     txt = write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
     report = score.to_json_dict()
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))

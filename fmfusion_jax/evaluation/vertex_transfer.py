@@ -58,3 +58,23 @@ def points_to_vertex_masks(
     best = np.argmax(votes, axis=1)  # first maximum: the nearest among the most voted
     masks[voter[np.arange(len(vertex)), best], vertex] = True
     return masks
+
+
+def floor_vertices(
+    vertices: np.ndarray, faces: np.ndarray, up: Sequence[float], floor_height: float, band: float, up_cos: float = 0.9
+) -> np.ndarray:
+    """`(V,)` bool: the mesh vertices on the floor: at most `band` metres above `floor_height` along `up` with a
+    normal within ~25 degrees of it (area-weighted face normals; a vertex of no face is not on the floor).
+
+    The map's floor (`engine.support`) is what the fusion kept out of the objects' masks; in the transfer the
+    same floor keeps an object's lowest points from claiming the floor vertices around its base."""
+    import trimesh
+
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        return np.zeros(len(vertices), bool)
+    normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
+    up_vector = np.asarray(up, np.float64)
+    height = vertices @ up_vector
+    return (height <= floor_height + band) & (np.abs(normals @ up_vector) > up_cos)

@@ -220,6 +220,7 @@ def benchmark_predictions(
     radius: float,
     structure_claims_vertices: bool = False,
     neighbours: int = 1,
+    floor_vertices: np.ndarray | None = None,
 ) -> InstancePredictions:
     """Instances transferred to mesh vertices by radius search, with nyu40 ids and confidences.
 
@@ -227,7 +228,8 @@ def benchmark_predictions(
     `structure_claims_vertices` they first take part in the transfer (each vertex goes to its nearest
     instance point), so the floor vertices around an object's base go to the floor rather than to the
     object's lowest points; a point held by an object and by the wall or floor stays the object's.
-    `neighbours`: see `evaluation.vertex_transfer.points_to_vertex_masks`.
+    `neighbours`: see `evaluation.vertex_transfer.points_to_vertex_masks`. `floor_vertices` `(V,)` bool: vertices
+    on the map's floor (`evaluation.vertex_transfer.floor_vertices`), which no object claims.
     """
     from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 
@@ -239,6 +241,8 @@ def benchmark_predictions(
     masks = points_to_vertex_masks(vertices, [inst.points for inst in claimants], radius=radius, neighbours=neighbours)[
         : len(keep)
     ]
+    if floor_vertices is not None:
+        masks &= ~np.asarray(floor_vertices, bool)[None, :]
     return InstancePredictions(
         masks=masks,
         nyu40_ids=np.array([label_sets.nyu40_ids[i.class_index] for i in keep], np.int32),
