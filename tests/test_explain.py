@@ -379,7 +379,8 @@ def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
     config = load_config("scannet")
     out = tmp_path / "run"
     out.mkdir()
-    benchmark = runner._export_and_score(instances, gt, scene, types.SimpleNamespace(config=config), out, label_sets)
+    result = types.SimpleNamespace(config=config, floor=lambda: None)  # a map without a floor
+    benchmark = runner._export_and_score(instances, gt, scene, result, out, label_sets)
     for name in ("report.json", "explain.md", "explain.json", "explain.png"):
         assert (out / name).stat().st_size > 0, name
     explained = json.loads((out / "explain.json").read_text())

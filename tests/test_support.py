@@ -135,3 +135,24 @@ def test_filter_floor_pixels_matches_the_oracle(seed, n, max_share):
     np.testing.assert_array_equal(
         np.asarray(got), _oracle_filter(det_image, on_floor, floor_detection, np.float32(max_share), -2)
     )
+
+
+def test_floor_vertices_are_the_up_facing_ones_near_the_floor():
+    import trimesh
+
+    from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
+
+    u, v = np.meshgrid(np.linspace(-2, 2, 21), np.linspace(-2, 2, 21), indexing="ij")
+    grid = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], 1)  # a floor at z = 0, 20 cm cells
+    i = (np.arange(20)[:, None] * 21 + np.arange(20)[None, :]).ravel()
+    faces = np.concatenate([np.stack([i, i + 21, i + 1], 1), np.stack([i + 1, i + 21, i + 22], 1)])
+    floor = trimesh.Trimesh(grid, faces, process=False)
+    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5))
+    box.apply_translation((0.0, 0.0, 0.25))  # a box standing on it
+    mesh = trimesh.util.concatenate([floor, box])
+    on_floor = floor_vertices(mesh.vertices, mesh.faces, (0.0, 0.0, 1.0), 0.0, 0.05)
+    z = mesh.vertices[:, 2]
+    floor_top = np.arange(len(mesh.vertices)) < len(floor.vertices)
+    assert on_floor[floor_top].all() and (z[floor_top] == 0).all()
+    assert not on_floor[~floor_top].any()  # the box: its base corners are near the floor but face sideways
+    assert not floor_vertices(mesh.vertices, mesh.faces, (0.0, 0.0, 1.0), -1.0, 0.05).any()  # a floor far below
