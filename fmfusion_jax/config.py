@@ -93,10 +93,10 @@ class DetectionConfig(_Section):
     depth_percentiles: tuple[Float, Float] = knob(
         (0.1, 0.9), "a mask's depth outside these quantiles is dropped (mask border bleed)", "engine"
     )
-    floor_up_axis: Literal["+z", "-z", "+y", "-y", "+x", "-x", "off"] = knob(
+    floor_up_axis: Literal["+z", "-z", "+y", "-y", "+x", "-x", "none"] = knob(
         "+z",
         "the world's up axis (ScanNet, SceneNN: +z): mask pixels on the floor are not the object's, and a "
-        "detection mostly on the floor is dropped (off: no floor filter)",
+        "detection mostly on the floor is dropped (none: no floor filter)",
         "engine",
     )
     floor_band: Float = knob(0.05, "m above the floor that still counts as floor (floor filter)", "engine", gt=0)

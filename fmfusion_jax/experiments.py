@@ -100,9 +100,10 @@ class Method:
 
 #: Config overrides that restore the map of v0.1 (before the robustness work): membership by hits alone, no
 #: reunion of fragments, no veto of merges the detector contradicts, confidence = class probability, export of
-#: any slot by the nearest point. (The motion schedule needs no override: the experiments' configs fix the
-#: detection stride.)
+#: any slot by the nearest point, no floor filter. (The motion schedule needs no override: the experiments' configs
+#: fix the detection stride.)
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
+    "detections.floor_up_axis=none",
     "instances.contrary_vote_weight=0",
     "refinement.reunite_min_frames=0",
     "refinement.separate_min_frames=0",

@@ -110,7 +110,7 @@ UP_AXES: dict[str, tuple[float, float, float] | None] = {
     "-y": (0.0, -1.0, 0.0),
     "+z": (0.0, 0.0, 1.0),
     "-z": (0.0, 0.0, -1.0),
-    "off": None,
+    "none": None,
 }
 
 
