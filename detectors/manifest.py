@@ -42,7 +42,7 @@ from detectors.closed_set import ClosedSetConfig, ClosedSetModels
 from detectors.coco_detector import CocoDetector
 from detectors.contracts import GROUNDING, SAM_DECODER, SAM_ENCODER, SSD, TAGGER
 from detectors.onnx_runtime import OnnxModel
-from detectors.pipeline import FoundationModels
+from detectors.pipeline import DetectorConfig, FoundationModels
 from detectors.proposals import ProposalConfig
 from detectors.segmenter import Segmenter
 from detectors.vocabulary import Vocabulary, load_vocabulary
@@ -50,6 +50,8 @@ from fmfusion_jax.errors import UserError
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 MANIFEST_FILE = "models.yaml"
+#: The grounded_sam front end's settings a manifest (section `grounding`) may set: `pipeline.DetectorConfig`'s.
+GROUNDING_KEYS = ("box_threshold", "text_threshold", "prompt_window")
 FRONT_ENDS = ("closed_set", "grounded_sam")
 DETECTOR_KINDS = ("nanodet", "ssd")
 #: Keys each section takes (with `file` / `encoder` etc. required where said in the module docstring).
@@ -58,6 +60,7 @@ SECTION_KEYS = {
     "segmenter": ("encoder", "decoder", "mask_choice"),
     "classifier": ("file", "labels", "top_k", "classify_boxes", "box_label_weight", "box_label_min_score"),
     "proposals": tuple(f.name for f in dataclasses.fields(ProposalConfig)),
+    "grounding": GROUNDING_KEYS,
 }
 TOP_KEYS = ("front_end", "threads", *SECTION_KEYS, "vocabulary")
 #: The keys naming a section's model files (an override without them cannot create the section).
@@ -129,6 +132,7 @@ class Manifest:
     classifier: ClassifierEntry | None = None
     proposals: ProposalConfig | None = None
     vocabulary: Path | None = None
+    grounding: DetectorConfig | None = None  # grounded_sam's thresholds and prompt window
 
     @property
     def where(self) -> str:
@@ -161,7 +165,7 @@ def read_manifest(models_dir: str | Path, overrides: Mapping[str, Any] | None = 
     merged = merge(data, overrides or {})
     if merged.get("front_end") == "grounded_sam":
         # overrides tune the closed-set models (a run's config may set them for any folder): none applies here
-        merged = {key: value for key, value in merged.items() if key in data or key == "front_end"}
+        merged = {key: value for key, value in merged.items() if key in data or key in ("front_end", "grounding")}
     return parse_manifest(merged, folder, source)
 
 
@@ -229,10 +233,15 @@ def parse_manifest(data: Mapping[str, Any], folder: Path, source: Path | None) -
     if front_end not in FRONT_ENDS:
         raise UserError(f"{where}: front_end {front_end!r}: expected one of {', '.join(FRONT_ENDS)}")
     if front_end == "grounded_sam":
-        extra = [key for key in data if key != "front_end" and data[key] is not None]
+        extra = [key for key in data if key not in ("front_end", "grounding") and data[key] is not None]
         if extra:
             raise UserError(f"{where}: {extra} only apply to front_end closed_set (grounded_sam uses the fixed file names)")
-        return Manifest(folder, source, front_end, threads=None)
+        grounding = _section(data, "grounding", where, required=False) or {}
+        try:
+            detector_config = DetectorConfig(**grounding)
+        except UserError as error:
+            raise UserError(f"{where}: grounding: {error}") from None
+        return Manifest(folder, source, front_end, threads=None, grounding=detector_config)
     threads = data.get("threads", 2)
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
         raise UserError(f"{where}: threads {threads!r} must be an integer >= 1 or null")
@@ -342,7 +351,7 @@ def _choice(value: Any, choices: Sequence[str], what: str, optional: bool = Fals
 def build_front_end(manifest: Manifest, providers: str | Sequence[str] = "cpu") -> FrontEnd:
     """Loads the models a manifest names; a model file that does not fit its role is a `UserError` naming it."""
     if manifest.front_end == "grounded_sam":
-        return FoundationModels.from_folder(manifest.folder, providers)
+        return FoundationModels.from_folder(manifest.folder, providers, config=manifest.grounding)
     parts = {role: load_role(manifest, role, providers) for role in CLOSED_SET_ROLES}
     return assemble_closed_set(manifest, **parts)
 

@@ -38,7 +38,7 @@ from fmfusion_jax.io.scene import detect_layout
 log = logging.getLogger(__name__)
 
 BATCH_FILE = "batch.json"
-#: The detections of `--simulate`, per scene, under OUT.
+#: The detections of `--simulate` and `--models`, per scene, under OUT.
 SIMULATED_DIR = "_detections"
 
 
@@ -54,6 +54,17 @@ class SceneTask:
     run_options: tuple[str, ...]
     timeout_s: float | None
     memory_mib: float | None = None
+    models: str | None = None  # detections made by `fmfusion detect --models` into `detections` first
+
+    def detection_command(self, command: list[str]) -> list[str] | None:
+        """The child command that makes the scene's detections (`simulate` or `detect`), or None (given)."""
+        if self.simulate:
+            return command + ["simulate", self.scene, "--out", self.detections, "--no-progress"]
+        if self.models is not None:
+            config_options = [option for option in self.run_options if option != "--restart"]
+            detect = ["detect", self.scene, "--models", self.models, "--out", self.detections, "--no-progress"]
+            return command + detect + config_options
+        return None
 
 
 def list_scenes(source: Path, root: Path | None = None) -> list[Path]:
@@ -101,8 +112,9 @@ def run_scene(task: SceneTask, progress: Callable[[str, str], None] | None = Non
     record: dict[str, Any] = {"scene": task.name, "path": task.scene, "out": task.out}
     command = [sys.executable, "-m", "fmfusion_jax.cli"]
     steps = []
-    if task.simulate:
-        steps.append(command + ["simulate", task.scene, "--out", task.detections, "--no-progress"])
+    making = task.detection_command(command)
+    if making is not None:
+        steps.append(making)
     steps.append(command + ["run", task.scene, "--detections", task.detections, "--out", task.out, *task.run_options])
     for argv in steps:
         left = None if task.timeout_s is None else max(1.0, task.timeout_s - (time.perf_counter() - start))
@@ -198,9 +210,10 @@ class Batch:
         run_options: Sequence[str] = (),
         timeout_s: float | None = None,
         memory_mib: float | None = None,
+        models: str | Path | None = None,
     ):
-        if (detections is None) == (not simulate):
-            raise UserError("give --detections PATTERN or --simulate")
+        if (detections is not None) + simulate + (models is not None) != 1:
+            raise UserError("give one of --detections PATTERN, --simulate or --models DIR")
         names = [scene.name for scene in scenes]
         if len(set(names)) != len(names):
             raise UserError("two scenes share a folder name; their outputs would collide")
@@ -210,11 +223,12 @@ class Batch:
                 scene.name,
                 str(scene),
                 str(out / scene.name),
-                str(out / SIMULATED_DIR / scene.name) if simulate else detections_for(detections or "", scene),
+                str(out / SIMULATED_DIR / scene.name) if detections is None else detections_for(detections, scene),
                 simulate,
                 tuple(run_options),
                 timeout_s,
                 memory_mib,
+                None if models is None else str(Path(models).resolve()),
             )
             for scene in scenes
         ]
@@ -320,13 +334,11 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
     records: list[dict[str, Any]] = [{"scene": t.name, "path": t.scene, "out": t.out} for t in group]
     try:
         for task in group:
-            if task.simulate:
-                outcome = _run_child(
-                    [sys.executable, "-m", "fmfusion_jax.cli", "simulate", task.scene, "--out", task.detections, "--no-progress"],
-                    task.timeout_s,
-                )
+            making = task.detection_command([sys.executable, "-m", "fmfusion_jax.cli"])
+            if making is not None:
+                outcome = _run_child(making, task.timeout_s)
                 if outcome["status"] != "ok":
-                    raise UserError(f"{task.name}: simulate: {outcome['error']}")
+                    raise UserError(f"{task.name}: {making[3]}: {outcome['error']}")
         dataset = config.dataset
         scenes = [open_dataset_scene(t.scene, dataset) for t in group]
         shapes = {(s.intrinsics.height, s.intrinsics.width) for s in scenes}

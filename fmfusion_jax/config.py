@@ -231,6 +231,13 @@ class FrontEndConfig(_Section):
         None, "the classifier also names each detector box; agreeing labels are added at box_label_weight (null: true)"
     )
     threads: Int | None = knob(None, "onnxruntime threads per model (null: 2)", ge=1)
+    box_threshold: Float | None = knob(
+        None, "GroundingDINO: a box needs a token score above this (null: 0.35, FM-Fusion's)", ge=0, le=1
+    )
+    text_threshold: Float | None = knob(
+        None, "GroundingDINO: a label needs all its token scores above this (null: 0.25)", ge=0, le=1
+    )
+    prompt_window: Int | None = knob(None, "detection frames whose labels augment RAM's prompt (0: none; null: 5)", ge=0)
 
     def manifest_overrides(self) -> dict[str, Any]:
         """The settings that are set, as `models.yaml` keys (`detectors.read_manifest`'s overrides)."""
@@ -241,6 +248,9 @@ class FrontEndConfig(_Section):
             overrides["detector"] = {"score_threshold": self.detector_score_threshold}
         if self.classify_boxes is not None:
             overrides["classifier"] = {"classify_boxes": self.classify_boxes}
+        grounding = {key: getattr(self, key) for key in ("box_threshold", "text_threshold", "prompt_window")}
+        if any(value is not None for value in grounding.values()):
+            overrides["grounding"] = {key: value for key, value in grounding.items() if value is not None}
         if self.proposals is False:
             overrides["proposals"] = None
         elif self.proposals or self.proposal_grid is not None:

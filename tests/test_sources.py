@@ -167,3 +167,34 @@ def test_models_run_in_a_detection_thread_on_due_frames_in_order_and_make_the_sa
     for name in ("label_evidence", "observations", "valid"):
         np.testing.assert_array_equal(getattr(by_models.state.instances, name), getattr(by_files.state.instances, name))
     np.testing.assert_array_equal(by_models.state.blocks.instance_id, by_files.state.blocks.instance_id)
+
+
+def test_batch_detects_each_scene_with_the_models_before_its_run(tmp_path):
+    from fmfusion_jax.batch import SIMULATED_DIR, Batch, run_scene
+
+    scene = tmp_path / "scene0001_00"
+    scene.mkdir()
+    batch = Batch(
+        [scene], tmp_path / "out", detections=None, simulate=False, models=tmp_path, run_options=("--set", "a.b=1", "--restart")
+    )
+    (task,) = batch.tasks
+    assert task.detections == str(tmp_path / "out" / SIMULATED_DIR / "scene0001_00")
+    command = task.detection_command(["fmfusion"])
+    assert command == [
+        "fmfusion",
+        "detect",
+        str(scene),
+        "--models",
+        str(tmp_path.resolve()),
+        "--out",
+        task.detections,
+        "--no-progress",
+        "--set",
+        "a.b=1",
+    ]  # fmfusion detect knows no --restart
+    given = Batch([scene], tmp_path / "out", detections="{root}/det/{scene}", simulate=False)
+    assert given.tasks[0].detection_command(["fmfusion"]) is None
+    with pytest.raises(UserError, match="one of"):
+        Batch([scene], tmp_path / "out", detections="d", simulate=False, models=tmp_path)
+    record = run_scene(task)  # the scene folder is empty: the detect step fails, recorded, the run never starts
+    assert record["status"] == "failed" and "detect" in json.dumps(record)

@@ -28,6 +28,12 @@ def register(subparsers) -> None:
         "--detections", metavar="PATTERN", help="each scene's detection folder: {scene} is its name, {root} its parent"
     )
     source.add_argument("--simulate", action="store_true", help="simulate each scene's detections from its ground truth")
+    source.add_argument(
+        "--models",
+        type=Path,
+        metavar="DIR",
+        help="detect with the models of DIR (`fmfusion detect`, into OUT/_detections/<scene>, continued on --resume)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--workers", type=int, default=1, help="scenes fused at once on this machine (default 1)")
     parser.add_argument("--ray", metavar="ADDRESS", help="run one Ray task per scene on this cluster (auto, local or an address)")
@@ -81,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         detections=args.detections,
         simulate=args.simulate,
+        models=args.models,
         run_options=options,
         timeout_s=args.scene_timeout,
         memory_mib=None if args.scene_memory is None else 1024 * args.scene_memory,

@@ -56,23 +56,15 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--mask-format", default="png", choices=("png", "npy"), help="png (overlapping masks fall back to npy) or npy"
     )
-    grounded = parser.add_argument_group("RAM -> GroundingDINO -> SAM folders only")
+    grounded = parser.add_argument_group("RAM -> GroundingDINO -> SAM folders only (the config's front_end keys)")
     grounded.add_argument(
-        "--box-threshold", type=float, default=0.35, metavar="T", help="GroundingDINO: a box needs a token score above this"
+        "--box-threshold", type=float, metavar="T", help="GroundingDINO: a box needs a token score above this (0.35)"
     )
     grounded.add_argument(
-        "--text-threshold",
-        type=float,
-        default=0.25,
-        metavar="T",
-        help="GroundingDINO: a label needs all its token scores above this",
+        "--text-threshold", type=float, metavar="T", help="GroundingDINO: a label needs all its token scores above this (0.25)"
     )
     grounded.add_argument(
-        "--prompt-window",
-        type=int,
-        default=5,
-        metavar="N",
-        help="detection frames whose labels augment the prompt (0: no augmentation)",
+        "--prompt-window", type=int, metavar="N", help="detection frames whose labels augment the prompt (5; 0: none)"
     )
     parser.add_argument(
         "--config", default="scannet", help="config of the `fmfusion run` to detect for (its schedule and front_end section)"
@@ -92,7 +84,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from detectors import DetectorConfig, FoundationModels, FrontEnd, load_front_end, read_manifest
+    from detectors import load_front_end, read_manifest
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.detections import label_path, write_frame_detections
     from fmfusion_jax.io.scene import open_scene
@@ -100,18 +92,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.every is not None and args.every < 1:
         raise UserError(f"--every must be a positive integer, got {args.every}")
-    config = load_config(args.config, args.overrides)
+    flags = {"box_threshold": args.box_threshold, "text_threshold": args.text_threshold, "prompt_window": args.prompt_window}
+    overrides = list(args.overrides) + [f"front_end.{key}={value}" for key, value in flags.items() if value is not None]
+    config = load_config(args.config, overrides)
     scene = open_scene(args.scene, layout=args.layout, stride=args.stride, max_frames=args.max_frames)
-    overrides = config.front_end.manifest_overrides()
-    manifest = read_manifest(args.models, overrides)
-    models: FrontEnd
-    if manifest.front_end == "grounded_sam":
-        detector_config = DetectorConfig(
-            box_threshold=args.box_threshold, text_threshold=args.text_threshold, prompt_window=args.prompt_window
-        )
-        models = FoundationModels.from_folder(args.models, providers=args.providers, config=detector_config)
-    else:
-        models = load_front_end(args.models, providers=args.providers, overrides=overrides)
+    manifest_overrides = config.front_end.manifest_overrides()
+    manifest = read_manifest(args.models, manifest_overrides)
+    models = load_front_end(args.models, providers=args.providers, overrides=manifest_overrides)
     if args.every is not None:
         positions, rule = list(range(0, len(scene), args.every)), f"every {args.every} of {len(scene)} read"
     else:
@@ -121,12 +108,7 @@ def run(args: argparse.Namespace) -> int:
         "scene": str(args.scene.resolve()),
         "models": str(args.models.resolve()),
         "front_end": manifest.front_end,
-        "settings": {"overrides": overrides, "stride": args.stride, "mask_format": args.mask_format}
-        | (
-            {"box_threshold": args.box_threshold, "text_threshold": args.text_threshold, "prompt_window": args.prompt_window}
-            if manifest.front_end == "grounded_sam"
-            else {}
-        ),
+        "settings": {"overrides": manifest_overrides, "stride": args.stride, "mask_format": args.mask_format},
     }
     done = _frames_done(args.out, record, [scene.frame_names[p] for p in positions], label_path)
     todo = [p for p in positions if scene.frame_names[p] not in done]
