@@ -198,3 +198,19 @@ def test_batch_detects_each_scene_with_the_models_before_its_run(tmp_path):
         Batch([scene], tmp_path / "out", detections="d", simulate=False, models=tmp_path)
     record = run_scene(task)  # the scene folder is empty: the detect step fails, recorded, the run never starts
     assert record["status"] == "failed" and "detect" in json.dumps(record)
+
+
+def test_grounded_sam_settings_come_from_the_config(tmp_path):
+    from detectors import read_manifest
+
+    (tmp_path / "ram.onnx").write_bytes(b"")  # the layout names the front end; nothing is loaded here
+    config = load_config("scannet", ["front_end.box_threshold=0.5", "front_end.prompt_window=0"])
+    overrides = config.front_end.manifest_overrides()
+    assert overrides == {"grounding": {"box_threshold": 0.5, "prompt_window": 0}}
+    manifest = read_manifest(tmp_path, overrides)
+    assert manifest.front_end == "grounded_sam"
+    assert manifest.grounding.box_threshold == 0.5 and manifest.grounding.prompt_window == 0
+    assert manifest.grounding.text_threshold == 0.25  # FM-Fusion's, unless set
+    (tmp_path / "models.yaml").write_text("front_end: grounded_sam\ngrounding: {nms_iou: 0.3}\n")
+    with pytest.raises(UserError, match="unknown grounding key"):
+        read_manifest(tmp_path)
