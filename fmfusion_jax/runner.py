@@ -625,6 +625,31 @@ def prepare_output_dir(out_dir: str | Path, create: bool = True) -> Path:
     return out_dir
 
 
+def check_output_folder(out_dir: Path, inputs: Iterable[Path | None] = (), overwrite: bool = False) -> None:
+    """Refuses, before any work, an `--out` that `fmfusion run` must not replace: a folder holding one of the
+    run's `inputs` (the scene, the detections, the models: replacing it would delete them), or an existing
+    folder with files that is not a previous run's output (no run.json of one) unless `overwrite`."""
+    target = out_dir.resolve()
+    for path in inputs:
+        if path is None:
+            continue
+        source = Path(path).resolve()
+        if source == target or target in source.parents:
+            raise UserError(f"--out {out_dir} holds the run's input {path}: the outputs would replace it; choose another folder")
+    if not out_dir.is_dir() or overwrite or not any(out_dir.iterdir()):
+        return
+    try:
+        previous = json.loads((out_dir / "run.json").read_text())
+        if isinstance(previous, dict) and {"scene", "frames"} <= previous.keys():
+            return
+    except (OSError, ValueError):
+        pass
+    raise UserError(
+        f"--out {out_dir} is a folder with files that is not an earlier `fmfusion run`'s output (no run.json): its "
+        "contents would be replaced; choose a new folder, or pass --overwrite to replace it"
+    )
+
+
 def partial_dir(out_dir: Path) -> Path:
     """Where `run_and_export` builds a run's outputs and keeps its checkpoint: `OUT.partial` beside `OUT`."""
     return out_dir.with_name(out_dir.name + ".partial")

@@ -32,7 +32,16 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--providers", default="cpu", choices=("cpu", "cuda", "auto"), help="onnxruntime execution providers for --models"
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="output folder (created; an earlier run's output folder is replaced, any other folder with files is "
+        "refused unless --overwrite, and never one holding the scene, the detections or the models)",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace --out even when it is not an earlier run's output folder"
+    )
     parser.add_argument(
         "--config", default="scannet", help="config file, or a packaged one: scannet, scannet-subsampled, scenenn"
     )
@@ -78,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.cli.interrupt import StopRequest
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.runner import prepare_output_dir, run_and_export
+    from fmfusion_jax.runner import check_output_folder, prepare_output_dir, run_and_export
     from fmfusion_jax.sources import open_detection_source
 
     if not args.scene.is_dir():
@@ -86,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     if args.checkpoint_every < 0:
         raise UserError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
     config = load_config(args.config, args.overrides)
+    check_output_folder(args.out, (args.scene, args.detections, args.models), args.overwrite)
     prepare_output_dir(args.out, create=False)  # a bad --out fails now, not after the fusion
     scene = open_dataset_scene(args.scene, config.dataset)
     source = open_detection_source(scene, detections=args.detections, models=args.models, providers=args.providers, config=config)
