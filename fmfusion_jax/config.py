@@ -458,12 +458,24 @@ def load_config(name_or_path: str | None = None, overrides: list[str] | None = N
         if not sep or not dot:
             raise UserError(f"--set {item!r}: expected section.key=value, e.g. detections.every=1")
         try:
-            value = yaml.safe_load(text)
+            value = _number_as_number(yaml.safe_load(text))
         except yaml.YAMLError as error:
             raise UserError(f"--set {item!r}: the value is not valid YAML ({str(error).splitlines()[0]})") from None
         values = _merge(values, {section: {name: value}})
         config_from_dict(values, f"--set {item}")
     return config_from_dict(values, str(name_or_path or "defaults"))
+
+
+def _number_as_number(value: Any) -> Any:
+    """A number YAML 1.1 reads as text (``2e-2``, ``1E3``: no dot) as the float it writes; anything else as read."""
+    if isinstance(value, str):
+        try:
+            number = float(value)
+        except ValueError:
+            return value
+        if value.strip().lower() not in ("nan", "inf", "-inf", "+inf", "infinity", "-infinity"):
+            return number
+    return value
 
 
 def detection_frame_stride(config: PipelineConfig) -> int:
