@@ -145,9 +145,13 @@ def as_frame(
     if not np.issubdtype(depth.dtype, np.floating):
         raise UserError(f"{name}: depth is {depth.dtype}; give float metres (e.g. a ScanNet uint16 PNG / 1000.0)")
     depth = depth.astype(np.float32)
+    if np.any(depth < 0):
+        raise UserError(f"{name}: depth has negative values ({int(np.sum(depth < 0))} pixels); give metres, 0 = no reading")
     valid = depth[np.isfinite(depth) & (depth > 0)]
     if valid.size and np.median(valid) > 50.0:
         raise UserError(f"{name}: median depth {np.median(valid):.0f}: depth must be in metres, not millimetres")
+    if valid.size < 0.01 * depth.size:
+        log.warning("%s: only %d of %d depth pixels are valid: the frame adds almost nothing", name, valid.size, depth.size)
     depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
     height, width = depth.shape
     if color is None:
@@ -161,6 +165,19 @@ def as_frame(
     )
 
 
+def check_detections(frame: RGBDFrame, detections: FrameDetections | None) -> None:
+    """The file reader's rules for detections given in Python: scores in [0, 1] (a UserError), and a warning when
+    they are another frame's (their `frame_name` differs)."""
+    if detections is None:
+        return
+    for k, labels in enumerate(detections.labels):
+        for label, score in labels.items():
+            if not 0.0 <= float(score) <= 1.0:
+                raise UserError(f"{frame.name}: detection {k} scores {label!r} {score}: scores must lie in [0, 1]")
+    if detections.frame_name and detections.frame_name != frame.name:
+        log.warning("%s: fusing the detections of %s (another frame's?)", frame.name, detections.frame_name)
+
+
 def checked_pose(T_world_camera, name: str) -> np.ndarray:
     """float64 `(4, 4)` camera-to-world pose; a non-finite or non-rigid one is a UserError naming frame `name` (a NaN
     pose would otherwise size the map from NaN block coordinates)."""
@@ -169,6 +186,11 @@ def checked_pose(T_world_camera, name: str) -> np.ndarray:
         raise UserError(f"{name}: T_world_camera must be a 4x4 matrix, got shape {pose.shape}")
     if not np.all(np.isfinite(pose)):
         raise UserError(f"{name}: T_world_camera is not finite (a lost track? skip the frame)")
+    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
+        raise UserError(
+            f"{name}: T_world_camera's bottom row is {pose[3].tolist()}, not [0, 0, 0, 1] (a transposed pose? the "
+            "translation belongs in the last column)"
+        )
     if rotation_error(pose) > ROTATION_TOLERANCE or np.linalg.det(pose[:3, :3]) < 0:  # the readers' rule
         raise UserError(
             f"{name}: T_world_camera's rotation is not a rotation (check the pose's convention and that it maps camera to world)"
@@ -353,6 +375,9 @@ class Mapper:
         self._timer = timer
         self._fuse_detections = fuse_detections
         self.label_sets = label_sets or load_label_sets()
+        self._known_labels = frozenset(self.label_sets.open_labels)
+        #: detections' labels that are not open-set labels, with how often they came (their scores are not fused)
+        self.unknown_labels: dict[str, int] = {}
         self._likelihood = likelihood
         self._intrinsics = intrinsics
         self._bounds = None if bounds is None else (np.asarray(bounds[0], float), np.asarray(bounds[1], float))
@@ -422,6 +447,9 @@ class Mapper:
             source = detections
             detections = source(frame) if self.detection_due(frame.T_world_camera) else None
         due = detections is not None and self.detection_due(frame.T_world_camera)
+        if due:
+            check_detections(frame, detections)
+            self._note_unknown_labels(frame.name, detections)
         self._fit_map_to(frame, due, prepared)
         assert self._builder is not None
         self._builder.add_frame(frame, detections if due else None, batch, inputs)
@@ -448,6 +476,24 @@ class Mapper:
         # sent to the device here, off the thread that calls the steps (on a GPU that thread bounds the frame)
         inputs, batch = jax.device_put((adapter.frame(frame), batch))
         return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout), detections, batch, inputs)
+
+    def _note_unknown_labels(self, frame_name: str, detections: FrameDetections | None) -> None:
+        """Warns once per label that is not an open-set label of the label sets (its scores cannot be fused)."""
+        if detections is None:
+            return
+        known = self._known_labels
+        for labels in detections.labels:
+            for label in labels:
+                if label not in known and label not in self.unknown_labels:
+                    log.warning(
+                        "%s: label %r is not one of the %d open-set labels (configs/labels/label_sets.yaml): its "
+                        "scores are not fused (warned once per label; Mapper.unknown_labels counts them)",
+                        frame_name,
+                        label,
+                        len(known),
+                    )
+                if label not in known:
+                    self.unknown_labels[label] = self.unknown_labels.get(label, 0) + 1
 
     def schedule_copy(self) -> DetectionSchedule:
         """A copy of the detection schedule as it stands, for a thread that decides ahead which of the next frames

@@ -102,6 +102,17 @@ def open_detection_source(
             f"no detection file in {folder_path} matches a frame of {scene.name} "
             f"(first frame: {scene.frame_names[0]}, first detection: {folder.frame_names[0]})"
         )
+    frames = set(scene.frame_names) | {name for name, _ in scene.skipped}
+    unmatched = [name for name in folder.frame_names if name not in frames]
+    if unmatched:
+        log.warning(
+            "%d detection files in %s match no frame of %s by name and are not used (first: %s; frames are named like %s)",
+            len(unmatched),
+            folder_path,
+            scene.name,
+            unmatched[0],
+            scene.frame_names[0],
+        )
     return folder
 
 

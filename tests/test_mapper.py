@@ -343,6 +343,30 @@ def test_bad_inputs_are_clear_errors(room):
         as_config({"detections": {"no_such_knob": 1}})
 
 
+def test_silent_api_inputs_are_refused_or_warned(room, caplog):
+    """The Python API applies the file readers' rules: a transposed pose, negative depth and scores outside [0, 1]
+    are UserErrors; an empty depth image, another frame's detections and labels outside the vocabulary warn."""
+    scene_dir, detections, config = room
+    frame = _frames(scene_dir, config)[0]
+    mapper = Mapper(config, intrinsics=frame.intrinsics)
+    with pytest.raises(UserError, match="transposed"):
+        mapper.integrate(depth=frame.depth, T_world_camera=frame.T_world_camera.T)
+    with pytest.raises(UserError, match="negative"):
+        mapper.integrate(depth=-frame.depth, T_world_camera=frame.T_world_camera)
+    good = DetectionFolder(detections).get(frame.name)
+    assert good is not None and good.num_detections
+    scored = dataclasses.replace(good, labels=[{name: 7.0 for name in labels} for labels in good.labels])
+    with pytest.raises(UserError, match=r"scores must lie in \[0, 1\]"):
+        mapper.integrate(frame, scored)
+    with caplog.at_level("WARNING", logger="fmfusion_jax.mapper"):
+        mapper.integrate(depth=np.full_like(frame.depth, np.nan), T_world_camera=frame.T_world_camera)
+        other = dataclasses.replace(good, frame_name="frame-999999")
+        renamed = dataclasses.replace(other, labels=[{"sofa-bed": 0.8} for _ in other.labels])
+        Mapper(config).integrate(frame, renamed)
+    text = caplog.text
+    assert "depth pixels are valid" in text and "another frame" in text and "'sofa-bed' is not one of" in text
+
+
 def test_config_from_a_dict():
     nested = as_config({"detections": {"every": 3, "schedule": "every"}, "tsdf.max_weight": 100.0})
     assert nested.detections.every == 3 and nested.detections.schedule == "every" and nested.tsdf.max_weight == 100.0

@@ -214,3 +214,22 @@ def test_grounded_sam_settings_come_from_the_config(tmp_path):
     (tmp_path / "models.yaml").write_text("front_end: grounded_sam\ngrounding: {nms_iou: 0.3}\n")
     with pytest.raises(UserError, match="unknown grounding key"):
         read_manifest(tmp_path)
+
+
+def test_detection_files_named_like_no_frame_are_reported(room, tmp_path, caplog):
+    scene_dir, detections, _ = room
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    for file in Path(detections).iterdir():
+        (folder / file.name).write_bytes(file.read_bytes())
+    for file in list(folder.glob("frame-000003_*")):
+        file.rename(file.with_name(file.name.replace("frame-000003", "frame-3")))
+    with caplog.at_level("WARNING", logger="fmfusion_jax.sources"):
+        open_detection_source(open_scene(scene_dir), detections=folder)
+    assert "1 detection files" in caplog.text and "frame-3" in caplog.text
+
+
+def test_numbers_yaml_reads_as_text_are_numbers():
+    assert load_config("scannet", ["tsdf.voxel_size=2e-2"]).tsdf.voxel_size == 0.02
+    assert load_config("scannet", ["tsdf.max_weight=1E2"]).tsdf.max_weight == 100.0
+    assert load_config("scannet", ["label_fusion.likelihood=manual"]).label_fusion.likelihood == "manual"
