@@ -144,8 +144,10 @@ def test_a_folder_is_read_ahead_and_other_sources_only_on_due_frames(room, tmp_p
     assert _instances(tmp_path / "ahead") == _instances(tmp_path / "order")
 
 
-def test_ctrl_c_stops_between_frames_writes_a_checkpoint_and_exits_130(tmp_path):
-    """A real SIGINT to a real `fmfusion run` process: status 130, no traceback or crash, a checkpoint."""
+@pytest.mark.parametrize(("signum", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGHUP, 129)])
+def test_a_stop_signal_stops_between_frames_writes_a_checkpoint_and_exits_128_plus_it(tmp_path, signum, status):
+    """A real SIGINT (Ctrl-C), SIGTERM (docker stop, systemd, schedulers) or SIGHUP to a real `fmfusion run`
+    process: status 128 + the signal, no traceback or crash, a checkpoint to resume from."""
     spec = GeneratedSceneSpec(seed=4, num_objects=3, num_frames=60, width=160, height=120)
     scene_dir = generated_scene(spec, tmp_path)
     detections = simulated_detections(scene_dir, tmp_path / "detections", demo_noise(0, spec.width, spec.height))
@@ -178,12 +180,12 @@ def test_ctrl_c_stops_between_frames_writes_a_checkpoint_and_exits_130(tmp_path)
         stderr_lines.append(line)
         if "frame-000002: " in line or time.monotonic() - started > 120:
             break
-    process.send_signal(signal.SIGINT)
+    process.send_signal(signum)
     stdout, rest = process.communicate(timeout=300)
     stderr = "".join(stderr_lines) + rest
     if process.returncode == 0:
         pytest.skip("the run finished before the signal arrived")
-    assert process.returncode == 130, stderr
+    assert process.returncode == status, stderr
     assert "Traceback" not in stderr and "Segmentation" not in stderr
     assert "--resume" in stderr
     assert Checkpoint(partial_dir(out)).exists()

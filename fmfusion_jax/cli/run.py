@@ -127,5 +127,5 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"interrupted: the map so far is in {outcome.folder}; continue with the same command plus --resume", file=sys.stderr
         )
-        return 130
+        return stop.exit_status
     return 0
