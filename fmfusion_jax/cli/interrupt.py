@@ -8,7 +8,6 @@ import signal
 import sys
 from types import FrameType
 
-
 #: Signals that ask a long command to stop at its next safe point: Ctrl-C, and what `docker stop`, systemd, job
 #: schedulers (SIGTERM) and a closed terminal (SIGHUP) send.
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
