@@ -14,6 +14,7 @@ import dataclasses
 import functools
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from statistics import median
@@ -51,8 +52,9 @@ class DetectionSource(Protocol):
 
 
 def build_map_config(config: PipelineConfig, bounds_min, bounds_max, height: int, width: int) -> MapConfig:
-    """The engine's static sizes for a scene with these world bounds and image size."""
-    return MapConfig.for_bounds(
+    """The engine's static sizes for a scene with these world bounds and image size; a map that could never fit in
+    this machine's memory is a UserError naming the knobs (before anything is allocated)."""
+    map_config = MapConfig.for_bounds(
         bounds_min,
         bounds_max,
         margin=config.tsdf.bounds_margin,
@@ -69,6 +71,32 @@ def build_map_config(config: PipelineConfig, bounds_min, bounds_max, height: int
         instance_capacity=config.instances.capacity,
         instance_slots=config.instances.voxel_slots,
     )
+    check_map_fits(map_config, config)
+    return map_config
+
+
+def physical_memory_bytes() -> int | None:
+    """This machine's memory, or None where the system does not say."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_map_fits(map_config: MapConfig, config: PipelineConfig) -> None:
+    """A UserError when the map's block index alone, or the map at its capacities, needs more than this machine's
+    memory (a voxel size in the wrong unit would otherwise ask the runtime for petabytes)."""
+    memory = physical_memory_bytes()
+    if memory is None:
+        return
+    index = map_config.num_grid_blocks * 4
+    if index > memory / 2 or map_config.memory_bytes() > memory:
+        raise UserError(
+            f"the map would need {map_config.memory_bytes() / 2**30:.3g} GiB (its block index over the scene "
+            f"{index / 2**30:.3g} GiB: {map_config.grid_shape} blocks of {config.tsdf.block_size} voxels of "
+            f"{config.tsdf.voxel_size} m), more than this machine's {memory / 2**30:.1f} GiB: raise tsdf.voxel_size "
+            "(metres: 0.015625 is 1.5 cm) or lower tsdf.block_capacity / instances.capacity"
+        )
 
 
 def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:

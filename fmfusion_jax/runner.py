@@ -16,6 +16,7 @@ import os
 import shutil
 import statistics
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -151,6 +152,7 @@ class SceneFusion:
         else:
             sample = scene.sample_depth(max_frames=60)
             check_depth_units(scene, sample)
+            warn_static_trajectory(scene)
             self.mapper = mapper_for_scene(scene, config, sample, time_stages=time_stages)
 
     #: Frames read, decoded and prepared (`Mapper.prepare`) ahead per reader thread, while the current one is fused.
@@ -278,6 +280,28 @@ class Lookahead:
 
     schedule: Any  # pipeline.DetectionSchedule
     position: int
+
+
+def warn_static_trajectory(scene: Scene, metres: float = 0.01, degrees: float = 1.0) -> bool:
+    """Warns (and says True) when every pose of a sequence of several frames lies within `metres` and `degrees` of
+    the first: identity or copied poses fuse every frame at one place, which is rarely what the user has."""
+    from fmfusion_jax.pipeline import camera_motion
+
+    poses = scene.poses()
+    if len(poses) < 2:
+        return False
+    motions = [camera_motion(poses[0], pose) for pose in poses[1:]]
+    if max(m for m, _ in motions) < metres and max(d for _, d in motions) < degrees:
+        log.warning(
+            "%s: the camera does not move: all %d poses lie within %.0f cm and %.0f degree of the first (identity or "
+            "copied poses?); every frame is fused at that one place",
+            scene.name,
+            len(poses),
+            100 * metres,
+            degrees,
+        )
+        return True
+    return False
 
 
 def read_ahead(read: Callable[[Any], T], items: Iterable[Any], reader: concurrent.futures.Executor, window: int) -> Iterator[T]:
@@ -626,10 +650,13 @@ def prepare_output_dir(out_dir: str | Path, create: bool = True) -> Path:
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} is a file, not a folder")
+    where = out_dir if create else out_dir.parent
     try:
-        (out_dir if create else out_dir.parent).mkdir(parents=True, exist_ok=True)
+        where.mkdir(parents=True, exist_ok=True)
+        # the outputs are staged beside --out (OUT.partial): a read-only place fails now, not after the fusion
+        os.rmdir(tempfile.mkdtemp(prefix=".fmfusion-write-check-", dir=where))
     except OSError as error:
-        raise UserError(f"cannot create the output folder {out_dir}: {error.strerror or error}") from None
+        raise UserError(f"cannot write the output folder {out_dir} ({where}: {error.strerror or error})") from None
     return out_dir
 
 

@@ -56,3 +56,51 @@ def test_an_earlier_runs_folder_an_empty_one_or_a_new_one_is_fine(inputs, tmp_pa
     (earlier / "run.json").write_text("not json")
     with pytest.raises(UserError, match="not an earlier"):
         check_output_folder(earlier, (scene, detections))
+
+
+def test_a_place_that_cannot_be_written_fails_before_any_work(tmp_path, monkeypatch):
+    import errno
+    import tempfile
+
+    from fmfusion_jax.runner import prepare_output_dir
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", read_only)
+    with pytest.raises(UserError, match="Read-only file system"):
+        prepare_output_dir(tmp_path / "out", create=False)
+
+
+def test_a_map_that_cannot_fit_is_refused_before_allocation():
+    import numpy as np
+
+    from fmfusion_jax.config import load_config
+    from fmfusion_jax.pipeline import build_map_config
+
+    tiny = load_config("scannet", ["tsdf.voxel_size=1.0e-6"])
+    with pytest.raises(UserError, match="raise tsdf.voxel_size"):
+        build_map_config(tiny, np.zeros(3), np.full(3, 8.0), 480, 640)
+    assert build_map_config(load_config("scannet"), np.zeros(3), np.full(3, 8.0), 480, 640).memory_bytes() < 2**31
+
+
+def test_a_camera_that_never_moves_is_warned(tmp_path, caplog):
+    import numpy as np
+
+    from fmfusion_jax.runner import warn_static_trajectory
+
+    class Scene:
+        name = "still"
+
+        def __init__(self, poses):
+            self._poses = poses
+
+        def poses(self):
+            return self._poses
+
+    still = np.repeat(np.eye(4)[None], 20, axis=0)
+    moving = still.copy()
+    moving[:, 0, 3] = np.linspace(0, 1, 20)
+    with caplog.at_level("WARNING", logger="fmfusion_jax.runner"):
+        assert warn_static_trajectory(Scene(still)) and not warn_static_trajectory(Scene(moving))
+    assert "does not move" in caplog.text
