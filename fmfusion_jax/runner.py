@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import shutil
+import socket
 import statistics
 import sys
 import tempfile
@@ -696,6 +697,62 @@ def check_output_folder(out_dir: Path, inputs: Iterable[Path | None] = (), overw
     )
 
 
+class OutputLock:
+    """One writer per output folder: `OUT.lock` beside `--out` holds the owner's pid and host while a run writes.
+
+    A second run on the same `--out` is a UserError naming the owner; a lock whose process is gone (same host, dead
+    pid: a run killed outright) is taken over with a warning. Created with O_EXCL, so two runs starting together
+    cannot both take it."""
+
+    def __init__(self, out_dir: Path):
+        self.path = out_dir.with_name(out_dir.name + ".lock")
+        self.owner = {"pid": os.getpid(), "host": socket.gethostname()}
+
+    def __enter__(self) -> "OutputLock":
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                holder = self._holder()
+                if holder is None:  # being written this instant, or left half written: look again once
+                    time.sleep(0.2)
+                    holder = self._holder()
+                if holder is not None and not self._stale(holder):
+                    raise UserError(
+                        f"--out {self.path.with_suffix('')} is being written by another run (pid {holder.get('pid')} on "
+                        f"{holder.get('host')}, {self.path}): wait for it, or choose another folder"
+                    ) from None
+                log.warning("taking over %s, left by a run that is gone (%s)", self.path, holder)
+                self.path.unlink(missing_ok=True)
+                continue
+            with os.fdopen(fd, "w") as file:
+                json.dump(self.owner, file)
+            return self
+        raise UserError(f"cannot take the lock {self.path}: another run keeps taking it")
+
+    def __exit__(self, *exc_info) -> None:
+        if self._holder() == self.owner:
+            self.path.unlink(missing_ok=True)
+
+    def _holder(self) -> dict | None:
+        try:
+            holder = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return None  # half written or gone: treated as stale
+        return holder if isinstance(holder, dict) else None
+
+    def _stale(self, holder: dict) -> bool:
+        if holder.get("host") != self.owner["host"]:
+            return False  # another machine's run (a shared file system): never taken over
+        try:
+            os.kill(int(holder.get("pid", -1)), 0)
+        except ProcessLookupError:
+            return True
+        except (PermissionError, ValueError, TypeError, OverflowError):
+            return False
+        return False
+
+
 def partial_dir(out_dir: Path) -> Path:
     """Where `run_and_export` builds a run's outputs and keeps its checkpoint: `OUT.partial` beside `OUT`."""
     return out_dir.with_name(out_dir.name + ".partial")
@@ -736,6 +793,28 @@ def run_and_export(
     """
     start = time.perf_counter()
     out_dir = prepare_output_dir(out_dir, create=False)
+    with OutputLock(out_dir):
+        return _run_and_export(
+            scene, detection_source, config, out_dir, progress, start, on_error, checkpoint_every, resume, restart,
+            should_stop, time_stages, observer,
+        )  # fmt: skip
+
+
+def _run_and_export(
+    scene: Scene,
+    detection_source: DetectionSource,
+    config: PipelineConfig,
+    out_dir: Path,
+    progress: bool,
+    start: float,
+    on_error: str,
+    checkpoint_every: int,
+    resume: bool,
+    restart: bool,
+    should_stop: Callable[[], bool] | None,
+    time_stages: bool,
+    observer: Callable[..., None] | None,
+) -> RunOutcome:
     staging = partial_dir(out_dir)
     checkpoint = Checkpoint(staging, checkpoint_every)
     if staging.exists() and not resume:

@@ -104,3 +104,54 @@ def test_a_camera_that_never_moves_is_warned(tmp_path, caplog):
     with caplog.at_level("WARNING", logger="fmfusion_jax.runner"):
         assert warn_static_trajectory(Scene(still)) and not warn_static_trajectory(Scene(moving))
     assert "does not move" in caplog.text
+
+
+def test_one_writer_per_output_folder(tmp_path, caplog):
+    """The lock itself (the two-process case: below): a live owner refuses a second run, a dead one is taken over."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from fmfusion_jax.runner import OutputLock
+
+    out = tmp_path / "out"
+    with OutputLock(out) as lock:
+        assert json.loads(lock.path.read_text())["pid"] == os.getpid()
+        with pytest.raises(UserError, match=f"another run \\(pid {os.getpid()}"):
+            OutputLock(out).__enter__()
+    assert not lock.path.exists()
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    lock.path.write_text(json.dumps({"pid": int(gone.stdout), "host": socket.gethostname()}))
+    with caplog.at_level("WARNING", logger="fmfusion_jax.runner"), OutputLock(out):
+        assert "taking over" in caplog.text
+    lock.path.write_text(json.dumps({"pid": 1, "host": "another-machine"}))  # a shared file system: never taken
+    with pytest.raises(UserError, match="another-machine"):
+        OutputLock(out).__enter__()
+
+
+def test_a_second_run_on_the_same_output_folder_is_refused(tmp_path):
+    """A real `fmfusion run` process meets the lock another process (this one) holds on its --out."""
+    import os
+    import subprocess
+    import sys
+
+    from fmfusion_jax.demo import demo_noise
+    from fmfusion_jax.runner import OutputLock
+    from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
+
+    spec = GeneratedSceneSpec(seed=2, num_objects=2, num_frames=4, width=96, height=72)
+    scene = generated_scene(spec, tmp_path)
+    detections = simulated_detections(scene, tmp_path / "det", demo_noise(0, spec.width, spec.height))
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "fmfusion_jax.cli", "run", str(scene), "--detections", str(detections)]
+    with OutputLock(out):
+        second = subprocess.run(
+            [*command, "--out", str(out), "--no-progress"],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        )
+    assert second.returncode == 2, second.stderr
+    assert f"being written by another run (pid {os.getpid()}" in second.stderr and "Traceback" not in second.stderr
+    assert not out.exists()
