@@ -131,6 +131,7 @@ class SceneFusion:
         self.position = 0
         #: wall time of each frame fused in this process, as run (waiting for its read included)
         self.frame_seconds: list[float] = []
+        self._last_checkpoint, self._checkpoint_seconds = time.perf_counter(), 0.0
         if resume:
             if checkpoint is None or not checkpoint.exists():
                 raise UserError(f"nothing to resume: no checkpoint in {checkpoint.folder if checkpoint else '-'}")
@@ -190,14 +191,26 @@ class SceneFusion:
                 self.position += 1
                 if progress:
                     progress(1)
-                if (
-                    self.checkpoint is not None
-                    and self.checkpoint.every
-                    and self.position % self.checkpoint.every == 0
-                    and self.position < len(self.scene)
-                ):
+                if self.checkpoint is not None and self.position < len(self.scene) and self._checkpoint_due():
+                    saving = time.perf_counter()
                     self.checkpoint.save(self.mapper, self.scene, self.position, self.skipped)
+                    self._last_checkpoint = time.perf_counter()
+                    self._checkpoint_seconds = self._last_checkpoint - saving
         return True
+
+    #: Without `--checkpoint-every`, a checkpoint once the run has gone this long since the last one (s) ...
+    AUTO_CHECKPOINT_AFTER_S = 120.0
+    #: ... and long enough that checkpoints cost at most this share of the run (a ScanNet room's takes ~2 s)
+    AUTO_CHECKPOINT_SHARE = 0.03
+
+    def _checkpoint_due(self) -> bool:
+        """`--checkpoint-every N`: every N frames; otherwise by time, so that a killed run (SIGKILL, a power cut)
+        loses at most a few minutes while the checkpoints cost under 3 % of the run."""
+        assert self.checkpoint is not None
+        if self.checkpoint.every:
+            return self.position % self.checkpoint.every == 0
+        since = time.perf_counter() - self._last_checkpoint
+        return since >= max(self.AUTO_CHECKPOINT_AFTER_S, self._checkpoint_seconds / self.AUTO_CHECKPOINT_SHARE)
 
     def _read_frame(self, i: int) -> tuple[PreparedFrame, DataError | None] | DataError:
         """Frame `i` prepared (`Mapper.prepare`) with its detections when the source reads ahead (and the error

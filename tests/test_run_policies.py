@@ -87,6 +87,31 @@ def test_periodic_checkpoints_and_restart(room, tmp_path):
         _run(room, out, resume=True)
 
 
+def test_a_long_run_checkpoints_by_time_without_being_asked(room, tmp_path, monkeypatch):
+    """Without --checkpoint-every, a run checkpoints once it has gone AUTO_CHECKPOINT_AFTER_S since the last one (so
+    a SIGKILL loses at most that): here 0 s, so every frame; the checkpoint's cost spaces the next ones."""
+    scene_dir, detections, config = room
+    folder = DetectionFolder(detections)
+    checkpoint = Checkpoint(tmp_path / "partial", 0)
+    monkeypatch.setattr(SceneFusion, "AUTO_CHECKPOINT_AFTER_S", 0.0)
+    saved: list[int] = []
+    original = Checkpoint.save
+    monkeypatch.setattr(
+        Checkpoint,
+        "save",
+        lambda self, mapper, scene, position, skipped: (saved.append(position), original(self, mapper, scene, position, skipped)),
+    )
+    fusion = SceneFusion(open_scene(scene_dir), lambda frame: folder.get(frame.name), config, checkpoint=checkpoint)
+    assert fusion.run()
+    assert saved and saved[0] == 1 and checkpoint.exists()
+    monkeypatch.setattr(SceneFusion, "AUTO_CHECKPOINT_AFTER_S", 3600.0)  # the default's scale: a short run never does
+    saved.clear()
+    assert SceneFusion(
+        open_scene(scene_dir), lambda frame: folder.get(frame.name), config, checkpoint=Checkpoint(tmp_path / "p2", 0)
+    ).run()
+    assert saved == []
+
+
 def test_a_second_run_replaces_the_first_runs_outputs_as_a_whole(room, tmp_path):
     out = tmp_path / "out"
     assert _run(room, out).complete
