@@ -65,7 +65,8 @@ def register(subparsers) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="write a checkpoint every N frames into OUT.partial (always on Ctrl-C)",
+        help="write a checkpoint every N frames into OUT.partial (always on Ctrl-C, SIGTERM, SIGHUP); 0: by time, "
+        "after 2 minutes and at most 3 %% of the run",
     )
     resume = parser.add_mutually_exclusive_group()
     resume.add_argument(
