@@ -58,6 +58,31 @@ def test_an_earlier_runs_folder_an_empty_one_or_a_new_one_is_fine(inputs, tmp_pa
         check_output_folder(earlier, (scene, detections))
 
 
+def test_a_read_only_file_system_fails_before_any_work(tmp_path):
+    """A real read-only mount (a private mount namespace: root ignores permissions, not a read-only mount)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    if shutil.which("unshare") is None or os.geteuid() != 0:
+        pytest.skip("needs unshare and root to mount a read-only file system in a private namespace")
+    scene, detections = tmp_path / "scene", tmp_path / "det"
+    for folder in (scene, detections):
+        folder.mkdir()
+    read_only = tmp_path / "read-only"
+    read_only.mkdir()
+    run = f"{sys.executable} -m fmfusion_jax.cli run {scene} --detections {detections} --out {read_only}/out --no-progress"
+    probe = subprocess.run(
+        ["unshare", "-m", "sh", "-c", f"mount -t tmpfs -o ro tmpfs {read_only} && {run}"], capture_output=True, text=True
+    )
+    if "mount" in probe.stderr and "Read-only" not in probe.stderr:
+        pytest.skip(f"no private mount here: {probe.stderr.strip()}")
+    assert probe.returncode == 2, probe.stderr
+    assert "cannot write the output folder" in probe.stderr and "Read-only file system" in probe.stderr
+    assert "Traceback" not in probe.stderr
+
+
 def test_a_place_that_cannot_be_written_fails_before_any_work(tmp_path, monkeypatch):
     import errno
     import tempfile
