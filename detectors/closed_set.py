@@ -32,7 +32,7 @@ import numpy as np
 
 from detectors.classifier import ImageClassifier, box_crop
 from detectors.coco_detector import CocoDetector
-from detectors.image_ops import check_rgb_image
+from detectors.image_ops import frame_image
 from detectors.proposals import Proposal, ProposalConfig, label_proposals, propose_masks
 from detectors.segmenter import ImageEmbedding, Segmenter
 from detectors.vocabulary import Vocabulary, load_vocabulary
@@ -133,14 +133,7 @@ class ClosedSetModels:
 
     def detect(self, frame: RGBDFrame | np.ndarray, frame_name: str | None = None) -> FrameDetections:
         """Detections of one frame (an `RGBDFrame`, or an `(H, W, 3)` uint8 RGB image with `frame_name`)."""
-        name: str | None
-        if isinstance(frame, RGBDFrame):
-            image, name = frame.color, frame_name or frame.name
-        else:
-            image, name = frame, frame_name
-        if not name:
-            raise ValueError("detect() on an image needs its frame_name")
-        image = check_rgb_image(image)
+        image, name = frame_image(frame, frame_name)
         boxes, labels, raw_tags = self._detections(image)
         proposals: list[Proposal] = []
         masks = np.zeros((0, *image.shape[:2]), bool)

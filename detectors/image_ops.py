@@ -10,6 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from fmfusion_jax.types import RGBDFrame
+
 #: ImageNet statistics, on the 0..1 scale (RAM, GroundingDINO); SAM uses the same values x 255.
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -23,6 +25,19 @@ def check_rgb_image(image: np.ndarray) -> np.ndarray:
     if image.shape[0] < 1 or image.shape[1] < 1:
         raise ValueError(f"empty image {image.shape}")
     return image
+
+
+def frame_image(frame: RGBDFrame | np.ndarray, frame_name: str | None = None) -> tuple[np.ndarray, str]:
+    """The `(H, W, 3)` uint8 RGB image and the name of what a front end's `detect` is given: an `RGBDFrame` (its
+    colour and name, unless `frame_name`), or an image with its `frame_name` (required)."""
+    name: str | None
+    if isinstance(frame, RGBDFrame):
+        image, name = frame.color, frame_name or frame.name
+    else:
+        image, name = frame, frame_name
+    if not name:
+        raise ValueError("detect() on an image needs its frame_name")
+    return check_rgb_image(image), name
 
 
 def resize(image: np.ndarray, height: int, width: int) -> np.ndarray:

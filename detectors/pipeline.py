@@ -25,7 +25,7 @@ import numpy as np
 
 from detectors.contracts import RAM_DEFAULT_THRESHOLD
 from detectors.grounding import GroundingDetector, GroundingResult
-from detectors.image_ops import check_rgb_image
+from detectors.image_ops import frame_image
 from detectors.prompt import PromptAugmenter
 from detectors.segmenter import Segmenter
 from detectors.tagger import ImageTagger, TagResult
@@ -181,14 +181,7 @@ class FoundationModels:
 
     def detect(self, frame: RGBDFrame | np.ndarray, frame_name: str | None = None) -> FrameDetections:
         """Detections of one frame (an `RGBDFrame`, or an `(H, W, 3)` uint8 RGB image with `frame_name`)."""
-        name: str | None
-        if isinstance(frame, RGBDFrame):
-            image, name = frame.color, frame_name or frame.name
-        else:
-            image, name = frame, frame_name
-        if not name:
-            raise ValueError("detect() on an image needs its frame_name")
-        image = check_rgb_image(image)
+        image, name = frame_image(frame, frame_name)
         tags = self.tag(image)
         prompt = self.prompts.prompt(name, tags.tags)
         result = self.ground(image, prompt)

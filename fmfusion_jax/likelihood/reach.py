@@ -111,22 +111,13 @@ def detector_reach(
 ) -> DetectorReach:
     """Every scored ground-truth object of `scene_dir` against the detections in `detections_dir` (module
     docstring). `likelihood`: the matrix whose rows say which class a label stands for (manual: the name table)."""
-    from fmfusion_jax.errors import UserError
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.likelihood.summarize import default_min_pixels
+    from fmfusion_jax.likelihood.summarize import default_min_pixels, open_with_detections
     from fmfusion_jax.simulation.render import GroundTruthRenderer
 
     label_sets = load_label_sets()
     stands_for = label_classes(label_sets, load_likelihood(likelihood))
-    scene = open_scene(scene_dir, depth_max=depth_max)
+    scene, folder, frames, gt = open_with_detections(scene_dir, detections_dir, depth_max)
     shape = (scene.intrinsics.height, scene.intrinsics.width)
-    folder = DetectionFolder(detections_dir, image_shape=shape)
-    frames = [i for i, name in enumerate(scene.frame_names) if name in folder]
-    if not frames:
-        raise UserError(f"no detection file in {detections_dir} matches a frame of {scene.name}")
-    gt = load_scannet_ground_truth(scene.path)
     benchmark = set(BENCHMARK_NYU40_IDS)
     nyu40_to_class = label_sets.nyu40_to_class_index()
     ids, counts = np.unique(gt.instance_ids[gt.instance_ids > 0], return_counts=True)

@@ -261,6 +261,22 @@ def frame_record(
 # Scenes
 
 
+def open_with_detections(scene_dir: str | Path, detections_dir: str | Path, depth_max: float = 4.0):
+    """`(scene, DetectionFolder, positions of the frames with a detection file, SceneGroundTruth)` of a scene with
+    ground truth and its detections; no frame with detections is a UserError."""
+    from fmfusion_jax.errors import UserError
+    from fmfusion_jax.io.detections import DetectionFolder
+    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+    from fmfusion_jax.io.scene import open_scene
+
+    scene = open_scene(scene_dir, depth_max=depth_max)
+    folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
+    frames = [i for i, name in enumerate(scene.frame_names) if name in folder]
+    if not frames:
+        raise UserError(f"no detection file in {detections_dir} matches a frame of {scene.name}")
+    return scene, folder, frames, load_scannet_ground_truth(scene.path)
+
+
 def summarize_scene(
     scene_dir: str | Path,
     detections_dir: str | Path,
@@ -279,20 +295,11 @@ def summarize_scene(
       min_pixels: least visible pixels of an observed instance (default: `default_min_pixels`).
       depth_max: depth truncation of the rendering (metres), as the simulator and the fusion read depth.
     """
-    from fmfusion_jax.errors import UserError
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
 
     label_sets = label_sets or load_label_sets()
-    scene = open_scene(scene_dir, depth_max=depth_max)
+    scene, folder, frames, gt = open_with_detections(scene_dir, detections_dir, depth_max)
     shape = (scene.intrinsics.height, scene.intrinsics.width)
-    folder = DetectionFolder(detections_dir, image_shape=shape)
-    frames = [i for i, name in enumerate(scene.frame_names) if name in folder]
-    if not frames:
-        raise UserError(f"no detection file in {detections_dir} matches a frame of {scene.name}")
-    gt = load_scannet_ground_truth(scene.path)
     renderer = GroundTruthRenderer.from_ground_truth(gt)
     classes = instance_classes(gt, label_sets)
     min_pixels = default_min_pixels(*shape) if min_pixels is None else int(min_pixels)
