@@ -122,6 +122,11 @@ def test_a_second_run_replaces_the_first_runs_outputs_as_a_whole(room, tmp_path)
     assert sorted(p.name for p in (out / "instances").iterdir()) == sorted(
         f"{i['id']:04d}_{i['class'].replace(' ', '_')}.ply" for i in _instances(out)
     )
+    # run.json is true after the rename: its paths are inside OUT, and the frames' times are recorded as run
+    run = json.loads((out / "run.json").read_text())
+    assert (out / run["benchmark"]["predictions"]).is_file()
+    assert run["frame_ms_as_run"]["frames"] == SPEC.num_frames and run["frame_ms_as_run"]["median"] > 0
+    assert not (out.with_name(out.name + ".lock")).exists()  # the lock goes with the run
 
 
 def test_bad_frames_are_skipped_and_listed_or_stop_the_run(room, tmp_path):
