@@ -35,7 +35,7 @@ from detectors.grounding import (
     postprocess_grounding,
     preprocess_grounding,
 )
-from detectors.manifest import FrontEnd, Manifest, load_front_end, read_manifest
+from detectors.manifest import FrontEnd, Manifest, build_front_end, load_front_end, read_manifest
 from detectors.onnx_runtime import ContractError, ModelNotFoundError, OnnxModel, resolve_providers
 from detectors.pipeline import DetectorConfig, FoundationModels
 from detectors.prompt import PromptAugmenter, PromptRecord
@@ -70,6 +70,7 @@ __all__ = [
     "SSD",
     "FrontEnd",
     "Manifest",
+    "build_front_end",
     "load_front_end",
     "read_manifest",
     "Proposal",

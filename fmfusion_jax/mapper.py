@@ -165,17 +165,15 @@ def as_frame(
     )
 
 
-def check_detections(frame: RGBDFrame, detections: FrameDetections | None) -> None:
+def check_detections(frame_name: str, detections: FrameDetections) -> None:
     """The file reader's rules for detections given in Python: scores in [0, 1] (a UserError), and a warning when
-    they are another frame's (their `frame_name` differs)."""
-    if detections is None:
-        return
+    they are another frame's (their `frame_name` differs from `frame_name`)."""
     for k, labels in enumerate(detections.labels):
         for label, score in labels.items():
             if not 0.0 <= float(score) <= 1.0:
-                raise UserError(f"{frame.name}: detection {k} scores {label!r} {score}: scores must lie in [0, 1]")
-    if detections.frame_name and detections.frame_name != frame.name:
-        log.warning("%s: fusing the detections of %s (another frame's?)", frame.name, detections.frame_name)
+                raise UserError(f"{frame_name}: detection {k} scores {label!r} {score}: scores must lie in [0, 1]")
+    if detections.frame_name and detections.frame_name != frame_name:
+        log.warning("%s: fusing the detections of %s (another frame's?)", frame_name, detections.frame_name)
 
 
 def checked_pose(T_world_camera, name: str) -> np.ndarray:
@@ -438,21 +436,21 @@ class Mapper:
                 index=self.frames_integrated,
                 name=name,
             )
-        if detections is not None and not isinstance(detections, FrameDetections):
-            if not callable(detections):
-                raise UserError(
-                    f"{frame.name}: detections must be FrameDetections or a detection source (a function of the "
-                    f"frame), got {type(detections).__name__}"
-                )
-            source = detections
-            detections = source(frame) if self.detection_due(frame.T_world_camera) else None
-        due = detections is not None and self.detection_due(frame.T_world_camera)
-        if due:
-            check_detections(frame, detections)
-            self._note_unknown_labels(frame.name, detections)
+        if detections is not None and not isinstance(detections, FrameDetections) and not callable(detections):
+            raise UserError(
+                f"{frame.name}: detections must be FrameDetections or a detection source (a function of the "
+                f"frame), got {type(detections).__name__}"
+            )
+        fused: FrameDetections | None = None
+        if detections is not None and self.detection_due(frame.T_world_camera):
+            # a source is called on due frames only
+            fused = detections if isinstance(detections, FrameDetections) else detections(frame)
+        due = fused is not None
+        if fused is not None and batch is None:  # detections given to `prepare` were checked there (reader thread)
+            self._accept(frame.name, fused)
         self._fit_map_to(frame, due, prepared)
         assert self._builder is not None
-        self._builder.add_frame(frame, detections if due else None, batch, inputs)
+        self._builder.add_frame(frame, fused, batch, inputs)
         if due:
             self._schedule.fused(frame.T_world_camera)
         self._schedule.advance(frame.T_world_camera)
@@ -472,15 +470,17 @@ class Mapper:
         checked_pose(frame.T_world_camera, frame.name)
         layout = self._layout(*frame.depth.shape)
         adapter = HostAdapter.for_map(self.config, layout, self.label_sets)
+        if detections is not None:
+            self._accept(frame.name, detections)
         batch = None if detections is None else adapter.detections(detections)
         # sent to the device here, off the thread that calls the steps (on a GPU that thread bounds the frame)
         inputs, batch = jax.device_put((adapter.frame(frame), batch))
         return PreparedFrame(frame, frame_block_extent(frame, layout), _extent_parameters(layout), detections, batch, inputs)
 
-    def _note_unknown_labels(self, frame_name: str, detections: FrameDetections | None) -> None:
-        """Warns once per label that is not an open-set label of the label sets (its scores cannot be fused)."""
-        if detections is None:
-            return
+    def _accept(self, frame_name: str, detections: FrameDetections) -> None:
+        """The file reader's rules for detections given in Python (`check_detections`), and a warning once per label
+        that is not an open-set label of the label sets (its scores cannot be fused)."""
+        check_detections(frame_name, detections)
         known = self._known_labels
         for labels in detections.labels:
             for label in labels:

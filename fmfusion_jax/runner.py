@@ -31,11 +31,12 @@ from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
-from fmfusion_jax.pipeline import DetectionSource, FusionResult, extract_map_instances
+from fmfusion_jax.pipeline import DetectionSchedule, DetectionSource, FusionResult, camera_motion, extract_map_instances
 from fmfusion_jax.viz import overview
 
 if TYPE_CHECKING:
     from fmfusion_jax.mapper import PreparedFrame
+    from fmfusion_jax.types import FrameDetections
 
 log = logging.getLogger(__name__)
 
@@ -212,9 +213,10 @@ class SceneFusion:
         since = time.perf_counter() - self._last_checkpoint
         return since >= max(self.AUTO_CHECKPOINT_AFTER_S, self._checkpoint_seconds / self.AUTO_CHECKPOINT_SHARE)
 
-    def _read_frame(self, i: int) -> tuple[PreparedFrame, DataError | None] | DataError:
+    def _read_frame(self, i: int) -> tuple[PreparedFrame, DataError | None, FrameDetections | None] | DataError:
         """Frame `i` prepared (`Mapper.prepare`) with its detections when the source reads ahead (and the error
-        reading them gave, reported if the frame turns out due), or the error reading the frame gave."""
+        reading them gave, reported if the frame turns out due), or the error reading the frame gave. The third
+        item is the detections made ahead by the detection thread (`_detect_ahead`), None until then."""
         try:
             frame = self.scene.read_frame(i)
         except DataError as error:
@@ -225,7 +227,7 @@ class SceneFusion:
                 detections = self.detection_source(frame)
             except DataError as failure:
                 detection_error = failure
-        return self.mapper.prepare(frame, detections), detection_error
+        return self.mapper.prepare(frame, detections), detection_error, None
 
     def _detect_ahead(self, lookahead: Lookahead, read: Any) -> Any:
         """In the detection thread, in frame order: a read frame with the detections of the models when the
@@ -233,8 +235,8 @@ class SceneFusion:
         frame gets detections)."""
         if isinstance(read, DataError):
             return read
-        prepared, detection_error = read
-        frame, detections = prepared.frame, None
+        prepared, detection_error, detections = read
+        frame = prepared.frame
         schedule = lookahead.schedule
         if schedule.due(lookahead.position, frame.T_world_camera):
             try:
@@ -256,7 +258,7 @@ class SceneFusion:
             )
         return self.mapper.finalize()
 
-    def _fuse_frame(self, i: int, read: tuple[Any, ...] | DataError) -> None:
+    def _fuse_frame(self, i: int, read: tuple[PreparedFrame, DataError | None, FrameDetections | None] | DataError) -> None:
         name = self.scene.frame_names[i]
         if isinstance(read, DataError):
             self._bad_input(name, str(read), "skipping frame")
@@ -265,9 +267,8 @@ class SceneFusion:
                     f"the first {_MAX_LEADING_BAD_FRAMES} frames all failed; first: {self.skipped[len(self.scene.skipped)][1]}"
                 ) from None
             return
-        # (prepared, error) from the readers, plus the detections made ahead when the detection thread ran
-        prepared, detection_error = read[0], read[1]
-        frame, detections = prepared.frame, (read[2] if len(read) > 2 else None)
+        prepared, detection_error, detections = read
+        frame = prepared.frame
         if self.mapper.detection_due(frame.T_world_camera):
             if not self._source_reads_ahead and detections is None and detection_error is None:
                 try:
@@ -292,15 +293,13 @@ class SceneFusion:
 class Lookahead:
     """The detection thread's copy of the detection schedule and the frames it has integrated (its position)."""
 
-    schedule: Any  # pipeline.DetectionSchedule
+    schedule: DetectionSchedule
     position: int
 
 
 def warn_static_trajectory(scene: Scene, metres: float = 0.01, degrees: float = 1.0) -> bool:
     """Warns (and says True) when every pose of a sequence of several frames lies within `metres` and `degrees` of
     the first: identity or copied poses fuse every frame at one place, which is rarely what the user has."""
-    from fmfusion_jax.pipeline import camera_motion
-
     poses = scene.poses()
     if len(poses) < 2:
         return False

@@ -95,13 +95,13 @@ def test_floor_pixels_are_the_floors_and_need_the_floor_below_the_camera():
     T, depth, label = VIEWS[1]
     floor = support.floor_height(jnp.asarray(_floor_histogram(VIEWS)))
     samples = support.surface_samples(depth, T, K, UP, CONFIG)
-    on_floor = np.asarray(support.floor_pixels(samples, floor, jnp.float32(T[2, 3]), jnp.float32(0.05)))
+    on_floor = np.asarray(support.floor_pixels(samples, floor, jnp.float32(0.05)))
     s = CONFIG.pixel_stride
     label = label[::s, ::s]
     assert not on_floor[label != 0].any()
     assert on_floor[_interior(label == 0)].mean() > 0.95
     # a camera 0.3 m above the floor found: that "floor" is taken for a table top seen from above, not filtered
-    low = support.floor_pixels(samples, floor, floor.height + 0.3, jnp.float32(0.05))
+    low = support.floor_pixels(samples._replace(camera_height=floor.height + 0.3), floor, jnp.float32(0.05))
     assert not np.asarray(low).any()
 
 

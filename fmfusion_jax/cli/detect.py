@@ -84,7 +84,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from detectors import load_front_end, read_manifest
+    from detectors import build_front_end, read_manifest
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.detections import label_path, write_frame_detections
     from fmfusion_jax.io.scene import open_scene
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     scene = open_scene(args.scene, layout=args.layout, stride=args.stride, max_frames=args.max_frames)
     manifest_overrides = config.front_end.manifest_overrides()
     manifest = read_manifest(args.models, manifest_overrides)
-    models = load_front_end(args.models, providers=args.providers, overrides=manifest_overrides)
+    models = build_front_end(manifest, providers=args.providers)
     if args.every is not None:
         positions, rule = list(range(0, len(scene), args.every)), f"every {args.every} of {len(scene)} read"
     else:

@@ -198,9 +198,7 @@ def detection_image(
     if fusion.floor_up is not None:
         samples = support.surface_samples(frame.depth, frame.T_world_camera, frame.intrinsics, fusion.floor_up, config)
         up_heights = support.add_heights(up_heights, samples)
-        T = jnp.asarray(frame.T_world_camera, jnp.float32)
-        camera_height = T[0, 3] * fusion.floor_up[0] + T[1, 3] * fusion.floor_up[1] + T[2, 3] * fusion.floor_up[2]
-        on_floor = support.floor_pixels(samples, support.floor_height(up_heights), camera_height, fusion.floor_band)
+        on_floor = support.floor_pixels(samples, support.floor_height(up_heights), fusion.floor_band)
         says_floor = jnp.argmax(jnp.asarray(batch.label_scores) @ likelihood, axis=1) == fusion.floor_class
         kept = support.filter_floor_pixels(raw, on_floor, says_floor, fusion.floor_max_share, FILTERED_PIXEL)
     kept = detections.filter_detection_depth(

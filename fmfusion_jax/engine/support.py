@@ -45,6 +45,7 @@ class SurfaceSamples(NamedTuple):
 
     height: jax.Array  # float32[Hs, Ws]: height of the point along the up axis (m, world frame)
     up_facing: jax.Array  # bool[Hs, Ws]: a valid point whose surface normal is within ~25 degrees of up
+    camera_height: jax.Array  # float32[]: the camera's height along the up axis (m)
 
 
 def surface_samples(depth, T_world_camera, intrinsics, up: tuple[float, float, float], config: MapConfig) -> SurfaceSamples:
@@ -92,7 +93,7 @@ def surface_samples(depth, T_world_camera, intrinsics, up: tuple[float, float, f
     up_facing = ok & smooth_u & smooth_v & (jnp.abs(along_up) > UP_FACING_COS * jnp.maximum(norm, 1e-12))
     # the image border wraps around in the rolls: no normal there
     border = jnp.zeros(d.shape, bool).at[1:-1, 1:-1].set(True)
-    return SurfaceSamples(height, up_facing & border)
+    return SurfaceSamples(height, up_facing & border, camera_height)
 
 
 def height_bins(height: jax.Array) -> jax.Array:
@@ -127,10 +128,10 @@ def floor_height(up_heights: jax.Array) -> Floor:
     return Floor(height, jnp.any(strong))
 
 
-def floor_pixels(samples: SurfaceSamples, floor: Floor, camera_height: ArrayLike, band: ArrayLike) -> jax.Array:
+def floor_pixels(samples: SurfaceSamples, floor: Floor, band: ArrayLike) -> jax.Array:
     """bool `(Hs, Ws)`: up-facing points within `band` metres above the floor (none when no floor is found, or
     when the found floor is not well below the camera)."""
-    usable = floor.found & (camera_height - floor.height >= FLOOR_MIN_DEPTH_BELOW_CAMERA)
+    usable = floor.found & (samples.camera_height - floor.height >= FLOOR_MIN_DEPTH_BELOW_CAMERA)
     return usable & samples.up_facing & (samples.height < floor.height + band)
 
 

@@ -140,14 +140,14 @@ def detector_reach(
         detections = folder.get(scene.frame_names[i])
         assert detections is not None  # `frames` holds only frames with a detection file
         gt_image = renderer.render(scene.read_depth(i), poses[i], scene.intrinsics)
-        visible = np.isin(instance_ids, np.unique(gt_image))
-        if not visible.any():
+        present, pixels = np.unique(gt_image, return_counts=True)
+        area = dict(zip(present.tolist(), pixels.tolist()))
+        if not any(j in area for j in instance_ids.tolist()):
             continue
         iou = mask_iou(gt_image, instance_ids, detections.masks)
-        area = np.array([np.count_nonzero(gt_image == j) if v else 0 for j, v in zip(instance_ids, visible)])
         for row, instance in enumerate(instance_ids.tolist()):
             reach = objects[instance]
-            reach.frames_visible += int(area[row] >= min_pixels)
+            reach.frames_visible += int(area.get(instance, 0) >= min_pixels)
             if iou.shape[1] == 0:
                 continue
             reach.best_iou = max(reach.best_iou, float(iou[row].max()))
