@@ -199,9 +199,26 @@ class ExportConfig(_Section):
     min_points: Int = knob(200, "instances with fewer points are dropped", ge=0)
     support_observations: Float = knob(
         3.0,
-        "confidence = class probability x (1 - exp(-observations / this)): one-off instances rank low "
-        "(0: class probability alone)",
+        "existence = (1 - exp(-observations / this)) x the hit-rate factor: one-off instances rank low "
+        "(0: no such factor); confidence = class probability x existence",
         ge=0,
+    )
+    existence_prior: Float = knob(
+        4.0,
+        "pseudo-frames at the detector's own hit rate that an instance's hit rate (detected / in view) is "
+        "shrunk towards; a rate below the detector's lowers the existence (0: hit rates not used)",
+        ge=0,
+    )
+    min_existence: Float = knob(0.3, "instances of a lower existence are not exported (0: every instance)", ge=0, le=1)
+    planar_thickness: Float = knob(
+        1.3,
+        "voxels; an instance of a volumetric class at most this thick (a sheet of wall, floor or "
+        "counter front) has existence 0 (0: off)",
+        ge=0,
+    )
+    flat_classes: tuple[str, ...] = knob(
+        ("wall", "floor", "door", "window", "picture", "curtain", "shower curtain"),
+        "classes whose objects may be flat (not subject to planar_thickness)",
     )
     transfer_radius: Float = knob(0.08, "m; instance labels to the mesh vertices by radius search (benchmark)", gt=0)
     transfer_neighbours: Int = knob(

@@ -30,7 +30,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch, pack_detections
 from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.instances import MapInstance, observation_support, postprocess_instances
+from fmfusion_jax.instances import MapInstance, postprocess_instances, score_existence
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
@@ -769,11 +769,12 @@ def extract_map_instances(
             points=np.asarray(points[int(k)], np.float32),
             observations=int(table.observations[k]),
             open_label_histogram=np.asarray(table.open_label_histogram[k]),
-            support=observation_support(int(table.observations[k]), result.config.export.support_observations),
+            missed=int(table.missed[k]),
         )
         for k in np.flatnonzero(np.asarray(table.valid))
         if k in points
     ]
+    instances = score_existence(instances, label_sets, export, result.map_config.voxel_size)
     if postprocess:
         instances = postprocess_instances(instances, label_sets, result.config.export)
     return instances
