@@ -11,8 +11,10 @@ family, the mean over all entries, and the worst entry.
 Outputs, under OUT:
 
     robustness.md     scores per zoo entry (AP, AP50, AP25 per method), AP50 per family with the best in
-                      bold, the verdict line, scenes and the noise parameters of each entry
-    robustness.json   every number (pooled per entry, AP50 per scene and entry, the summaries), zoo, timings
+                      bold, the verdict line, precision per zoo entry (no-object share, instances per
+                      object, AP50), scenes and the noise parameters of each entry
+    robustness.json   every number (pooled per entry, AP50 per scene and entry, the summaries, the
+                      precision counts), zoo, timings
     robustness.png    AP50 per zoo entry and method, with the mean and the worst (cv2: no matplotlib)
     runs/<scene>/<entry>/<method>/   run.json, config.yaml, instances.json, benchmark/ (as `fmfusion experiment`)
     cache/            (default --cache) generated scenes and simulated detections
@@ -71,6 +73,11 @@ QUICK_GENERATED = dict(count=1, num_frames=30, num_objects=5, width=320, height=
 QUICK_MIXED = 1
 #: Benchmark scores summarized, as (name in the tables, `BenchmarkResult` attribute).
 METRICS = (("AP", "mAP"), ("AP50", "mAP50"), ("AP25", "mAP25"))
+#: The precision summary of a (method, entry), pooled over the scenes: (name in the table, key, whether
+#: higher is worse). The no-object share is the share of the evaluated predictions of kind "no_object"
+#: (`evaluation.explain`: overlapping no counted object); instances per object are evaluated predictions
+#: per counted ground-truth object (1 for a perfect map; more: false positives and fragments).
+PRECISION = (("no-object %", "no_object_share", True), ("inst/obj", "instances_per_object", True), ("AP50", "AP50", False))
 #: Decoded frames of a scene are kept in memory across its runs below this size.
 FRAME_CACHE_BYTES = 2 << 30
 #: The demo's image area: noise pixel counts are meant for it (`demo.demo_noise`).
@@ -226,6 +233,66 @@ def verdict(summary: dict, methods: Sequence[str], metric: str = "AP50", new: st
     return record
 
 
+def precision_counts(gt_ids: np.ndarray, predictions) -> dict[str, int]:
+    """`{"objects", "predictions", "no_object"}` of one run: the counted ground-truth objects, the evaluated
+    predictions and those of kind "no_object" (`explain.explain_scene` on the benchmark predictions).
+
+    Args:
+      gt_ids: `(V,)` benchmark ids of the scene's mesh vertices.
+      predictions: the run's `InstancePredictions` over the same vertices.
+    """
+    from fmfusion_jax.evaluation.explain import explain_scene
+
+    explanation = explain_scene(gt_ids, predictions)
+    return {
+        "objects": len(explanation.ground_truth),
+        "predictions": len(explanation.predictions),
+        "no_object": explanation.kind_counts()["no_object"],
+    }
+
+
+def pooled_precision(counts: Sequence[Mapping[str, int]], ap50: float | None) -> dict:
+    """The precision summary of one (method, entry) from its runs' `precision_counts` (pooled: counts summed
+    over the scenes, then divided) and its pooled AP50; None where the divisor is 0."""
+    objects = sum(c["objects"] for c in counts)
+    predictions = sum(c["predictions"] for c in counts)
+    no_object = sum(c["no_object"] for c in counts)
+    return {
+        "no_object_share": no_object / predictions if predictions else None,
+        "instances_per_object": predictions / objects if objects else None,
+        "AP50": ap50,
+        "objects": objects,
+        "predictions": predictions,
+        "no_object": no_object,
+    }
+
+
+def _worst_of(named: dict[str, float | None], higher_is_worse: bool) -> dict:
+    if not higher_is_worse:
+        return _worst(named)
+    flipped = _worst({k: None if v is None else -v for k, v in named.items()})
+    return {"value": None if flipped["value"] is None else -flipped["value"], "entry": flipped["entry"]}
+
+
+def summarize_precision(entries: Sequence[ZooEntry], precision: dict, methods: Sequence[str]) -> dict:
+    """Per method, over the zoo: the mean of each `PRECISION` number and its worst entry (the highest
+    no-object share and instances per object, the lowest AP50).
+
+    Args:
+      precision: entry name -> method name -> `pooled_precision` record.
+
+    Returns:
+      method -> {"mean": key -> v, "worst": key -> {"value", "entry"}}.
+    """
+    return {
+        m: {
+            "mean": {key: _mean(precision[e.name][m][key] for e in entries) for _, key, _ in PRECISION},
+            "worst": {key: _worst_of({e.name: precision[e.name][m][key] for e in entries}, up) for _, key, up in PRECISION},
+        }
+        for m in methods
+    }
+
+
 # --------------------------------------------------------------------------------------------------
 # Reports.
 
@@ -248,6 +315,33 @@ def entries_table(entries: Sequence[ZooEntry], scores: dict, summary: dict, meth
     rows.append(["**mean**", ""] + [_pct(summary[m.name]["mean"][metric]) for m in methods for metric, _ in METRICS])
     worst = [summary[m.name]["worst"][metric] for m in methods for metric, _ in METRICS]
     rows.append(["**worst**", ""] + [f"{_pct(w['value'])} ({w['entry']})" if w["entry"] else "-" for w in worst])
+    return _markdown_table(header, rows)
+
+
+def _precision_cell(key: str, value: float | None) -> str:
+    if value is None or math.isnan(value):
+        return "-"
+    return f"{value:.2f}" if key == "instances_per_object" else _pct(value)
+
+
+def precision_table(entries: Sequence[ZooEntry], precision: dict, summary: dict, methods: Sequence[Method]) -> str:
+    """Rows: the zoo entries grouped by family, then the mean and the worst (with its entry); columns: each
+    method's no-object share (%), instances per object and AP50 (%)."""
+    header = ["Family", "Entry"] + [f"{m.name} {title}" for m in methods for title, _, _ in PRECISION]
+    rows = []
+    for family in family_order(entries):
+        for i, entry in enumerate(e for e in entries if e.family == family):
+            rows.append(
+                [family if i == 0 else "", entry.name]
+                + [_precision_cell(key, precision[entry.name][m.name][key]) for m in methods for _, key, _ in PRECISION]
+            )
+    rows.append(
+        ["**mean**", ""] + [_precision_cell(key, summary[m.name]["mean"][key]) for m in methods for _, key, _ in PRECISION]
+    )
+    worst = [(key, summary[m.name]["worst"][key]) for m in methods for _, key, _ in PRECISION]
+    rows.append(
+        ["**worst**", ""] + [f"{_precision_cell(key, w['value'])} ({w['entry']})" if w["entry"] else "-" for key, w in worst]
+    )
     return _markdown_table(header, rows)
 
 
@@ -284,11 +378,13 @@ def noise_table(entries: Sequence[ZooEntry]) -> str:
     are scaled to their images: see each scene's record in robustness.json)."""
     from fmfusion_jax.simulation.noise import NoiseModel
 
-    default = NoiseModel.preset("default", seed=entries[0].noise.seed).to_dict() if entries else {}
-    changed = [k for k in default if any(e.noise.to_dict()[k] != default[k] for e in entries)]
+    # Every parameter, the later ones too (`to_dict` leaves those out at their defaults).
+    default = dataclasses.asdict(NoiseModel.preset("default", seed=entries[0].noise.seed)) if entries else {}
+    values = [dataclasses.asdict(e.noise) for e in entries]
+    changed = [k for k in default if any(v[k] != default[k] for v in values)]
     header = ["Parameter", "default preset", *(e.name for e in entries)]
     show = lambda v: f"{v:.3g}" if isinstance(v, float) else str(v)  # noqa: E731
-    rows = [[k, show(default[k]), *(show(e.noise.to_dict()[k]) for e in entries)] for k in changed]
+    rows = [[k, show(default[k]), *(show(v[k]) for v in values)] for k in changed]
     return _markdown_table(header, rows) if rows else "(every entry is the default preset)"
 
 
@@ -302,8 +398,24 @@ def robustness_markdown(
     noise_seed: int,
     seconds: float,
     runs: int,
+    precision: dict | None = None,
+    precision_summary: dict | None = None,
 ) -> str:
-    """robustness.md."""
+    """robustness.md (the precision table when `precision`, entry -> method -> `pooled_precision`, and its
+    `summarize_precision` are given)."""
+    precision_lines = []
+    if precision is not None and precision_summary is not None:
+        precision_lines = [
+            "## Precision per zoo entry",
+            "",
+            "No-object %: share of the evaluated predictions that overlap no counted ground-truth object "
+            "(`explain` kind no_object: mostly wall, floor or void); inst/obj: evaluated predictions per counted "
+            "object; both pooled over the scenes. Worst: the highest no-object share and instances per object, "
+            "the lowest AP50.",
+            "",
+            precision_table(entries, precision, precision_summary, methods),
+            "",
+        ]
     scene_lines = []
     for s in scenes:
         what = (
@@ -333,6 +445,7 @@ def robustness_markdown(
             "",
             *verdict_lines(verdict_record),
             "",
+            *precision_lines,
             "## Scenes and noise models",
             "",
             *scene_lines,
@@ -640,7 +753,16 @@ def run_robustness(
         del opened  # its frames and ground truth are not needed any more
 
     scene_names = tuple(s.name for s in sources)
-    scores, pooled_json, per_scene_ap50 = {}, {}, {}
+    scores, pooled_json, per_scene_ap50, precision = {}, {}, {}, {}
+    counts: dict = {}  # (scene, entry, method) -> precision_counts; a copied run shares its original's
+    for entry in entries:
+        for s in scene_names:
+            for m in chosen:
+                same = runs[entry.name][s][m.name].summary.get("same_run_as", m.name)
+                key = (s, entry.name, same)
+                if key not in counts:
+                    counts[key] = precision_counts(gt_ids[s], runs[entry.name][s][same].predictions)
+                counts[(s, entry.name, m.name)] = counts[key]
     for entry in entries:
         pooled, per_scene = score_methods(chosen, scene_names, gt_ids, runs[entry.name])
         scores[entry.name] = {
@@ -648,7 +770,12 @@ def run_robustness(
         }
         pooled_json[entry.name] = {m.name: pooled[m.name].to_json_dict() for m in chosen}
         per_scene_ap50[entry.name] = {s: {m.name: _as_fraction(per_scene[s][m.name].mAP50) for m in chosen} for s in scene_names}
+        precision[entry.name] = {
+            m.name: pooled_precision([counts[(s, entry.name, m.name)] for s in scene_names], scores[entry.name][m.name]["AP50"])
+            for m in chosen
+        }
     method_names = [m.name for m in chosen]
+    precision_summary = summarize_precision(entries, precision, method_names)
     summary = summarize(entries, scores, method_names)
     verdict_record = verdict(summary, method_names)
     seconds = round(time.perf_counter() - start, 1)
@@ -665,13 +792,25 @@ def run_robustness(
         "pooled": pooled_json,
         "summary": summary,
         "verdict": verdict_record,
+        "precision": precision,
+        "precision_summary": precision_summary,
         "timings_s": timings,
         "runs": total,
         "total_seconds": seconds,
-        "units": "AP as fractions in [0, 1] (null: no score); robustness.md gives them in %",
+        "units": "AP and the no-object share as fractions in [0, 1] (null: no score); robustness.md gives them in %",
     }
     markdown = robustness_markdown(
-        entries, scores, summary, verdict_record, chosen, scene_records, entries[0].noise.seed, seconds, total
+        entries,
+        scores,
+        summary,
+        verdict_record,
+        chosen,
+        scene_records,
+        entries[0].noise.seed,
+        seconds,
+        total,
+        precision,
+        precision_summary,
     )
     write_reports(out_dir, markdown, record, robustness_chart(entries, scores, summary, method_names))
     log.info("robustness evaluation written into %s (%.1f s)", out_dir, seconds)

@@ -3,6 +3,7 @@ room, `clean`/`default` frames are those of the original simulator, and the zoo 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 
@@ -48,6 +49,12 @@ NEW_PARAMS = (
     "erode_px",
     "confuser_prob",
     "blob_rate",
+    "persistent_phantoms",
+    "persistent_radius_m",
+    "persistent_detect_prob",
+    "background_rate",
+    "background_strip_share",
+    "texture_prob",
 )
 
 WALL, FLOOR, TABLE, CHAIR, PICTURE, BOX, LAMP = 1, 2, 3, 4, 5, 8, 9
@@ -171,9 +178,9 @@ def test_zoo_is_deterministic_and_each_family_changes_its_parameters():
     assert zoo == noise_zoo(mixed=3, seed=5)
     assert zoo != noise_zoo(mixed=3, seed=6)
     assert [e.name for e in zoo] == [*FAMILIES, f"{MIXED}-1", f"{MIXED}-2", f"{MIXED}-3"]
-    default = NoiseModel(seed=5).to_dict()
+    default = dataclasses.asdict(NoiseModel(seed=5))
     for entry in zoo[: len(FAMILIES)]:
-        changed = {k for k, v in entry.noise.to_dict().items() if v != default[k]}
+        changed = {k for k, v in dataclasses.asdict(entry.noise).items() if v != default[k]}
         assert changed == set(FAMILY_DOSES[entry.family]), entry.family
         assert all(entry.noise.to_dict()[k] == pytest.approx(v) for k, v in FAMILY_DOSES[entry.family].items())
     covered = {name for dose in FAMILY_DOSES.values() for name in dose}

@@ -284,3 +284,56 @@ def test_tiny_evaluation_end_to_end(tmp_path):
     )
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # cached: nothing simulated again
     assert math.isclose(again.scores["default"]["kimera"]["AP50"], result.scores["default"]["kimera"]["AP50"])
+
+
+def test_precision_counts_pool_and_summarize_on_a_tiny_case():
+    from fmfusion_jax.io.benchmark_format import InstancePredictions
+    from fmfusion_jax.robustness import pooled_precision, precision_counts, precision_table, summarize_precision
+
+    chair, table = 5, 7  # nyu40
+    gt = np.zeros(1000, np.int64)
+    gt[0:200] = chair * 1000 + 1
+    gt[200:400] = table * 1000 + 2  # vertices 400..999: wall, floor, void
+    masks = np.zeros((4, 1000), bool)
+    masks[0, 0:190] = True  # the chair, found
+    masks[1, 200:390] = True  # the table, found
+    masks[2, 500:700] = True  # a phantom on the wall: no object
+    masks[3, 700:750] = True  # too small: not evaluated
+    preds = InstancePredictions(masks, np.array([chair, table, chair, table]), np.array([0.9, 0.8, 0.7, 0.6]))
+    counts = precision_counts(gt, preds)
+    assert counts == {"objects": 2, "predictions": 3, "no_object": 1}
+    empty = precision_counts(gt, InstancePredictions(np.zeros((0, 1000), bool), np.zeros(0), np.zeros(0)))
+    assert empty == {"objects": 2, "predictions": 0, "no_object": 0}
+    pooled = pooled_precision([counts, empty], 0.5)
+    assert pooled["no_object_share"] == pytest.approx(1 / 3) and pooled["instances_per_object"] == pytest.approx(3 / 4)
+    assert pooled["AP50"] == 0.5 and pooled_precision([empty], None)["no_object_share"] is None
+
+    entries = ENTRIES[:2]
+    precision = {
+        "default": {m: pooled_precision([counts], 0.6) for m in METHOD_NAMES},
+        "border": {m: pooled_precision([counts, counts, empty], 0.4) for m in METHOD_NAMES},
+    }
+    summary = summarize_precision(entries, precision, METHOD_NAMES)["full"]
+    assert summary["mean"]["instances_per_object"] == pytest.approx((1.5 + 1.0) / 2)
+    assert summary["worst"]["instances_per_object"] == {"value": pytest.approx(1.5), "entry": "default"}
+    assert summary["worst"]["AP50"] == {"value": 0.4, "entry": "border"}  # AP50: the lowest is the worst
+    assert summary["worst"]["no_object_share"]["value"] == pytest.approx(1 / 3)
+    methods = [METHODS[n] for n in METHOD_NAMES]
+    table_md = precision_table(entries, precision, summarize_precision(entries, precision, METHOD_NAMES), methods)
+    assert "| full no-object % | full inst/obj | full AP50 |" in table_md
+    assert "| default | default | 33.3 | 1.50 | 60.0 |" in table_md
+    assert "1.50 (default)" in table_md and "40.0 (border)" in table_md
+    markdown = robustness_markdown(
+        entries,
+        SCORES,
+        summarize(entries, SCORES, METHOD_NAMES),
+        verdict(summarize(entries, SCORES, METHOD_NAMES), METHOD_NAMES),
+        methods,
+        [],
+        0,
+        1.0,
+        6,
+        precision,
+        summarize_precision(entries, precision, METHOD_NAMES),
+    )
+    assert "## Precision per zoo entry" in markdown and table_md in markdown

@@ -7,7 +7,19 @@ import collections
 from pathlib import Path
 
 # Kept equal to fmfusion_jax.simulation.noise.PRESETS (a test checks) without importing it at start-up.
-PRESETS = ("clean", "default", "hard", "label_model", "partial", "merged", "border", "confusers")
+PRESETS = (
+    "clean",
+    "default",
+    "hard",
+    "label_model",
+    "partial",
+    "merged",
+    "border",
+    "confusers",
+    "persistent",
+    "background",
+    "texture",
+)
 
 
 def register(subparsers) -> None:
@@ -38,9 +50,10 @@ def register(subparsers) -> None:
         choices=PRESETS,
         help="clean: ground-truth masks with each class's most likely label; default: the "
         "documented noise; hard: more of every failure mode; label_model, partial, merged, "
-        "border, confusers: a noise family of the zoo at severity 1 (misspecified labels, "
-        "partial masks, masks merged with a neighbour, borders bleeding onto floor and "
-        "wall, confusers and false blobs with miscalibrated scores), on top of default "
+        "border, confusers, persistent, background, texture: a noise family of the zoo at severity 1 "
+        "(misspecified labels, partial masks, masks merged with a neighbour, borders bleeding onto floor and "
+        "wall, confusers and false blobs with miscalibrated scores, phantoms fixed in the world, background "
+        "taken for furniture, over-segmented textures), on top of default "
         "(default: default)",
     )
     parser.add_argument(

@@ -6,7 +6,8 @@ viewpoints, missed and false detections). Setting every failure-mode parameter t
 preset) gives detections whose masks are exactly the ground-truth instance masks, each labelled with its
 class's most likely open-set label. `docs/simulated-detections.md` explains each parameter and its
 default. The failure modes beyond the paper's (a misspecified label model, large partial masks, merges with
-any neighbour, borders bleeding onto the floor, confusers, miscalibrated scores) are zero in `clean` and
+any neighbour, borders bleeding onto the floor, confusers, miscalibrated scores, phantoms fixed in the
+world, background taken for furniture, over-segmented textures) are zero in `clean` and
 `default`; the noise families of `fmfusion_jax.simulation.zoo` turn them on, and `NoiseModel.preset`
 accepts the family names too.
 
@@ -26,7 +27,7 @@ import numpy as np
 from fmfusion_jax.errors import UserError
 
 #: The noise families of `fmfusion_jax.simulation.zoo` beyond `default` (also accepted as presets).
-FAMILY_PRESETS = ("label_model", "partial", "merged", "border", "confusers")
+FAMILY_PRESETS = ("label_model", "partial", "merged", "border", "confusers", "persistent", "background", "texture")
 PRESETS = ("clean", "default", "hard", *FAMILY_PRESETS)
 #: Parameters that must lie in [0, 1].
 PROBABILITIES = (
@@ -50,12 +51,28 @@ PROBABILITIES = (
     "miss_prob",
     "small_object_miss_prob",
     "confuser_prob",
+    "persistent_detect_prob",
+    "background_strip_share",
+    "texture_prob",
+    "texture_piece_share",
 )
 #: Groups of probabilities of mutually exclusive outcomes: each group must sum to at most 1.
 EXCLUSIVE_GROUPS = (
     ("partial_prob", "split_prob"),
     ("partial_straight_share", "partial_occluder_share"),
     ("bleed_prob", "erode_prob"),
+)
+#: Parameters added after detections were cached and results recorded: `NoiseModel.to_dict` leaves them
+#: out at their defaults, so that the record, cache name and detections of every model that does not use
+#: them stay what they were.
+LATER_PARAMS = (
+    "persistent_phantoms",
+    "persistent_radius_m",
+    "persistent_detect_prob",
+    "background_rate",
+    "background_strip_share",
+    "texture_prob",
+    "texture_piece_share",
 )
 
 
@@ -123,6 +140,21 @@ class NoiseModel:
         closed classes: detected in every view with one fixed open-set label of that class, normal score.
       blob_rate: mean number (Poisson) per frame of false blobs on a wall or the floor, labelled with a
         label such surfaces are mistaken for, normal score.
+      persistent_phantoms: phantom objects per scene and seed (rounded): places fixed in the world (a
+        sphere of `persistent_radius_m` around a point of the wall, floor or unannotated surface, away
+        from the objects), each taken for one closed class with one fixed open-set label. Needs the
+        frames' depth and poses (`simulate_scene`; `simulate_frame` takes the projected masks).
+      persistent_radius_m: the phantoms' radius, metres.
+      persistent_detect_prob: probability that a phantom in view (at least `min_mask_pixels` of the
+        seen surface inside its sphere, target objects excluded) is detected in a frame, normal score.
+      background_rate: mean number (Poisson) per frame of background regions (wall, floor, pixels
+        without ground truth) detected as furniture (`simulate.BACKGROUND_CLASSES`), normal score:
+        thin strips along the surface or large patches. Drawn afresh in every frame.
+      background_strip_share: share of those regions that are thin strips; the rest are large patches.
+      texture_prob: probability, per frame and visible region (any instance, wall and floor included) of
+        at least 4 pieces, that it is over-segmented into many small masks, each with a random prompt
+        label (or a label of the region's class) at a low score.
+      texture_piece_share: the pieces' mean size, as a share of the image area.
     Detector thresholds (respected by every output):
       box_threshold: least main score of a detection (GroundingDINO box threshold).
       text_threshold: least score of any label of a detection.
@@ -173,6 +205,14 @@ class NoiseModel:
     false_positive_rate: float = 0.3
     confuser_prob: float = 0.0
     blob_rate: float = 0.0
+    # false positives seen on real detections (`LATER_PARAMS`)
+    persistent_phantoms: float = 0.0
+    persistent_radius_m: float = 0.0
+    persistent_detect_prob: float = 0.0
+    background_rate: float = 0.0
+    background_strip_share: float = 0.0
+    texture_prob: float = 0.0
+    texture_piece_share: float = 0.005
     # detector thresholds
     box_threshold: float = 0.35
     text_threshold: float = 0.25
@@ -206,13 +246,21 @@ class NoiseModel:
             "bleed_px",
             "erode_px",
             "blob_rate",
+            "persistent_phantoms",
+            "persistent_radius_m",
+            "background_rate",
         ):
             if getattr(self, name) < 0:
                 raise UserError(f"noise parameter {name}={getattr(self, name)} must be >= 0")
         # A probability without a size would silently do nothing.
-        for prob, size in (("bleed_prob", "bleed_px"), ("erode_prob", "erode_px")):
+        for prob, size in (
+            ("bleed_prob", "bleed_px"),
+            ("erode_prob", "erode_px"),
+            ("persistent_phantoms", "persistent_radius_m"),
+            ("texture_prob", "texture_piece_share"),
+        ):
             if getattr(self, prob) > 0 and getattr(self, size) <= 0:
-                raise UserError(f"{prob}={getattr(self, prob)} needs {size} > 0 (pixels)")
+                raise UserError(f"{prob}={getattr(self, prob)} needs {size} > 0")
         if self.large_object_pixels < 1:
             raise UserError(f"large_object_pixels={self.large_object_pixels} must be >= 1")
         if self.max_labels < 1:
@@ -229,7 +277,9 @@ class NoiseModel:
         return np.random.default_rng([int(self.seed), int(frame_index)])
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Every parameter, but those of `LATER_PARAMS` only where they differ from their defaults."""
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in LATER_PARAMS or v != defaults[k]}
 
     def replace(self, **changes: Any) -> "NoiseModel":
         """A copy with some parameters changed; unknown names are a `UserError` naming the valid ones."""
@@ -476,3 +526,51 @@ def random_blob(
     canvas = np.zeros(shape, np.uint8)
     cv2.ellipse(canvas, (int(center[0]), int(center[1])), (int(round(a)), int(round(b))), angle, 0, 360, 1, -1)
     return canvas.astype(bool)
+
+
+def random_rectangle(shape: tuple[int, int], center: tuple[int, int], size: tuple[float, float], angle_deg: float) -> np.ndarray:
+    """`shape` bool mask of a `size = (length, thickness)` pixel rectangle centred at pixel `(u, v)`, its
+    long side turned `angle_deg` from the image rows, clipped to the image."""
+    corners = cv2.boxPoints(((float(center[0]), float(center[1])), (float(size[0]), float(size[1])), float(angle_deg)))
+    canvas = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(canvas, np.round(corners).astype(np.int32), 1)
+    return canvas.astype(bool)
+
+
+def background_region(shape: tuple[int, int], center: tuple[int, int], rng: np.random.Generator, strip: bool) -> np.ndarray:
+    """A region of the background a detector takes for furniture, centred at pixel `(u, v)`.
+
+    A strip is thin and long, near horizontal (mostly: the top of a counter, a skirting board, the edge
+    of a shelf along a wall) or vertical (a door frame); a patch is a large block of wall or floor, as a
+    box prompt on a plain wall returns.
+    """
+    height, width = shape
+    if strip:
+        vertical = rng.random() < 0.2
+        length = rng.uniform(0.3, 0.8) * (height if vertical else width)
+        thickness = rng.uniform(0.03, 0.08) * height
+        angle = (90.0 if vertical else 0.0) + rng.normal(0.0, 3.0)
+        return random_rectangle(shape, center, (length, max(thickness, 2.0)), angle)
+    size = (rng.uniform(0.2, 0.5) * width, rng.uniform(0.2, 0.5) * height)
+    return random_rectangle(shape, center, size, rng.normal(0.0, 5.0))
+
+
+def split_into_pieces(mask: np.ndarray, count: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """The mask cut into `count` pieces of about equal size: each pixel joins its nearest of `count` random
+    seed pixels (a Voronoi partition of the mask), as SAM's automatic masks over-segment a textured surface.
+    Empty pieces (seeds repeated) are left out."""
+    v, u = np.nonzero(mask)
+    if v.size == 0 or count < 1:
+        return []
+    seeds = rng.choice(v.size, size=min(count, v.size), replace=False)
+    # (N, K) squared distances; K is small (tens) and N a region's pixels, so this stays cheap.
+    d2 = (v[:, None] - v[seeds][None, :]).astype(np.float32) ** 2 + (u[:, None] - u[seeds][None, :]).astype(np.float32) ** 2
+    nearest = d2.argmin(axis=1)
+    pieces = []
+    for k in range(seeds.size):
+        keep = nearest == k
+        if keep.any():
+            piece = np.zeros_like(mask)
+            piece[v[keep], u[keep]] = True
+            pieces.append(piece)
+    return pieces

@@ -21,8 +21,11 @@ zoo draw from further streams, only when on, so that `clean`/`default` frames ar
    object left without a label above the box threshold is relabelled with a prompt label or dropped;
 5. masks: partial segmentation (wavy, straight or occluder cuts; large objects more) or a split into two
    detections, bleeding onto the background or erosion, then border noise;
-6. false detections on background objects or blobs, labelled with random prompt labels; scores
-   miscalibrated (`score_miscalibration`);
+6. false detections on background objects or blobs, labelled with random prompt labels; the false
+   positives seen on real detections: phantoms fixed in the world (`persistent_phantoms`, projected by
+   `simulate_scene` through each frame's depth and pose), background regions taken for furniture
+   (`background_rate`) and over-segmented textured regions (`texture_prob`); scores miscalibrated
+   (`score_miscalibration`);
 7. overlaps resolved (the smaller mask wins, as the authors' PNG mask format holds one detection per
    pixel), small and image-filling masks dropped, boxes from the masks.
 """
@@ -44,6 +47,7 @@ from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.simulation.noise import (
     NoiseModel,
+    background_region,
     bleed_mask,
     cut_mask,
     erode_mask,
@@ -51,6 +55,7 @@ from fmfusion_jax.simulation.noise import (
     occlude_mask,
     perturb_border,
     random_blob,
+    split_into_pieces,
     straight_cut_angle,
 )
 from fmfusion_jax.types import FrameDetections
@@ -139,8 +144,20 @@ BLOB_LABELS = {"wall": ("picture", "window", "door", "shelf", "cabinet", "curtai
 NEIGHBOR_MAX_AREA_RATIO = 3.0
 #: Upper end of the uniform score that `score_miscalibration` mixes in.
 MISCALIBRATED_SCORE_MAX = 0.8
+#: Classes a phantom (`persistent_phantoms`) is taken for: what detectors see in an empty spot of a room.
+PHANTOM_CLASSES = ("cabinet", "chair", "table", "bookshelf", "picture", "desk", "sofa", "otherfurniture")
+#: Classes a background region (`background_rate`) is taken for: furniture that lines walls and floors.
+BACKGROUND_CLASSES = ("cabinet", "bookshelf", "refrigerator", "table", "counter", "desk", "door")
+#: Background classes: the surfaces phantoms and background regions lie on (with pixels of no instance).
+SURFACE_CLASSES = ("wall", "floor")
+#: `texture_prob`: most pieces per region, share of them detected, and share labelled from the region's
+#: class column (the rest take a random prompt label); a piece's score is at most this above the box threshold.
+TEXTURE_MAX_PIECES = 24
+TEXTURE_KEEP_SHARE = 0.7
+TEXTURE_CLASS_LABEL_SHARE = 0.5
+TEXTURE_SCORE_SPAN = 0.08
 # Tags of the seed-only streams (one detector, one set of mislabels, one set of confusers per seed).
-_PERTURBATION_STREAM, _MISLABEL_STREAM, _CONFUSER_STREAM = 6101, 6113, 6121
+_PERTURBATION_STREAM, _MISLABEL_STREAM, _CONFUSER_STREAM, _PHANTOM_STREAM = 6101, 6113, 6121, 6131
 
 
 @dataclasses.dataclass
@@ -448,6 +465,196 @@ def _blobs(
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class Phantom:
+    """A persistent false positive (`persistent_phantoms`): a place of the world that the detector takes for
+    an object whenever it is in view.
+
+    Attributes:
+      center: `(3,)` float64 world point on the wall, floor or unannotated surface, metres.
+      radius: metres; the phantom is the seen surface inside this sphere.
+      class_index: the closed class it is taken for.
+      label: its one open-set label (drawn from that class's published column).
+    """
+
+    center: np.ndarray
+    radius: float
+    class_index: int
+    label: str
+
+
+def place_phantoms(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    instance_ids: np.ndarray,
+    instance_classes: Mapping[int, int],
+    noise: NoiseModel,
+    label_sets: LabelSets | None = None,
+    likelihood: np.ndarray | None = None,
+    tries: int = 50,
+) -> list[Phantom]:
+    """The phantoms of a scene for `noise` (its seed): `round(persistent_phantoms)` points drawn uniformly
+    over the area of the mesh's background faces (wall, floor, unannotated, non-target), away from the
+    target objects where possible (no target vertex within the radius, up to `tries` draws).
+
+    Phantom `k` draws from its own stream `[seed, _PHANTOM_STREAM, k]`, so raising the count only adds
+    phantoms.
+
+    Args:
+      vertices: `(V, 3)` mesh vertices, world frame, metres.
+      faces: `(F, 3)` triangles.
+      instance_ids: `(V,)` instance id of each vertex, 0 = none.
+      instance_classes: closed-class index of each target instance (`render.instance_classes`).
+    """
+    from scipy.spatial import cKDTree
+
+    count, radius = int(round(noise.persistent_phantoms)), float(noise.persistent_radius_m)
+    if count < 1 or radius <= 0 or noise.persistent_detect_prob <= 0:
+        return []
+    label_sets = label_sets or load_label_sets()
+    likelihood = np.asarray(load_likelihood("statistical") if likelihood is None else likelihood, np.float64)
+    class_names = list(label_sets.class_names)
+    surface = {class_names.index(n) for n in SURFACE_CLASSES if n in class_names}
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64).reshape(-1, 3)
+    targets = [i for i, c in instance_classes.items() if c not in surface]
+    is_target = np.isin(np.asarray(instance_ids), targets)
+    background = faces[~is_target[faces].any(axis=1)]
+    if background.shape[0] == 0:
+        return []
+    corners = vertices[background]  # (F', 3, 3)
+    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    if areas.sum() <= 0:
+        return []
+    tree = cKDTree(vertices[is_target]) if is_target.any() else None
+    kinds = [class_names.index(c) for c in PHANTOM_CLASSES if c in class_names]
+    published = likelihood / likelihood.sum(axis=0, keepdims=True)
+    out = []
+    for k in range(count):
+        rng = np.random.default_rng([int(noise.seed), _PHANTOM_STREAM, k])
+        for _ in range(tries):
+            a, b = rng.random(2)
+            if a + b > 1.0:  # uniform on the triangle
+                a, b = 1.0 - a, 1.0 - b
+            tri = corners[int(rng.choice(areas.size, p=areas / areas.sum()))]
+            center = tri[0] + a * (tri[1] - tri[0]) + b * (tri[2] - tri[0])
+            if tree is None or not np.isfinite(tree.query(center, distance_upper_bound=radius)[0]):
+                break
+        class_index = kinds[int(rng.integers(len(kinds)))]
+        label = label_sets.open_labels[int(rng.choice(published.shape[0], p=published[:, class_index]))]
+        out.append(Phantom(center, radius, class_index, label))
+    return out
+
+
+def phantom_mask(phantom: Phantom, depth: np.ndarray, T_world_camera: np.ndarray, intrinsics) -> np.ndarray:
+    """`(H, W)` bool: the pixels whose seen surface (the frame's depth, back-projected) lies inside the
+    phantom's sphere. What is in front of it hides it, so the mask is the phantom's visible part.
+
+    Args:
+      depth: `(H, W)` metres, 0 = invalid.
+      T_world_camera: `(4, 4)` camera-to-world pose.
+      intrinsics: `CameraIntrinsics` of the depth camera (scaled to `H x W` when it differs).
+    """
+    depth = np.asarray(depth, np.float32)
+    height, width = depth.shape
+    if (intrinsics.width, intrinsics.height) != (width, height):
+        intrinsics = intrinsics.scaled(width, height)
+    T = np.asarray(T_world_camera, np.float64)
+    x, y, z = T[:3, :3].T @ (phantom.center - T[:3, 3])
+    r = phantom.radius
+    mask = np.zeros((height, width), bool)
+    if z + r <= 0:
+        return mask  # behind the camera
+    if z - r > 0.05:
+        # The sphere lies in the box [x +- r] x [y +- r] x [z +- r]: its image lies within the corners'.
+        us = [intrinsics.cx + intrinsics.fx * (x + dx) / (z + dz) for dx in (-r, r) for dz in (-r, r)]
+        vs = [intrinsics.cy + intrinsics.fy * (y + dy) / (z + dz) for dy in (-r, r) for dz in (-r, r)]
+        u0, u1 = max(int(np.floor(min(us))), 0), min(int(np.ceil(max(us))) + 1, width)
+        v0, v1 = max(int(np.floor(min(vs))), 0), min(int(np.ceil(max(vs))) + 1, height)
+    else:
+        u0, u1, v0, v1 = 0, width, 0, height
+    if u0 >= u1 or v0 >= v1:
+        return mask
+    crop = depth[v0:v1, u0:u1].astype(np.float64)
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    px = (uu - intrinsics.cx) * crop / intrinsics.fx
+    py = (vv - intrinsics.cy) * crop / intrinsics.fy
+    mask[v0:v1, u0:u1] = (crop > 0) & ((px - x) ** 2 + (py - y) ** 2 + (crop - z) ** 2 < r * r)
+    return mask
+
+
+def _phantom_detections(
+    phantoms: Iterable[tuple[np.ndarray, str]], not_target: np.ndarray, model: _LabelModel, rng: np.random.Generator
+) -> list[tuple[np.ndarray, dict[str, float]]]:
+    """`persistent_phantoms`: each phantom in view (its projected mask, less the target objects' pixels, at
+    least `min_mask_pixels`) detected with `persistent_detect_prob`, its fixed label at a normal score."""
+    noise, out = model.noise, []
+    for mask, label in phantoms:
+        mask = np.asarray(mask, bool) & not_target
+        detected, score = rng.random() < noise.persistent_detect_prob, model.score(rng)
+        if detected and mask.sum() >= noise.min_mask_pixels:
+            out.append((mask, {label: score}))
+    return out
+
+
+def _background_regions(
+    image: np.ndarray, background: np.ndarray, class_names: list[str], model: _LabelModel, rng: np.random.Generator
+) -> list[tuple[np.ndarray, dict[str, float]]]:
+    """`background_rate`: regions of the background (`background` pixels: wall, floor, no ground truth) taken
+    for furniture (`BACKGROUND_CLASSES`), each a strip (`background_strip_share`) or a large patch centred
+    on a background pixel and clipped to the background, labelled from the class's published column."""
+    count = int(rng.poisson(model.noise.background_rate))
+    pixels = np.flatnonzero(background.ravel())
+    kinds = [class_names.index(c) for c in BACKGROUND_CLASSES if c in class_names]
+    if not count or pixels.size == 0 or not kinds:
+        return []
+    width = image.shape[1]
+    out = []
+    for _ in range(count):
+        pixel = int(pixels[rng.integers(pixels.size)])
+        strip = rng.random() < model.noise.background_strip_share
+        region = background_region(image.shape, (pixel % width, pixel // width), rng, strip) & background
+        class_index = kinds[int(rng.integers(len(kinds)))]
+        label = model.names[int(rng.choice(len(model.names), p=model.published[:, class_index]))]
+        out.append((region, {label: model.score(rng)}))
+    return out
+
+
+def _texture_pieces(
+    image: np.ndarray,
+    areas: Mapping[int, int],
+    instance_classes: Mapping[int, int],
+    model: _LabelModel,
+    prompt: list[str],
+    rng: np.random.Generator,
+) -> list[tuple[np.ndarray, dict[str, float]]]:
+    """`texture_prob`: visible regions (any instance of at least 4 pieces' size) over-segmented into small
+    pieces of about `texture_piece_share` of the image (`TEXTURE_KEEP_SHARE` of them detected), each with a
+    prompt label drawn from the region's class column (`TEXTURE_CLASS_LABEL_SHARE`, targets only) or a
+    random prompt label, at a low score."""
+    noise = model.noise
+    piece = noise.texture_piece_share * image.size
+    index = {name: i for i, name in enumerate(model.names)}
+    out = []
+    for i in sorted(areas):
+        if rng.random() >= noise.texture_prob or areas[i] < 4 * piece or not prompt:
+            continue
+        count = int(np.clip(round(areas[i] / piece), 2, TEXTURE_MAX_PIECES))
+        for part in split_into_pieces(image == i, count, rng):
+            keep, own, pick = rng.random(), rng.random(), rng.random()
+            score = float(rng.uniform(noise.box_threshold, noise.box_threshold + TEXTURE_SCORE_SPAN))
+            if keep >= TEXTURE_KEEP_SHARE:
+                continue
+            # One uniform draw picks the label either way, so the draws per piece do not depend on the prompt.
+            weights = np.ones(len(prompt))
+            if i in instance_classes and own < TEXTURE_CLASS_LABEL_SHARE:
+                column = np.array([model.columns[index[p], instance_classes[i]] if p in index else 0.0 for p in prompt])
+                weights = column if column.sum() > 0 else weights
+            cumulative = np.cumsum(weights / weights.sum())
+            label = prompt[min(int(np.searchsorted(cumulative, pick, side="right")), len(prompt) - 1)]
+            out.append((part, {label: score}))
+    return out
+
+
 def _passive_pixels(image: np.ndarray, instance_classes: Mapping[int, int], no_merge: set[int]) -> np.ndarray:
     """Pixels behind the objects: walls, floors, non-target objects and pixels without ground truth."""
     active = [i for i, c in instance_classes.items() if c not in no_merge]
@@ -500,6 +707,7 @@ def simulate_frame(
     likelihood: np.ndarray | None = None,
     recent_labels: Iterable[str] = (),
     rng: np.random.Generator | None = None,
+    phantoms: Iterable[tuple[np.ndarray, str]] = (),
 ) -> FrameDetections:
     """Simulated detections of one frame.
 
@@ -516,6 +724,8 @@ def simulate_frame(
       recent_labels: labels detected in the previous `noise.augmentation_window` frames (used for
         prompt augmentation when `noise.prompt_augmentation` is on).
       rng: the generator to draw from (default: the frame's generator).
+      phantoms: `persistent_phantoms` in this frame: each phantom's `(H, W)` bool mask (`phantom_mask`)
+        and its fixed label; detected with `persistent_detect_prob`.
 
     Returns:
       `FrameDetections` with disjoint masks, boxes from the masks, labels and scores above the detector
@@ -533,6 +743,8 @@ def simulate_frame(
     # The failure modes beyond the paper's draw from streams of their own, and only when on: with them off
     # a frame is exactly the original simulator's.
     r_confusion, r_neighbor, r_style, r_large, r_edge, r_confuser, r_blob, r_score = rng.spawn(8)
+    # Spawned after those: the false positives of real detections leave every earlier stream as it was.
+    r_phantom, r_background, r_texture, r_extra_border = rng.spawn(4)
     model = _LabelModel(noise, label_sets, likelihood)
     class_names = list(label_sets.class_names)
     no_merge = {class_names.index(name) for name in MERGE_EXCLUDED_CLASSES if name in class_names}
@@ -580,9 +792,22 @@ def simulate_frame(
         assert o.fixed_labels is not None  # confusers carry their labels
         drawn.append(dict(o.fixed_labels))
     blobs = _blobs(image, instance_classes, class_names, model, r_blob) if noise.blob_rate > 0 else []
+    # Phantoms and background regions are what the detector sees in the image: their labels are tagged.
+    surface = {class_names.index(name) for name in SURFACE_CLASSES if name in class_names}
+    extra: list[tuple[np.ndarray, dict[str, float]]] = []
+    if noise.persistent_detect_prob > 0:
+        targets = [i for i, c in instance_classes.items() if c not in surface]
+        extra += _phantom_detections(phantoms, ~np.isin(image, targets), model, r_phantom)
+    if noise.background_rate > 0:
+        background = (image == 0) | np.isin(image, [i for i, c in instance_classes.items() if c in surface])
+        extra += _background_regions(image, background, class_names, model, r_background)
 
     # 3. Tagger and prompt.
-    present = sorted({name for labels in drawn for name in labels} | {name for _, labels in blobs for name in labels})
+    present = sorted(
+        {name for labels in drawn for name in labels}
+        | {name for _, labels in blobs for name in labels}
+        | {name for _, labels in extra for name in labels}
+    )
     tags = [name for name in present if r_tag.random() >= noise.missed_tag_prob]
     generic = []
     if noise.raw_extra_tags:
@@ -667,6 +892,12 @@ def simulate_frame(
         labels = _prompt_filter(labels, prompt_set)
         if labels:
             detections.append((perturb_border(mask, r_blob, noise.border_offset_px, noise.border_jitter_px), labels))
+    for mask, labels in extra:
+        labels = _prompt_filter(labels, prompt_set)
+        if labels:
+            detections.append((perturb_border(mask, r_extra_border, noise.border_offset_px, noise.border_jitter_px), labels))
+    if noise.texture_prob > 0:
+        detections += _texture_pieces(image, areas, instance_classes, model, prompt, r_texture)
     if noise.score_miscalibration > 0:
         detections = [(mask, _miscalibrate(labels, r_score, noise)) for mask, labels in detections]
 
@@ -810,6 +1041,7 @@ def simulate_scene(
     start = time.perf_counter()
     renderer = GroundTruthRenderer.from_ground_truth(gt, max_distance=max_distance, stride=render_stride)
     classes = instance_classes(gt, label_sets)
+    phantoms = place_phantoms(gt.vertices, gt.faces, gt.instance_ids, classes, noise, label_sets, likelihood)
     augmenter = PromptAugmenter(noise.augmentation_window, label_sets.prompt_augmentation_excluded)
     names: list[str] = []
     per_frame: list[int] = []
@@ -829,7 +1061,10 @@ def simulate_scene(
             if max_frames is not None and len(names) >= max_frames:
                 break
             gt_image = renderer.render(depth, T_world_camera, intrinsics)
-            detections = simulate_frame(gt_image, classes, name, index, noise, label_sets, likelihood, augmenter.candidates())
+            views = [(phantom_mask(p, depth, T_world_camera, intrinsics), p.label) for p in phantoms]
+            detections = simulate_frame(
+                gt_image, classes, name, index, noise, label_sets, likelihood, augmenter.candidates(), phantoms=views
+            )
             write_frame_detections(out_dir, detections, mask_format=mask_format)
             augmenter.observe(label for labels in detections.labels for label in labels)
             names.append(name)
@@ -854,6 +1089,11 @@ def simulate_scene(
         "frames": names,
         "detections_per_frame": per_frame,
         "main_label_counts": dict(sorted(label_counts.items(), key=lambda item: (-item[1], item[0]))),
+        **(
+            {"phantoms": [{"center": p.center.round(4).tolist(), "radius": p.radius, "label": p.label} for p in phantoms]}
+            if phantoms
+            else {}
+        ),
         "seconds": round(seconds, 3),
     }
     (out_dir / "simulation.json").write_text(json.dumps(record, indent=1) + "\n")

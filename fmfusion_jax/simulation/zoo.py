@@ -12,11 +12,22 @@ mixtures of them, reproducible from a seed.
     merged       one mask over an object and its touching neighbour, of any kind but wall and floor
     border       dilated and eroded mask borders that bleed onto the floor and walls behind
     confusers    non-target objects detected as a class, false blobs, missed small objects, miscalibrated scores
+    persistent   phantom objects fixed in the world (a spot of wall or floor, away from the objects), each
+                 detected in most views as one closed class with one fixed label: fusion makes real
+                 instances that cover no object
+    background   wall, floor and unannotated regions taken for furniture (cabinet, bookshelf, table, ...)
+                 in single frames: thin strips along the surface or large patches
+    texture      large objects and background over-segmented into many small masks with random or weak
+                 labels at low scores
 
 A family at severity `s` moves each of its parameters from the `default` value to `default + s * (dose -
 default)` (`FAMILY_DOSES`: severity 1 is the dose, 0 is `default`), probabilities clipped to [0, 1] and
 exclusive probabilities scaled down to sum to at most 1. `NoiseModel.preset(family)` is the family at
 severity 1, so `fmfusion simulate SCENE --out DIR --noise-preset border --set bleed_px=8` works.
+
+The last three families (`LATER_FAMILIES`) were added after the zoo had been used: their parameters are
+left out of the noise records at 0 (`noise.LATER_PARAMS`), so the other entries keep their cache names and
+detections, and mixtures draw them from a stream of their own after the first five (see `noise_zoo`).
 """
 
 from __future__ import annotations
@@ -57,7 +68,12 @@ FAMILY_DOSES: dict[str, dict[str, float]] = {
         "border_jitter_px": 3.0,
     },
     "confusers": {"confuser_prob": 0.5, "blob_rate": 0.8, "small_object_miss_prob": 0.5, "score_miscalibration": 0.6},
+    "persistent": {"persistent_phantoms": 4.0, "persistent_radius_m": 0.3, "persistent_detect_prob": 0.8},
+    "background": {"background_rate": 1.0, "background_strip_share": 0.5},
+    "texture": {"texture_prob": 0.25},
 }
+#: Families added after the first zoo: mixtures draw them from a separate stream (see `noise_zoo`).
+LATER_FAMILIES = ("persistent", "background", "texture")
 #: The family name of a random combination of the families.
 MIXED = "mixed"
 
@@ -117,10 +133,15 @@ def noise_zoo(mixed: int = 4, seed: int = 0, severity: float = 1.0) -> list[ZooE
     A combination draws each family with probability 1/2 (at least two) at a random severity in
     [0.5, 1.5] x `severity`; its parameters are the union (the larger failure probability wins).
     Deterministic for a seed.
+
+    The first five families are drawn from the stream the zoo always used (`[seed, 4242]`), at least two
+    of them, so a mixture keeps its families and severities; `LATER_FAMILIES` are then drawn, each with
+    probability 1/2, from a stream of the mixture's own (`[seed, 4243, i]`). Their parameters are their
+    own, so a mixture that draws none of them is the very model (and cache) it was before.
     """
     entries = [ZooEntry(family, family, family_noise(family, severity, seed=seed)) for family in FAMILIES]
     rng = np.random.default_rng([seed, 4242])
-    candidates = [f for f in FAMILIES if f != "default"]
+    candidates = [f for f in FAMILIES if f != "default" and f not in LATER_FAMILIES]
     for i in range(1, mixed + 1):
         chosen = [f for f in candidates if rng.random() < 0.5]
         while len(chosen) < 2:
@@ -131,8 +152,14 @@ def noise_zoo(mixed: int = 4, seed: int = 0, severity: float = 1.0) -> list[ZooE
         for family in sorted(chosen, key=candidates.index):
             for key, value in _family_changes(family, severity * rng.uniform(0.5, 1.5)).items():
                 params[key] = max(params.get(key, value), value)
+        later = np.random.default_rng([seed, 4243, i])
+        for family in LATER_FAMILIES:
+            drawn, scale = later.random() < 0.5, later.uniform(0.5, 1.5)
+            if drawn:
+                for key, value in _family_changes(family, severity * scale).items():
+                    params[key] = max(params.get(key, value), value)
         entries.append(ZooEntry(f"{MIXED}-{i}", MIXED, NoiseModel.preset("default", seed=seed, **_fit(params))))
     return entries
 
 
-__all__ = ["FAMILIES", "FAMILY_DOSES", "MIXED", "ZooEntry", "family_noise", "noise_zoo"]
+__all__ = ["FAMILIES", "FAMILY_DOSES", "LATER_FAMILIES", "MIXED", "ZooEntry", "family_noise", "noise_zoo"]
