@@ -197,6 +197,9 @@ class ExportConfig(_Section):
     post_merge_iou: Float = knob(0.2, "post-processing merge: 3D IoU above this ...", "engine", ge=0, le=1)
     post_merge_similarity: Float = knob(0.1, "... and semantic similarity above this", "engine", ge=0)
     min_points: Int = knob(200, "instances with fewer points are dropped", ge=0)
+    speck_distance: Float = knob(
+        0.2, "m; pieces of an instance farther than this from its largest piece are dropped (0: kept)", ge=0
+    )
     support_observations: Float = knob(
         3.0,
         "existence = (1 - exp(-observations / this)) x the hit-rate factor: one-off instances rank low "

@@ -111,6 +111,7 @@ PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
     "export.existence_prior=0",
     "export.min_existence=0",
     "export.planar_thickness=0",
+    "export.speck_distance=0",
     "export.min_slot_share=0",
     "export.structure_claims_vertices=false",
     "export.transfer_neighbours=1",

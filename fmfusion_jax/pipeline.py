@@ -30,7 +30,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch, pack_detections
 from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.instances import MapInstance, postprocess_instances, score_existence
+from fmfusion_jax.instances import MapInstance, drop_far_specks, postprocess_instances, score_existence
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
@@ -762,11 +762,12 @@ def extract_map_instances(
         state, result.map_config, min_weight=export.min_weight, min_share=export.min_slot_share
     )
     table = state.instances
+    voxel_size = result.map_config.voxel_size
     instances = [
         MapInstance(
             instance_id=int(k),
             distribution=distribution[k],
-            points=np.asarray(points[int(k)], np.float32),
+            points=drop_far_specks(np.asarray(points[int(k)], np.float32), voxel_size, export.speck_distance),
             observations=int(table.observations[k]),
             open_label_histogram=np.asarray(table.open_label_histogram[k]),
             missed=int(table.missed[k]),
@@ -774,7 +775,7 @@ def extract_map_instances(
         for k in np.flatnonzero(np.asarray(table.valid))
         if k in points
     ]
-    instances = score_existence(instances, label_sets, export, result.map_config.voxel_size)
+    instances = score_existence(instances, label_sets, export, voxel_size)
     if postprocess:
         instances = postprocess_instances(instances, label_sets, result.config.export)
     return instances

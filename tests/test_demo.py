@@ -55,7 +55,7 @@ def test_demo_writes_every_output(demo):
     jsonschema.validate(document, json.loads((Path(__file__).parents[1] / "docs" / "instances.schema.json").read_text()))
     instances = document["instances"]
     assert len(instances) == run["instances"] == len(list((out / "instances").glob("*.ply")))
-    assert document["version"] == 2 and all(record["voxel_count"] >= 1 for record in instances)
+    assert document["version"] == 3 and all(record["voxel_count"] >= 1 for record in instances)
     assert "AP" in demo.text and str(out / "overview.png") in demo.text
     # the config used: demo.yaml scaled to 12 frames of 160x120
     assert (out / "config.yaml").read_text() == demo.fusion.config.to_yaml()

@@ -1,7 +1,19 @@
+import dataclasses
+
 import numpy as np
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from fmfusion_jax.config import ExportConfig
-from fmfusion_jax.instances import MapInstance, postprocess_instances
+from fmfusion_jax.instances import (
+    MapInstance,
+    detector_hit_rate,
+    drop_far_specks,
+    existence_probability,
+    postprocess_instances,
+    score_existence,
+    thickness,
+)
 from fmfusion_jax.labels import load_label_sets
 
 LABELS = load_label_sets()
@@ -59,3 +71,142 @@ def test_floor_claims_its_vertices_in_the_benchmark_transfer():
     assert plain.num_instances == claimed.num_instances == 1
     assert plain.masks[0].sum() >= 0.25 * len(vertices)
     assert claimed.masks[0].sum() == 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# The existence model.
+
+
+def weighted_median_oracle(rates, weights):
+    """The smallest rate at which at least half of the weight lies at or below it."""
+    pairs = sorted(zip(rates, weights))
+    total, running = sum(weights), 0.0
+    for rate, weight in pairs:
+        running += weight
+        if running >= total / 2:
+            return rate
+    raise AssertionError
+
+
+@given(st.lists(st.tuples(st.integers(0, 60), st.integers(0, 60)), min_size=1, max_size=30))
+@settings(max_examples=60, deadline=None)
+def test_detector_hit_rate_is_the_observation_weighted_median_of_the_sure_instances(counts):
+    obs = np.array([c[0] for c in counts])
+    missed = np.array([c[1] for c in counts])
+    rate = detector_hit_rate(obs, missed, min_observations=5)
+    sure = [(o / (o + m), o) for o, m in counts if o >= 5]
+    if not sure:
+        assert rate is None
+    else:
+        assert rate == weighted_median_oracle(*zip(*sure))
+
+
+@given(st.integers(0, 80), st.integers(0, 80), st.floats(0.05, 1.0), st.floats(0.5, 10.0))
+@settings(max_examples=80, deadline=None)
+def test_existence_falls_with_missed_frames_and_rises_with_detections(obs, missed, rate, prior):
+    e = existence_probability(obs, missed, rate, 3.0, prior)
+    assert 0.0 <= e <= 1.0
+    assert existence_probability(obs, missed + 1, rate, 3.0, prior) <= e  # seen, not detected: less evidence
+    assert existence_probability(obs + 1, missed, rate, 3.0, prior) >= e
+    # at or above the detector's own rate only the repeated support counts
+    assert existence_probability(obs, 0, rate, 3.0, prior) == 1.0 - np.exp(-obs / 3.0)
+
+
+def test_a_patch_seen_often_but_rarely_detected_loses_to_an_object_of_the_same_detector():
+    # a poor detector (finds objects in a third of the frames that show them): its objects are not penalized
+    obs = np.array([10, 12, 9, 3])
+    missed = np.array([20, 25, 17, 40])
+    rate = detector_hit_rate(obs, missed)
+    assert 0.3 < rate < 0.4
+    objects = [existence_probability(o, m, rate, 3.0, 4.0) for o, m in zip(obs[:3], missed[:3])]
+    phantom = existence_probability(obs[3], missed[3], rate, 3.0, 4.0)
+    assert min(objects) > 0.9 and phantom < 0.3
+
+
+def test_thickness_of_a_plane_and_of_a_box():
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(0, 1, (500, 2)), np.zeros(500)] @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    box = rng.uniform(0, [1.0, 0.6, 0.4], (500, 3))
+    assert thickness(plane) < 1e-6
+    assert abs(thickness(box) - 0.4 / np.sqrt(12)) < 0.02  # uniform: std = width / sqrt(12)
+    assert thickness(box[:2]) == 0.0
+
+
+def test_sheets_of_volumetric_classes_have_no_existence_and_are_not_exported():
+    rng = np.random.default_rng(1)
+    sheet = np.c_[rng.uniform(0, 1, (400, 2)), np.full(400, 2.0)].astype(np.float32)  # one voxel layer
+    solid = rng.uniform(0, 0.5, (400, 3)).astype(np.float32)
+
+    def instance(k, name, points):
+        return dataclasses.replace(make_instance(k, name, [0, 0, 0], 400), points=points, observations=20, missed=2)
+
+    instances = [
+        instance(0, "cabinet", sheet),
+        instance(1, "door", sheet),
+        instance(2, "cabinet", solid),
+        instance(3, "wall", sheet),
+    ]
+    export = ExportConfig(min_points=200)
+    scored = {i.instance_id: i.existence for i in score_existence(instances, LABELS, export, voxel_size=0.02)}
+    assert scored[0] == 0.0 and scored[1] > 0.9 and scored[2] > 0.9
+    kept = {i.instance_id for i in postprocess_instances(score_existence(instances, LABELS, export, 0.02), LABELS, export)}
+    assert kept == {1, 2, 3}  # the wall stays: structure is never ranked or dropped
+    off = export.model_copy(update={"planar_thickness": 0.0, "min_existence": 0.0})
+    assert len(postprocess_instances(score_existence(instances, LABELS, off, 0.02), LABELS, off)) == 4
+
+
+def specks_oracle(points, voxel_size, max_distance):
+    """Brute force: pieces by flood fill over 26-neighbouring two-voxel cells; keep the largest piece and the
+    pieces with a point within max_distance of it."""
+    cells = [tuple(c) for c in np.floor((points - points.min(axis=0)) / (2 * voxel_size)).astype(int)]
+    occupied, piece_of = set(cells), {}
+    for start in occupied:
+        if start in piece_of:
+            continue
+        piece_of[start], stack = start, [start]
+        while stack:
+            c = stack.pop()
+            for d in np.ndindex(3, 3, 3):
+                n = (c[0] + d[0] - 1, c[1] + d[1] - 1, c[2] + d[2] - 1)
+                if n in occupied and n not in piece_of:
+                    piece_of[n] = start
+                    stack.append(n)
+    piece = np.array([hash(piece_of[c]) for c in cells])
+    names, counts = np.unique(piece, return_counts=True)
+    if len(counts) > 1 and np.sort(counts)[-2] == counts.max():
+        return None  # two largest pieces: either may be the body
+    body = piece == names[np.argmax(counts)]
+    keep = body.copy()
+    for name in names:
+        member = piece == name
+        gaps = np.linalg.norm(points[member][:, None] - points[body][None], axis=-1)
+        keep |= member & (gaps.min() <= max_distance)
+    return points[keep]
+
+
+def test_far_specks_are_dropped_and_near_parts_kept():
+    voxel = 0.02
+    grid = np.stack(np.meshgrid(*(np.arange(10),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    body = (grid + 0.5) * voxel  # a 20 cm cube
+    near = body[:50] + [0.3, 0, 0]  # 10 cm beyond the cube's face: a leg seen apart from the seat
+    far = body[:30] + [1.0, 1.0, 0]  # a speck a metre away
+    points = np.concatenate([body, near, far]).astype(np.float32)
+    kept = drop_far_specks(points, voxel, 0.2)
+    assert len(kept) == len(body) + len(near)
+    assert np.array_equal(drop_far_specks(points, voxel, 0.0), points)
+
+
+@given(st.integers(0, 2**31 - 1), st.floats(0.05, 0.5))
+@settings(max_examples=25, deadline=None)
+def test_far_specks_match_the_flood_fill_oracle(seed, max_distance):
+    rng = np.random.default_rng(seed)
+    voxel = 0.02
+    clusters = [
+        rng.integers(0, 60, 3) + rng.integers(0, 4, (int(rng.integers(1, 40)), 3)) for _ in range(int(rng.integers(1, 5)))
+    ]
+    g = np.unique(np.concatenate(clusters), axis=0)
+    points = ((g + 0.5) * voxel).astype(np.float64)
+    kept = drop_far_specks(points, voxel, max_distance)
+    expected = specks_oracle(points, voxel, max_distance)
+    assume(expected is not None)
+    assert sorted(map(tuple, kept)) == sorted(map(tuple, expected))

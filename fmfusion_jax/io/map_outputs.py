@@ -176,7 +176,7 @@ def oriented_box(points: np.ndarray) -> dict:
 
 
 def instances_json(instances: list[MapInstance], label_sets: LabelSets) -> list[dict]:
-    """One record per instance: class, confidence, distribution, label histogram, size, box."""
+    """One record per instance: class, confidence, existence, distribution, detection counts, label histogram, size, box."""
     records = []
     for inst in instances:
         histogram = {label_sets.open_labels[i]: round(float(v), 4) for i, v in enumerate(inst.open_label_histogram) if v > 0}
@@ -187,7 +187,9 @@ def instances_json(instances: list[MapInstance], label_sets: LabelSets) -> list[
                 "nyu40_id": int(label_sets.nyu40_ids[inst.class_index]),
                 "confidence": round(inst.confidence, 6),
                 "distribution": {name: round(float(p), 6) for name, p in zip(label_sets.class_names, inst.distribution)},
+                "existence": round(inst.existence, 6),
                 "observations": inst.observations,
+                "missed": inst.missed,
                 "open_label_histogram": dict(sorted(histogram.items(), key=lambda kv: -kv[1])),
                 "voxel_count": int(len(inst.points)),
                 "oriented_box": oriented_box(inst.points),
@@ -198,7 +200,7 @@ def instances_json(instances: list[MapInstance], label_sets: LabelSets) -> list[
 
 #: `schema` and `version` of instances.json (docs/instances.schema.json describes every field).
 INSTANCES_SCHEMA = "fmfusion-jax instances"
-INSTANCES_SCHEMA_VERSION = 2
+INSTANCES_SCHEMA_VERSION = 3
 
 
 def write_instances_json(path: Path, records: list[dict]) -> None:
