@@ -215,10 +215,11 @@ class ExportConfig(_Section):
     min_existence: Float = knob(0.3, "instances of a lower existence are not exported (0: every instance)", ge=0, le=1)
     planar_thickness: Float = knob(
         1.3,
-        "voxels; an instance of a volumetric class at most this thick (a sheet of wall, floor or "
-        "counter front) has existence 0 (0: off)",
+        "voxels; an instance of a volumetric class at most this thick is a sheet (of wall, floor or "
+        "counter front, or a cabinet seen from the front only) (0: no sheets)",
         ge=0,
     )
+    sheet_factor: Float = knob(0.5, "a sheet's existence is multiplied by this (0: sheets are never exported)", ge=0, le=1)
     flat_classes: tuple[str, ...] = knob(
         ("wall", "floor", "door", "window", "picture", "curtain", "shower curtain"),
         "classes whose objects may be flat (not subject to planar_thickness)",

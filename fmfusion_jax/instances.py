@@ -112,12 +112,14 @@ def thickness(points: np.ndarray) -> float:
 def score_existence(
     instances: list[MapInstance], label_sets: LabelSets, export: ExportConfig, voxel_size: float
 ) -> list[MapInstance]:
-    """Each instance with its `existence` (`existence_probability`); 0 for a sheet of a volumetric class.
+    """Each instance with its `existence` (`existence_probability`), times `export.sheet_factor` for a sheet of a
+    volumetric class.
 
     A sheet is an instance whose points are at most `export.planar_thickness` voxels thick (`thickness`): the
     surface of a wall, a counter front or the floor, which the detector called a cabinet, a bookshelf or a
     bed. Objects of those classes stand out of the surfaces they rest on; doors, windows, pictures, curtains
-    (`export.flat_classes`), walls and floors may be flat."""
+    (`export.flat_classes`), walls and floors may be flat. Weaker evidence, not a veto: a kitchen cabinet seen
+    only from the front is a sheet too, and the detector finds it again and again."""
     rate = detector_hit_rate(np.array([i.observations for i in instances]), np.array([i.missed for i in instances]))
     flat = {label_sets.class_index(name) for name in export.flat_classes if name in label_sets.class_names}
     sheet = export.planar_thickness * voxel_size
@@ -127,7 +129,7 @@ def score_existence(
             inst.observations, inst.missed, rate, export.support_observations, export.existence_prior
         )
         if sheet > 0 and inst.class_index not in flat and thickness(inst.points) <= sheet:
-            existence = 0.0
+            existence *= export.sheet_factor
         out.append(dataclasses.replace(inst, existence=existence))
     return out
 
@@ -139,6 +141,12 @@ def drop_unlikely_instances(instances: list[MapInstance], label_sets: LabelSets,
     return [inst for inst in instances if inst.class_index in structure or inst.existence >= min_existence]
 
 
+#: Least share of an instance's points its largest piece must hold to be its body (`drop_far_specks`): an instance
+#: in many small pieces of similar size (a floor seen in patches between the furniture, few sparse samples) has no
+#: body to measure specks from and is kept whole.
+BODY_MIN_SHARE = 0.3
+
+
 def drop_far_specks(points: np.ndarray, voxel_size: float, max_distance: float) -> np.ndarray:
     """`(P, 3)` points of an instance's voxel centres -> `(Q, 3)`, Q <= P: its body and what lies near it.
 
@@ -146,7 +154,7 @@ def drop_far_specks(points: np.ndarray, voxel_size: float, max_distance: float) 
     split an object); the body is the largest piece, and a piece is kept when one of its points lies within
     `max_distance` metres of the body. A mask that bled onto a far wall or a wrong association far away
     leaves specks that claim mesh vertices there (and lower the instance's IoU) without being the object.
-    `max_distance <= 0`: every point."""
+    `max_distance <= 0`, or a largest piece under `BODY_MIN_SHARE` of the points: every point."""
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
@@ -161,6 +169,8 @@ def drop_far_specks(points: np.ndarray, voxel_size: float, max_distance: float) 
         return points
     piece = labels[tuple(cells.T)]
     body = piece == np.argmax(np.bincount(piece)[1:]) + 1
+    if body.sum() < BODY_MIN_SHARE * len(points):
+        return points
     near = np.zeros(count + 1, bool)
     distance, _ = cKDTree(points[body]).query(points[~body], distance_upper_bound=max_distance)
     near[np.unique(piece[~body][np.isfinite(distance)])] = True

@@ -148,9 +148,12 @@ def test_sheets_of_volumetric_classes_have_no_existence_and_are_not_exported():
     ]
     export = ExportConfig(min_points=200)
     scored = {i.instance_id: i.existence for i in score_existence(instances, LABELS, export, voxel_size=0.02)}
-    assert scored[0] == 0.0 and scored[1] > 0.9 and scored[2] > 0.9
-    kept = {i.instance_id for i in postprocess_instances(score_existence(instances, LABELS, export, 0.02), LABELS, export)}
-    assert kept == {1, 2, 3}  # the wall stays: structure is never ranked or dropped
+    assert scored[1] > 0.9 and scored[2] > 0.9 and scored[0] == 0.5 * scored[2]  # a sheet's evidence is halved
+    weak = [dataclasses.replace(i, missed=60) if i.instance_id == 0 else i for i in instances]
+    kept = {i.instance_id for i in postprocess_instances(score_existence(weak, LABELS, export, 0.02), LABELS, export)}
+    assert kept == {1, 2, 3}  # a weak sheet is not exported; the wall stays: structure is never ranked or dropped
+    veto = export.model_copy(update={"sheet_factor": 0.0})
+    assert {i.instance_id: i.existence for i in score_existence(instances, LABELS, veto, 0.02)}[0] == 0.0
     off = export.model_copy(update={"planar_thickness": 0.0, "min_existence": 0.0})
     assert len(postprocess_instances(score_existence(instances, LABELS, off, 0.02), LABELS, off)) == 4
 
@@ -175,6 +178,8 @@ def specks_oracle(points, voxel_size, max_distance):
     names, counts = np.unique(piece, return_counts=True)
     if len(counts) > 1 and np.sort(counts)[-2] == counts.max():
         return None  # two largest pieces: either may be the body
+    if counts.max() < 0.3 * len(points):
+        return points  # no body
     body = piece == names[np.argmax(counts)]
     keep = body.copy()
     for name in names:
@@ -194,6 +199,9 @@ def test_far_specks_are_dropped_and_near_parts_kept():
     kept = drop_far_specks(points, voxel, 0.2)
     assert len(kept) == len(body) + len(near)
     assert np.array_equal(drop_far_specks(points, voxel, 0.0), points)
+    # no body: five pieces of one voxel each, a metre apart, are kept whole
+    scattered = (np.arange(5)[:, None] * [1.0, 0, 0] + 0.5 * voxel).astype(np.float32)
+    assert len(drop_far_specks(scattered, voxel, 0.2)) == 5
 
 
 @given(st.integers(0, 2**31 - 1), st.floats(0.05, 0.5))
