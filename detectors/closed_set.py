@@ -25,8 +25,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
@@ -109,18 +107,6 @@ class ClosedSetModels:
         self.timings = {"detector": 0.0, "sam_encoder": 0.0, "sam_decoder": 0.0, "classifier": 0.0}
         self.frames = 0
         self.last_counts: dict[str, int] = {}
-
-    @classmethod
-    def from_folder(
-        cls, models_dir: str | Path, providers: str | Sequence[str] = "cpu", overrides: dict | None = None
-    ) -> "ClosedSetModels":
-        """The closed-set front end of a models folder (its models.yaml, or the shared layout)."""
-        from detectors.manifest import load_front_end  # the manifest module builds this class
-
-        models = load_front_end(models_dir, providers, overrides)
-        if not isinstance(models, cls):
-            raise UserError(f"{models_dir}: holds a {type(models).__name__} front end, not the closed-set one")
-        return models
 
     @property
     def providers(self) -> list[str]:

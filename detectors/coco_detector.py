@@ -38,6 +38,8 @@ NANODET_STD_BGR = np.array([57.375, 57.12, 58.395], np.float32)
 #: Detector kinds, their contracts and default score thresholds (NanoDet's quality-focal scores run lower).
 KINDS: dict[str, ModelContract] = {"nanodet": NANODET, "ssd": SSD}
 DEFAULT_SCORE_THRESHOLD = {"nanodet": 0.35, "ssd": 0.4}
+#: IoU above which per-class NMS drops the lower box, and the most boxes a frame keeps.
+DEFAULT_NMS_IOU, DEFAULT_MAX_DETECTIONS = 0.6, 100
 LABELS_HEADER = ["nanodet_id", "ssd_id", "name"]
 
 
@@ -205,8 +207,8 @@ class CocoDetector:
         labels: CocoLabels,
         kind: str,
         score_threshold: float | None = None,
-        nms_iou: float = 0.6,
-        max_detections: int = 100,
+        nms_iou: float = DEFAULT_NMS_IOU,
+        max_detections: int = DEFAULT_MAX_DETECTIONS,
     ):
         if kind not in KINDS:
             raise UserError(f"detector kind {kind!r}: expected one of {', '.join(KINDS)}")

@@ -355,7 +355,6 @@ CLASSIFIER = ModelContract(
 
 #: The contracts of each front end, in pipeline order.
 GROUNDED_SAM_CONTRACTS = (TAGGER, GROUNDING, SAM_ENCODER, SAM_DECODER)
-CLOSED_SET_CONTRACTS = (NANODET, SSD, SAM_ENCODER, SAM_DECODER, CLASSIFIER)
 #: Every contract (docs/detectors.md has a table for each).
 CONTRACTS = (TAGGER, GROUNDING, SAM_ENCODER, SAM_DECODER, NANODET, SSD, CLASSIFIER)
 

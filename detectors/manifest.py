@@ -39,7 +39,8 @@ import yaml
 
 from detectors.classifier import ImageClassifier
 from detectors.closed_set import ClosedSetConfig, ClosedSetModels
-from detectors.coco_detector import CocoDetector
+from detectors.coco_detector import DEFAULT_MAX_DETECTIONS, DEFAULT_NMS_IOU, CocoDetector
+from detectors.coco_detector import KINDS as COCO_KINDS
 from detectors.contracts import GROUNDING, SAM_DECODER, SAM_ENCODER, SSD, TAGGER
 from detectors.onnx_runtime import OnnxModel
 from detectors.pipeline import DetectorConfig, FoundationModels
@@ -53,7 +54,9 @@ MANIFEST_FILE = "models.yaml"
 #: The grounded_sam front end's settings a manifest (section `grounding`) may set: `pipeline.DetectorConfig`'s.
 GROUNDING_KEYS = ("box_threshold", "text_threshold", "prompt_window")
 FRONT_ENDS = ("closed_set", "grounded_sam")
-DETECTOR_KINDS = ("nanodet", "ssd")
+DETECTOR_KINDS = tuple(COCO_KINDS)
+#: The closed-set settings a manifest leaves out (`ClosedSetConfig` defines them).
+CLOSED_SET_DEFAULTS = ClosedSetConfig()
 #: Keys each section takes (with `file` / `encoder` etc. required where said in the module docstring).
 SECTION_KEYS = {
     "detector": ("file", "kind", "labels", "score_threshold", "nms_iou", "max_detections"),
@@ -87,10 +90,10 @@ class FrontEnd(Protocol):
 class DetectorEntry:
     file: Path
     labels: Path
-    kind: str | None = None
-    score_threshold: float | None = None
-    nms_iou: float = 0.6
-    max_detections: int = 100
+    kind: str | None
+    score_threshold: float | None
+    nms_iou: float
+    max_detections: int
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,10 +107,10 @@ class SegmenterEntry:
 class ClassifierEntry:
     file: Path
     labels: Path
-    top_k: int = 5
-    classify_boxes: bool = True
-    box_label_weight: float = 0.5
-    box_label_min_score: float = 0.05
+    top_k: int
+    classify_boxes: bool
+    box_label_weight: float
+    box_label_min_score: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,8 +258,8 @@ def parse_manifest(data: Mapping[str, Any], folder: Path, source: Path | None) -
         labels=_file(folder, {"labels": detector.get("labels", "detector/coco_labels.txt")}, "labels", where, "detector"),
         kind=_choice(detector.get("kind"), DETECTOR_KINDS, f"{where}: detector kind", optional=True),
         score_threshold=_fraction(detector.get("score_threshold"), f"{where}: detector score_threshold", optional=True),
-        nms_iou=_fraction(detector.get("nms_iou", 0.6), f"{where}: detector nms_iou"),
-        max_detections=_count(detector.get("max_detections", 100), f"{where}: detector max_detections"),
+        nms_iou=_fraction(detector.get("nms_iou", DEFAULT_NMS_IOU), f"{where}: detector nms_iou"),
+        max_detections=_count(detector.get("max_detections", DEFAULT_MAX_DETECTIONS), f"{where}: detector max_detections"),
     )
     segmenter_entry = SegmenterEntry(
         encoder=_file(folder, segmenter, "encoder", where, "segmenter"),
@@ -265,10 +268,12 @@ def parse_manifest(data: Mapping[str, Any], folder: Path, source: Path | None) -
     )
     classifier_entry = None
     if classifier is not None:
-        classify_boxes = classifier.get("classify_boxes", True)
+        classify_boxes = classifier.get("classify_boxes", CLOSED_SET_DEFAULTS.classify_boxes)
         if not isinstance(classify_boxes, bool):
             raise UserError(f"{where}: classifier classify_boxes {classify_boxes!r} must be true or false")
-        weight = _fraction(classifier.get("box_label_weight", 0.5), f"{where}: classifier box_label_weight")
+        weight = _fraction(
+            classifier.get("box_label_weight", CLOSED_SET_DEFAULTS.box_label_weight), f"{where}: classifier box_label_weight"
+        )
         if weight == 0:
             raise UserError(f"{where}: classifier box_label_weight must be above 0")
         classifier_entry = ClassifierEntry(
@@ -276,10 +281,12 @@ def parse_manifest(data: Mapping[str, Any], folder: Path, source: Path | None) -
             labels=_file(
                 folder, {"labels": classifier.get("labels", "classifier/imagenet_labels.txt")}, "labels", where, "classifier"
             ),
-            top_k=_count(classifier.get("top_k", 5), f"{where}: classifier top_k"),
+            top_k=_count(classifier.get("top_k", CLOSED_SET_DEFAULTS.top_k), f"{where}: classifier top_k"),
             classify_boxes=classify_boxes,
             box_label_weight=weight,
-            box_label_min_score=_fraction(classifier.get("box_label_min_score", 0.05), f"{where}: classifier min score"),
+            box_label_min_score=_fraction(
+                classifier.get("box_label_min_score", CLOSED_SET_DEFAULTS.box_label_min_score), f"{where}: classifier min score"
+            ),
         )
     proposal_config = None
     if proposals is not None:
@@ -397,13 +404,16 @@ def assemble_closed_set(
 ) -> ClosedSetModels:
     """The `ClosedSetModels` of a manifest from its loaded roles."""
     c = manifest.classifier
-    config = ClosedSetConfig(
-        classify_boxes=bool(c and c.classify_boxes),
-        box_label_weight=c.box_label_weight if c else 0.5,
-        box_label_min_score=c.box_label_min_score if c else 0.05,
-        top_k=c.top_k if c else 5,
-        proposals=manifest.proposals,
-    )
+    if c is None:  # no classifier: the boxes keep the detector's names
+        config = ClosedSetConfig(classify_boxes=False, proposals=manifest.proposals)
+    else:
+        config = ClosedSetConfig(
+            classify_boxes=c.classify_boxes,
+            box_label_weight=c.box_label_weight,
+            box_label_min_score=c.box_label_min_score,
+            top_k=c.top_k,
+            proposals=manifest.proposals,
+        )
     return ClosedSetModels(detector, segmenter, classifier, vocabulary, config)
 
 

@@ -420,6 +420,22 @@ def run_method(
     return RunOutcome(predictions, summary, score)
 
 
+def copy_run(outcome: RunOutcome, method: Method, same_as: str, src: Path, dst: Path) -> RunOutcome:
+    """The outcome of an identical run (same mapper, config and detections) under another method's name."""
+    _replace_run_dir(dst)
+    shutil.rmtree(dst)
+    shutil.copytree(src, dst)
+    summary = {
+        **outcome.summary,
+        "method": method.name,
+        "title": method.title,
+        "overrides": list(method.overrides),
+        "same_run_as": same_as,
+    }
+    (dst / RUN_RECORD).write_text(json.dumps(summary, indent=1, default=float))
+    return RunOutcome(outcome.predictions, summary, outcome.score)
+
+
 def _replace_run_dir(run_dir: Path) -> None:
     """Empties a run folder left by an earlier experiment (it holds run.json); refuses any other non-empty one."""
     if run_dir.is_dir() and any(run_dir.iterdir()):
@@ -619,22 +635,28 @@ def run_experiment(
         gt_ids[source.name] = ready.gt.benchmark_ids()
         timings[source.name] = {"prepare": ready.seconds}
         runs[source.name], configs[source.name] = {}, {}
+        seen: dict[tuple[str | None, str, str], str] = {}  # (baseline, detections, config) -> first method
         for method in chosen:
             config = source.config(list(overrides) + list(method.overrides), real_max_frames)
             where = f"[{sum(map(len, runs.values())) + 1}/{total_runs}] {source.name}: {method.name}"
             report(f"{where} ({method.title})")
-            outcome = run_method(
-                method,
-                ready.scene,
-                ready.detections[method.detections].detections_dir,
-                config,
-                ready.gt,
-                out_dir / "runs" / source.name / method.name,
-                progress,
-            )
+            detections_dir = ready.detections[method.detections].detections_dir
+            run_dir = out_dir / "runs" / source.name / method.name
+            key = (method.baseline, str(detections_dir), config.to_yaml())
+            if key in seen:  # the same mapper on the same files (given detections): the same map
+                other = seen[key]
+                outcome = copy_run(runs[source.name][other], method, other, run_dir.parent / other, run_dir)
+            else:
+                outcome = run_method(method, ready.scene, detections_dir, config, ready.gt, run_dir, progress)
+                seen[key] = method.name
             summary = outcome.summary
+            how = (
+                f"same mapper and detection files as {seen[key]}, map copied"
+                if seen[key] != method.name
+                else f"done in {summary['seconds']['total']:.1f} s"
+            )
             report(
-                f"{where} done in {summary['seconds']['total']:.1f} s: {summary['instances']} instances, "
+                f"{where} {how}: {summary['instances']} instances, "
                 f"mAP50 {_fraction(summary['score']['mAP50'])}, mAP25 {_fraction(summary['score']['mAP25'])}"
             )
             runs[source.name][method.name] = outcome

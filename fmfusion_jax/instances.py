@@ -17,6 +17,10 @@ import numpy as np
 from fmfusion_jax.config import ExportConfig
 from fmfusion_jax.labels import LabelSets
 
+#: The classes of the room's structure: never ranked as objects, never dropped for their existence, and in the
+#: benchmark transfer they only keep the surfaces' vertices from the objects.
+STRUCTURE_CLASSES = ("wall", "floor")
+
 
 @dataclasses.dataclass
 class MapInstance:
@@ -137,7 +141,7 @@ def score_existence(
 def drop_unlikely_instances(instances: list[MapInstance], label_sets: LabelSets, min_existence: float) -> list[MapInstance]:
     """Instances whose existence is below `min_existence` are not objects; walls and floors are kept (they are
     not ranked, and they keep the surfaces' mesh vertices from the objects in the benchmark transfer)."""
-    structure = {label_sets.class_index(name) for name in ("wall", "floor") if name in label_sets.class_names}
+    structure = {label_sets.class_index(name) for name in STRUCTURE_CLASSES if name in label_sets.class_names}
     return [inst for inst in instances if inst.class_index in structure or inst.existence >= min_existence]
 
 

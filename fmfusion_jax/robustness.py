@@ -27,7 +27,6 @@ import hashlib
 import json
 import logging
 import math
-import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -40,14 +39,13 @@ from fmfusion_jax.experiments import (
     DETECTIONS_DEFAULT,
     DETECTIONS_NO_AUGMENTATION,
     REAL_SCENE_CONFIG,
-    RUN_RECORD,
     Method,
     RunOutcome,
     SceneSource,
     _check_config,
     _markdown_table,
-    _replace_run_dir,
     _stderr_report,
+    copy_run,
     resolve_methods,
     run_method,
     scene_sources,
@@ -609,22 +607,6 @@ def entry_detections(opened: OpenedScene, entry: ZooEntry, variant: str, cache_d
     return prepared.detections_dir
 
 
-def _copy_run(outcome: RunOutcome, method: Method, same_as: str, src: Path, dst: Path) -> RunOutcome:
-    """The outcome of an identical run (same mapper, config and detections) under another method's name."""
-    _replace_run_dir(dst)
-    shutil.rmtree(dst)
-    shutil.copytree(src, dst)
-    summary = {
-        **outcome.summary,
-        "method": method.name,
-        "title": method.title,
-        "overrides": list(method.overrides),
-        "same_run_as": same_as,
-    }
-    (dst / RUN_RECORD).write_text(json.dumps(summary, indent=1, default=float))
-    return RunOutcome(outcome.predictions, summary, outcome.score)
-
-
 def _duration(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 60}m{seconds % 60:02d}s" if seconds >= 60 else f"{seconds}s"
@@ -729,7 +711,7 @@ def run_robustness(
                 key = (method.baseline, method.detections, config.to_yaml())
                 if key in seen:  # the same mapper on the same inputs: the same map
                     other = seen[key]
-                    outcome = _copy_run(outcomes[other], method, other, run_dir.parent / other, run_dir)
+                    outcome = copy_run(outcomes[other], method, other, run_dir.parent / other, run_dir)
                 else:
                     outcome = run_method(
                         method, opened.scene, detections[method.detections], config, opened.gt, run_dir, progress=False

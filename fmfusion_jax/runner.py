@@ -270,7 +270,9 @@ class SceneFusion:
         prepared, detection_error, detections = read
         frame = prepared.frame
         if self.mapper.detection_due(frame.T_world_camera):
-            if not self._source_reads_ahead and detections is None and detection_error is None:
+            # a source read with the frame, or run ahead in the detection thread, was asked there already
+            ahead = self._source_reads_ahead or self._source_detects_ahead
+            if not ahead and detections is None and detection_error is None:
                 try:
                     detections = self.detection_source(frame)
                 except DataError as failure:
@@ -806,69 +808,48 @@ def run_and_export(
     start = time.perf_counter()
     out_dir = prepare_output_dir(out_dir, create=False)
     with OutputLock(out_dir):
-        return _run_and_export(
-            scene, detection_source, config, out_dir, progress, start, on_error, checkpoint_every, resume, restart,
-            should_stop, time_stages, observer,
-        )  # fmt: skip
-
-
-def _run_and_export(
-    scene: Scene,
-    detection_source: DetectionSource,
-    config: PipelineConfig,
-    out_dir: Path,
-    progress: bool,
-    start: float,
-    on_error: str,
-    checkpoint_every: int,
-    resume: bool,
-    restart: bool,
-    should_stop: Callable[[], bool] | None,
-    time_stages: bool,
-    observer: Callable[..., None] | None,
-) -> RunOutcome:
-    staging = partial_dir(out_dir)
-    checkpoint = Checkpoint(staging, checkpoint_every)
-    if staging.exists() and not resume:
-        if checkpoint.exists() and not restart:
-            info = checkpoint.info()
-            raise UserError(
-                f"{staging} holds an unfinished run (checkpoint at frame {info.get('position')} of "
-                f"{info.get('frames')}): add --resume to continue it, or --restart to discard it"
-            )
-        shutil.rmtree(staging)  # a run that failed before its first checkpoint: nothing to keep
-    fusion = SceneFusion(
-        scene,
-        detection_source,
-        config,
-        on_error=on_error,
-        checkpoint=checkpoint,
-        resume=resume,
-        time_stages=time_stages,
-        observer=observer,
-    )
-    staging.mkdir(parents=True, exist_ok=True)
-    with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
-        complete = fusion.run(update, should_stop)
-    if observer is not None and hasattr(observer, "close"):
-        observer.close(fusion.mapper)
-    if not complete:
-        log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
-    result = fusion.finalize()
-    try:
-        timings_ms = getattr(detection_source, "timings_ms", None)
-        detection_ms = timings_ms() if callable(timings_ms) else None
-        summary = write_outputs(
-            result, scene, staging, skipped=fusion.skipped, detection_ms=detection_ms, frame_seconds=fusion.frame_seconds
+        staging = partial_dir(out_dir)
+        checkpoint = Checkpoint(staging, checkpoint_every)
+        if staging.exists() and not resume:
+            if checkpoint.exists() and not restart:
+                info = checkpoint.info()
+                raise UserError(
+                    f"{staging} holds an unfinished run (checkpoint at frame {info.get('position')} of "
+                    f"{info.get('frames')}): add --resume to continue it, or --restart to discard it"
+                )
+            shutil.rmtree(staging)  # a run that failed before its first checkpoint: nothing to keep
+        fusion = SceneFusion(
+            scene,
+            detection_source,
+            config,
+            on_error=on_error,
+            checkpoint=checkpoint,
+            resume=resume,
+            time_stages=time_stages,
+            observer=observer,
         )
-        if complete:
-            checkpoint.remove()
-            _replace_folder(staging, out_dir)
-    except OSError as error:
-        raise UserError(f"cannot write the outputs into {staging}: {error}") from None
-    folder = out_dir if complete else staging
-    text = summarize_run(summary, result, time.perf_counter() - start, folder)
-    return RunOutcome(text, complete, folder)
+        staging.mkdir(parents=True, exist_ok=True)
+        with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
+            complete = fusion.run(update, should_stop)
+        if observer is not None and hasattr(observer, "close"):
+            observer.close(fusion.mapper)
+        if not complete:
+            log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
+        result = fusion.finalize()
+        try:
+            timings_ms = getattr(detection_source, "timings_ms", None)
+            detection_ms = timings_ms() if callable(timings_ms) else None
+            summary = write_outputs(
+                result, scene, staging, skipped=fusion.skipped, detection_ms=detection_ms, frame_seconds=fusion.frame_seconds
+            )
+            if complete:
+                checkpoint.remove()
+                _replace_folder(staging, out_dir)
+        except OSError as error:
+            raise UserError(f"cannot write the outputs into {staging}: {error}") from None
+        folder = out_dir if complete else staging
+        text = summarize_run(summary, result, time.perf_counter() - start, folder)
+        return RunOutcome(text, complete, folder)
 
 
 def _replace_folder(new: Path, target: Path) -> None:

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-STRUCTURE = ("wall", "floor")
+from fmfusion_jax.instances import STRUCTURE_CLASSES
+
 FLOOR_NODE = "floor"
 RELATIONS = ("on", "inside", "near")
 
@@ -82,7 +83,7 @@ def build_scene_graph(records: Sequence[dict], settings: GraphSettings = GraphSe
 
     Each edge is `{"source": id, "relation": "on" | "inside" | "near", "target": id or "floor", "score": s}`.
     """
-    objects = [r for r in records if r["class"] not in STRUCTURE]
+    objects = [r for r in records if r["class"] not in STRUCTURE_CLASSES]
     boxes = {r["id"]: _box(r) for r in records}
     floors = [r for r in records if r["class"] == "floor"]
     bottoms = {i: b[0][2] - b[1][2] / 2 for i, b in boxes.items()}

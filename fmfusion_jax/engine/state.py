@@ -72,7 +72,7 @@ class VoxelBlocks(NamedTuple):
     # bool[B]: the block's TSDF changed, or one of its voxels took a new instance id, since the last geometry
     # fusion (which visits only these blocks: elsewhere every id it holds was supported then and still is)
     geometry_stale: jax.Array
-    # int32[support.HEIGHT_BINS]: up-facing surface samples per height along the world's up axis (the floor
+    # int32[UP_HEIGHT_BINS]: up-facing surface samples per height along the world's up axis (the floor
     # filter's histogram, `engine.support`; added to on detection frames while the filter is on)
     up_heights: jax.Array
     # int32[B, V / 8]: scratch of the steps that keep the merge's census (one entry per 2x2x2 cell, -1 between

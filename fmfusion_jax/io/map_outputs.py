@@ -13,7 +13,7 @@ from typing import cast
 import numpy as np
 import trimesh
 
-from fmfusion_jax.instances import MapInstance
+from fmfusion_jax.instances import STRUCTURE_CLASSES, MapInstance
 from fmfusion_jax.io.benchmark_format import InstancePredictions
 from fmfusion_jax.labels import LabelSets
 
@@ -235,8 +235,8 @@ def benchmark_predictions(
     """
     from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 
-    structure = [inst for inst in instances if label_sets.class_names[inst.class_index] in ("wall", "floor")]
-    keep = [inst for inst in instances if label_sets.class_names[inst.class_index] not in ("wall", "floor")]
+    structure = [inst for inst in instances if label_sets.class_names[inst.class_index] in STRUCTURE_CLASSES]
+    keep = [inst for inst in instances if label_sets.class_names[inst.class_index] not in STRUCTURE_CLASSES]
     if not keep:
         return InstancePredictions.empty(len(vertices))
     claimants = keep + (structure if structure_claims_vertices else [])

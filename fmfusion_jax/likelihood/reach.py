@@ -19,11 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from fmfusion_jax.evaluation.scannet_benchmark import MIN_REGION_SIZE
 from fmfusion_jax.labels import BENCHMARK_NYU40_IDS, LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.likelihood.summarize import MATCH_IOU, mask_iou
-
-#: Ground-truth objects with fewer vertices are not scored by the benchmark.
-MIN_OBJECT_VERTICES = 100
 
 
 @dataclasses.dataclass
@@ -124,7 +122,7 @@ def detector_reach(
     objects: dict[int, ObjectReach] = {}
     for instance, count in zip(ids.tolist(), counts.tolist()):
         nyu40 = int(np.bincount(gt.nyu40_ids[gt.instance_ids == instance]).argmax())
-        if nyu40 in benchmark and count >= MIN_OBJECT_VERTICES:
+        if nyu40 in benchmark and count >= MIN_REGION_SIZE:
             name = label_sets.class_names[nyu40_to_class[nyu40]]
             objects[instance] = ObjectReach(nyu40 * 1000 + instance, name, 0, 0.0, False, False, {})
     renderer = GroundTruthRenderer.from_ground_truth(gt)
