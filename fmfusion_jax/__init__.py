@@ -5,7 +5,7 @@
     mapper.integrate(frame, detections)      # per frame: an RGBDFrame, or depth/colour/pose/intrinsics arrays
     instances = mapper.instances()           # a snapshot (class distribution, points, confidence)
 
-See `fmfusion_jax.mapper.Mapper` and docs/api.md. The names below are imported on first use, so
+See `fmfusion_jax.mapping.mapper.Mapper` and docs/api.md. The names below are imported on first use, so
 `import fmfusion_jax` stays cheap.
 """
 
@@ -18,15 +18,15 @@ __version__ = "0.1.0"
 
 #: public name -> module that defines it
 _EXPORTS = {
-    "Mapper": "fmfusion_jax.mapper",
-    "MapperBatch": "fmfusion_jax.mapper",
+    "Mapper": "fmfusion_jax.mapping.mapper",
+    "MapperBatch": "fmfusion_jax.mapping.batch",
     "PipelineConfig": "fmfusion_jax.config",
     "load_config": "fmfusion_jax.config",
     "RGBDFrame": "fmfusion_jax.types",
     "CameraIntrinsics": "fmfusion_jax.types",
     "FrameDetections": "fmfusion_jax.types",
     "MapInstance": "fmfusion_jax.instances",
-    "FusionResult": "fmfusion_jax.pipeline",
+    "FusionResult": "fmfusion_jax.mapping.builder",
     "open_scene": "fmfusion_jax.io.scene",
     "DetectionFolder": "fmfusion_jax.io.detections",
     "UserError": "fmfusion_jax.errors",
@@ -41,9 +41,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from fmfusion_jax.instances import MapInstance as MapInstance
     from fmfusion_jax.io.detections import DetectionFolder as DetectionFolder
     from fmfusion_jax.io.scene import open_scene as open_scene
-    from fmfusion_jax.mapper import Mapper as Mapper
-    from fmfusion_jax.mapper import MapperBatch as MapperBatch
-    from fmfusion_jax.pipeline import FusionResult as FusionResult
+    from fmfusion_jax.mapping.batch import MapperBatch as MapperBatch
+    from fmfusion_jax.mapping.builder import FusionResult as FusionResult
+    from fmfusion_jax.mapping.mapper import Mapper as Mapper
     from fmfusion_jax.types import CameraIntrinsics as CameraIntrinsics
     from fmfusion_jax.types import FrameDetections as FrameDetections
     from fmfusion_jax.types import RGBDFrame as RGBDFrame

@@ -327,7 +327,7 @@ class Batch:
 def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.mapper import MapperBatch
+    from fmfusion_jax.mapping.batch import MapperBatch
     from fmfusion_jax.runner import write_outputs
 
     start = time.perf_counter()

@@ -27,7 +27,7 @@ from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_con
 from fmfusion_jax.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from fmfusion_jax.pipeline import FusionResult
+    from fmfusion_jax.mapping.builder import FusionResult
 
 log = logging.getLogger(__name__)
 

@@ -52,7 +52,7 @@ if TYPE_CHECKING:
     from fmfusion_jax.io.benchmark_format import InstancePredictions
     from fmfusion_jax.io.ground_truth import SceneGroundTruth
     from fmfusion_jax.io.scene import Scene
-    from fmfusion_jax.pipeline import FusionResult
+    from fmfusion_jax.mapping.builder import FusionResult
 
 log = logging.getLogger(__name__)
 
@@ -383,7 +383,7 @@ def run_method(
             "timings_ms": result.geometry.timings.summary(),
         }
     else:
-        from fmfusion_jax.pipeline import extract_map_instances
+        from fmfusion_jax.mapping.export import extract_map_instances
         from fmfusion_jax.runner import capacity_used, fuse_scene
 
         result = fuse_scene(scene, source, config, progress=progress, time_stages=True)

@@ -30,12 +30,15 @@ from fmfusion_jax.io import map_outputs
 from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.labels import load_label_sets
-from fmfusion_jax.map_file import MAP_STATE_FILE, save_map
-from fmfusion_jax.pipeline import DetectionSchedule, DetectionSource, FusionResult, camera_motion, extract_map_instances
+from fmfusion_jax.mapping.builder import FusionResult
+from fmfusion_jax.mapping.export import extract_map_instances
+from fmfusion_jax.mapping.inputs import DetectionSource
+from fmfusion_jax.mapping.map_file import MAP_STATE_FILE, save_map
+from fmfusion_jax.mapping.schedule import DetectionSchedule, camera_motion
 from fmfusion_jax.viz import overview
 
 if TYPE_CHECKING:
-    from fmfusion_jax.mapper import PreparedFrame
+    from fmfusion_jax.mapping.inputs import PreparedFrame
     from fmfusion_jax.types import FrameDetections
 
 log = logging.getLogger(__name__)
@@ -114,7 +117,7 @@ class SceneFusion:
     ):
         """`observer(position, frame, detections or None, mapper)` is called after each frame is fused (e.g. a
         `viz.live.RerunView`)."""
-        from fmfusion_jax.mapper import Mapper
+        from fmfusion_jax.mapping.mapper import Mapper
 
         if on_error not in ON_ERROR_POLICIES:
             raise UserError(f"on_error {on_error!r}: expected one of {ON_ERROR_POLICIES}")
@@ -334,8 +337,8 @@ def read_ahead(read: Callable[[Any], T], items: Iterable[Any], reader: concurren
 def scene_extent(scene: Scene, config: PipelineConfig, sample: DepthSample | None = None):
     """`(bounds, expected_blocks)` of `scene` as `fmfusion run` sizes its map: the bounds of the sampled frames'
     poses and depth (`sample`: a `Scene.sample_depth`, default 60 frames) and the blocks those frames allocate."""
-    from fmfusion_jax.mapper import sample_block_count
-    from fmfusion_jax.pipeline import build_map_config
+    from fmfusion_jax.mapping.capacity import sample_block_count
+    from fmfusion_jax.mapping.engine_configs import build_map_config
 
     sample = sample or scene.sample_depth(max_frames=60)
     bounds = scene.bounds(sample=sample)
@@ -349,7 +352,7 @@ def mapper_for_scene(
     """The `Mapper` `fmfusion run` fuses `scene` into: its block index over the scene's bounds, its pool
     starting at the blocks the sampled frames allocate (`scene_extent`) and doubling if the others show more.
     `hooks`: the Mapper's `timer` and `fuse_detections` (the benchmark's)."""
-    from fmfusion_jax.mapper import Mapper
+    from fmfusion_jax.mapping.mapper import Mapper
 
     bounds, expected = scene_extent(scene, config, sample)
     return Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages, **hooks)

@@ -21,7 +21,7 @@ from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import Scene
-from fmfusion_jax.pipeline import DetectionSource
+from fmfusion_jax.mapping.inputs import DetectionSource
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 log = logging.getLogger(__name__)

@@ -28,7 +28,8 @@ from fmfusion_jax.engine import step
 from fmfusion_jax.engine.detections import pack_detections
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.labels import load_label_sets, load_likelihood
-from fmfusion_jax.pipeline import build_fusion_config, build_map_config, frame_inputs
+from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config
+from fmfusion_jax.mapping.inputs import frame_inputs
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 
 H, W = 60, 80

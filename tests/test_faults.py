@@ -35,7 +35,7 @@ def test_a_reflected_pose_is_refused_naming_its_file(tmp_path):
 def test_the_readers_and_the_mapper_take_a_pose_by_one_rule(tmp_path):
     # a rotation a little off orthonormal (a pose file written with few digits) is read and fused; one further off is
     # refused by both, the reader naming its file, the Mapper (arrays or a frame of one's own) naming the frame
-    from fmfusion_jax.mapper import checked_pose
+    from fmfusion_jax.mapping.inputs import checked_pose
 
     rounded, skewed = np.eye(4), np.eye(4)
     rounded[:3, :3] *= 1.003  # |R^T R - I| = 0.006

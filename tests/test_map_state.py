@@ -8,13 +8,14 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from fusion_helpers import load_map, resume_builder
 from test_pipeline import BoxRoom, build, clean_detections, make_frames, small_config
 
 from fmfusion_jax.engine.serialization import SCRATCH_SUFFIX, state_from_arrays, state_to_arrays
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import DataError
-from fmfusion_jax.map_file import load_map, read_state_file, resume_builder, save_map, write_state_file
-from fmfusion_jax.pipeline import FusionResult, MapBuilder
+from fmfusion_jax.mapping.builder import FusionResult, MapBuilder
+from fmfusion_jax.mapping.map_file import read_state_file, save_map, write_state_file
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +124,7 @@ def test_continuing_from_a_saved_map_equals_fusing_without_a_break(room_frames, 
     # the plain API: MapBuilder(state=...) from load_map
     state, map_config, loaded_config = load_map(tmp_path / "half.npz")
     builder = MapBuilder(loaded_config, map_config, state=state)
-    builder.frames_integrated, builder.detection_frames = 3, 3
+    builder.progress.frames_integrated, builder.progress.detection_frames = 3, 3
     _assert_same_state(_fuse(builder, frames[3:]).result().state, straight.state)
 
 
@@ -149,7 +150,7 @@ def test_a_map_saved_before_the_kept_census_loads_and_continues_to_the_same_map(
     assert bits[block, ids[block, voxel, slot] % bits.shape[1]].all()
     assert bits.sum() == len({(b, i % bits.shape[1]) for b, i in zip(block, ids[block, voxel, slot])})  # exactly those
     builder = MapBuilder(config, first.map_config, state=loaded)
-    builder.frames_integrated, builder.detection_frames = 3, 3
+    builder.progress.frames_integrated, builder.progress.detection_frames = 3, 3
     continued = _fuse(builder, frames[3:]).result().state
     assert_same_map(continued, straight.state)
     assert bool(continued.instances.census_valid)

@@ -12,6 +12,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from fusion_helpers import frame_block_keys
 
 import fmfusion_jax
 from fmfusion_jax.config import load_config
@@ -20,8 +21,11 @@ from fmfusion_jax.engine import growth
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.mapper import Mapper, as_config, frame_block_extent, frame_block_keys, initial_pool_blocks, sample_block_count
-from fmfusion_jax.pipeline import build_map_config, extract_map_instances
+from fmfusion_jax.mapping.capacity import frame_block_extent, initial_pool_blocks, sample_block_count
+from fmfusion_jax.mapping.engine_configs import build_map_config
+from fmfusion_jax.mapping.export import extract_map_instances
+from fmfusion_jax.mapping.inputs import as_config
+from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.runner import fuse_scene
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 from fmfusion_jax.types import FrameDetections
@@ -134,7 +138,7 @@ def test_a_bounded_map_grows_its_instance_table_to_the_same_map(room, monkeypatc
     """With bounds the instance table starts small too and doubles before a frame whose detections might not fit
     (the merge's K^2 tests cost what the map holds, not the ceiling): the same instances as a table that never
     grows, and the timer leaves the calls that recompiled after the growth out of its samples."""
-    import fmfusion_jax.mapper as mapper_module
+    import fmfusion_jax.mapping.capacity as mapper_module
 
     scene_dir, detections, config = room
     folder = DetectionFolder(detections)
@@ -358,7 +362,7 @@ def test_silent_api_inputs_are_refused_or_warned(room, caplog):
     scored = dataclasses.replace(good, labels=[{name: 7.0 for name in labels} for labels in good.labels])
     with pytest.raises(UserError, match=r"scores must lie in \[0, 1\]"):
         mapper.integrate(frame, scored)
-    with caplog.at_level("WARNING", logger="fmfusion_jax.mapper"):
+    with caplog.at_level("WARNING", logger="fmfusion_jax.mapping"):
         mapper.integrate(depth=np.full_like(frame.depth, np.nan), T_world_camera=frame.T_world_camera)
         other = dataclasses.replace(good, frame_name="frame-999999")
         renamed = dataclasses.replace(other, labels=[{"sofa-bed": 0.8} for _ in other.labels])
@@ -408,7 +412,7 @@ def test_grow_state_keeps_every_voxel_and_row(room):
 def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
     """Two rooms of different lengths fused in lock step by `MapperBatch` (one vmapped step, per-map schedules;
     the shorter room waits with None frames) give each room the map a `Mapper` of the same layout gives."""
-    from fmfusion_jax.mapper import MapperBatch
+    from fmfusion_jax.mapping.batch import MapperBatch
 
     scene_dir, detections, config = room
     other_spec = dataclasses.replace(SPEC, seed=6, num_frames=10)

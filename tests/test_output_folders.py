@@ -101,7 +101,7 @@ def test_a_map_that_cannot_fit_is_refused_before_allocation():
     import numpy as np
 
     from fmfusion_jax.config import load_config
-    from fmfusion_jax.pipeline import build_map_config
+    from fmfusion_jax.mapping.engine_configs import build_map_config
 
     tiny = load_config("scannet", ["tsdf.voxel_size=1.0e-6"])
     with pytest.raises(UserError, match="raise tsdf.voxel_size"):

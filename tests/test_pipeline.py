@@ -13,19 +13,20 @@ import chex
 import jax
 import numpy as np
 import pytest
+from fusion_helpers import fuse_sequence
 from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step
+from fmfusion_jax.engine.detections import pack_detections
+from fmfusion_jax.engine.frame import fuse_frame, fuse_frames
+from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.labels import load_label_sets, load_likelihood
-from fmfusion_jax.pipeline import (
-    MapBuilder,
-    StageTimer,
-    build_map_config,
-    extract_map_instances,
-    fuse_sequence,
-    joined_tree_to_host,
-)
+from fmfusion_jax.mapping.builder import MapBuilder
+from fmfusion_jax.mapping.engine_configs import build_map_config
+from fmfusion_jax.mapping.export import extract_map_instances
+from fmfusion_jax.mapping.inputs import frame_inputs
+from fmfusion_jax.mapping.telemetry import StageTimer, joined_tree_to_host
 from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame
 
 H, W = 120, 160
@@ -126,7 +127,7 @@ def test_no_recompilation_after_the_first_frames(room_frames):
     # the same step, traced through chex's counter: every frame's inputs must hit the first trace
     counted = jax.jit(chex.assert_max_traces(step.fuse_detections.__wrapped__, n=1), static_argnames=("config",))
     from fmfusion_jax.engine.detections import pack_detections
-    from fmfusion_jax.pipeline import frame_inputs
+    from fmfusion_jax.mapping.inputs import frame_inputs
 
     state = builder.state
     for i, frame in enumerate(frames[:4]):
@@ -183,9 +184,6 @@ def test_the_label_image_and_the_mask_stack_make_the_same_map(room_frames):
     room, frames = room_frames
     config = small_config()
     builder = build(config, room)
-    from fmfusion_jax.engine.detections import pack_detections
-    from fmfusion_jax.engine.state import init_map_state
-    from fmfusion_jax.pipeline import frame_inputs
 
     map_config, stride = builder.map_config, builder.map_config.pixel_stride
     maps = []
@@ -213,27 +211,29 @@ def test_batch_of_two_maps_equals_two_runs(room_frames):
     map_config = build_map_config(config, (0, 0, 0), (4.0, 3.5, 2.5), H, W)
     fusion = step.FusionConfig(min_projected_pixels=200.0)
     likelihood = jax.numpy.asarray(load_likelihood("statistical"), jax.numpy.float32)
-    from fmfusion_jax.engine.detections import pack_detections
-    from fmfusion_jax.engine.state import init_map_state
-    from fmfusion_jax.pipeline import frame_inputs
 
     def inputs(frame, seed=0):
         batch = pack_detections(clean_detections(frame, seed), LABELS.open_labels, 12, 100)
         return frame_inputs(frame, map_config), batch
 
+    # the engine's frame composition, one map at a time and both in lock step, the merge and the geometry fusion
+    # due on alternate frames
+    due = [(False, True), (True, False), (True, True)]
     separate = []
     for seq, seed in ((frames[:3], 0), (other_frames, 3)):
         state = init_map_state(map_config)
-        for frame in seq:
-            state, _ = step.fuse_detections(state, *inputs(frame, seed), likelihood, map_config, fusion)
+        for frame, (merge, geometry) in zip(seq, due):
+            state, _ = fuse_frame(state, *inputs(frame, seed), likelihood, map_config, fusion, merge=merge, geometry=geometry)
         separate.append(jax.device_get(state))
 
-    fuse_batch = step.batched(step.fuse_detections, config=map_config, fusion=fusion)
     states = jax.tree.map(lambda *x: np.stack(x), init_map_state(map_config), init_map_state(map_config))
-    for a, b in zip(frames[:3], other_frames):
+    both = np.ones(2, bool)
+    for a, b, (merge, geometry) in zip(frames[:3], other_frames, due):
         (fa, ba), (fb, bb) = inputs(a), inputs(b, 3)
         stacked = lambda x, y: jax.tree.map(lambda *v: np.stack(v), x, y)  # noqa: E731
-        states, _ = fuse_batch(states, stacked(fa, fb), stacked(ba, bb), likelihood)
+        states, _, _ = fuse_frames(
+            states, stacked(fa, fb), stacked(ba, bb), likelihood, both, both, both & merge, both & geometry, map_config, fusion
+        )
     batched = jax.device_get(states)
     for i, expected in enumerate(separate):
         got = jax.tree.map(lambda x: x[i], batched)
@@ -448,7 +448,7 @@ def _walk(steps: int, metres_per_step: float, degrees_per_step: float) -> list[n
 
 
 def _due_positions(poses, config, available=lambda i: True) -> list[int]:
-    from fmfusion_jax.pipeline import DetectionSchedule
+    from fmfusion_jax.mapping.schedule import DetectionSchedule
 
     schedule, due = DetectionSchedule(config), []
     for i, pose in enumerate(poses):

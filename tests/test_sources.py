@@ -15,8 +15,9 @@ from fmfusion_jax.demo import demo_config, demo_noise
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder, label_path
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.mapper import Mapper, as_config
-from fmfusion_jax.pipeline import scheduled_positions
+from fmfusion_jax.mapping.inputs import as_config
+from fmfusion_jax.mapping.mapper import Mapper
+from fmfusion_jax.mapping.schedule import scheduled_positions
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 from fmfusion_jax.sources import ModelSource, open_detection_source
 

@@ -57,7 +57,7 @@ from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 if TYPE_CHECKING:
-    from fmfusion_jax.pipeline import FusionResult
+    from fmfusion_jax.mapping.builder import FusionResult
 
 log = logging.getLogger(__name__)
 
@@ -407,7 +407,7 @@ class KimeraMapper:
     """
 
     def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None):
-        from fmfusion_jax.pipeline import MapBuilder
+        from fmfusion_jax.mapping.builder import MapBuilder
 
         self.config = config
         self.map_config = map_config
@@ -425,7 +425,7 @@ class KimeraMapper:
         if detections is not None:
             start = time.perf_counter()
             self._add_labels(frame, detections)
-            self.geometry.detection_frames += 1
+            self.geometry.progress.detection_frames += 1
             self.seconds["labels"] += time.perf_counter() - start
 
     def _add_labels(self, frame: RGBDFrame, detections: FrameDetections) -> None:
@@ -488,7 +488,8 @@ def run_kimera(
 ) -> KimeraResult:
     """The Kimera-style baseline over every frame of an opened `scene` (`io.scene.Scene`), with detections
     from `detection_source(frame)` on the detection frames (`pipeline.DetectionSchedule`, as FM-Fusion)."""
-    from fmfusion_jax.pipeline import build_map_config, scheduled_detections
+    from fmfusion_jax.mapping.engine_configs import build_map_config
+    from fmfusion_jax.mapping.schedule import scheduled_detections
 
     bounds_min, bounds_max = scene.bounds()
     map_config = build_map_config(config, bounds_min, bounds_max, scene.intrinsics.height, scene.intrinsics.width)

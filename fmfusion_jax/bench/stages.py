@@ -14,67 +14,37 @@ import dataclasses
 import jax
 
 from fmfusion_jax.engine import step
-from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.detections import DetectionBatch
-from fmfusion_jax.engine.state import MapState
-from fmfusion_jax.pipeline import StageTimer
+from fmfusion_jax.mapping.telemetry import StageTimer
 
 #: Stages of one detection frame, in order (keys of the timings; `tsdf` is `step.integrate_frame`).
-FUSION_STAGES = ("tsdf", "detections", "projection", "association", "label_fusion", "integration")
+FUSION_STAGES = step.DETECTION_STAGES
 
-detection_image = jax.jit(step.detection_image, static_argnames=("config",))
-project_instances = jax.jit(step.project_instances, static_argnames=("config",))
-associate = jax.jit(step.associate, static_argnames=("config",))
-# the table and the pool are updated in place, as inside the fused step (no copy of the voxel pool)
-fuse_table = jax.jit(step.fuse_table, static_argnames=("config",), donate_argnames=("table",))
-integrate_instance_votes = jax.jit(
-    step.integrate_instance_votes, static_argnames=("config",), donate_argnames=("blocks", "table")
-)
-frame_stats = jax.jit(step.frame_stats)
+#: Each stage of `step.detection_frame` as its own jit, by the name its `run` hook is given. The table and the
+#: pool are updated in place, as inside the fused step (no copy of the voxel pool).
+STAGE_JITS = {
+    "tsdf": step.integrate_frame,
+    "detections": jax.jit(step.detection_image, static_argnames=("config",)),
+    "projection": jax.jit(step.project_instances, static_argnames=("config",)),
+    "association": jax.jit(step.associate, static_argnames=("config",)),
+    "label_fusion": jax.jit(step.fuse_table, static_argnames=("config",), donate_argnames=("table",)),
+    "integration": jax.jit(step.integrate_instance_votes, static_argnames=("config",), donate_argnames=("blocks", "table")),
+    "statistics": jax.jit(step.frame_stats),
+}
 
 
 def staged_fuse_detections(timer: StageTimer):
-    """A function with the signature of `step.fuse_detections` that runs its stages one jit at a time,
-    each timed by `timer` under its `FUSION_STAGES` name. The state is donated, as to the fused step."""
+    """A function with the signature of `step.fuse_detections` that runs the stages of `step.detection_frame` one
+    jit at a time, each timed by `timer` under its `FUSION_STAGES` name (the statistics untimed). The state is
+    donated, as to the fused step."""
 
-    def fuse(
-        state: MapState,
-        frame: step.FrameInputs,
-        batch: DetectionBatch,
-        likelihood: jax.Array,
-        config: MapConfig,
-        fusion: step.FusionConfig,
-    ) -> tuple[MapState, step.FrameStats]:
-        state = timer.run("tsdf", step.integrate_frame, state, frame, config)
-        det_image, up_heights = timer.run(
-            "detections", detection_image, frame, batch, likelihood, state.blocks.up_heights, config, fusion
-        )
-        state = state._replace(blocks=state.blocks._replace(up_heights=up_heights))
-        seen = timer.run("projection", project_instances, state.blocks, frame, config)
-        matches = timer.run("association", associate, det_image, seen, batch.valid, state.instances.valid, config, fusion)
-        table, update = timer.run(
-            "label_fusion",
-            fuse_table,
-            state.instances,
-            matches,
-            batch.label_scores,
-            likelihood,
-            frame.frame_index,
-            config,
-            fusion,
-        )
-        blocks, table = timer.run(
-            "integration",
-            integrate_instance_votes,
-            state.blocks,
-            table,
-            frame,
-            det_image,
-            matches.assignment.instance_for_detection,
-            config,
-            fusion,
-        )
-        return state._replace(blocks=blocks, instances=table), frame_stats(matches, update, table, blocks)
+    def run(name: str, stage, *args):
+        del stage  # its jit in STAGE_JITS
+        if name in FUSION_STAGES:
+            return timer.run(name, STAGE_JITS[name], *args)
+        return STAGE_JITS[name](*args)
+
+    def fuse(state, frame, batch, likelihood, config, fusion):
+        return step.detection_frame(state, frame, batch, likelihood, config, fusion, run=run)
 
     return fuse
 

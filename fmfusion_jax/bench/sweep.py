@@ -100,7 +100,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     from fmfusion_jax.bench.stages import FrameTimer
     from fmfusion_jax.bench.worker import _frames_with_detections, _open, device_description, peak_rss_mb, scene_map_config
     from fmfusion_jax.labels import load_label_sets, load_likelihood
-    from fmfusion_jax.pipeline import MapBuilder
+    from fmfusion_jax.mapping.builder import MapBuilder
 
     config, opened, folder = _open(scene, frames)
     baseline_mb = peak_rss_mb()

@@ -80,7 +80,7 @@ def _frames_with_detections(opened, folder, config, progress: bool, desc: str):
     """Yields `(frame, detections or None)` on the fusion's schedule, with a progress bar on stderr."""
     from tqdm import tqdm
 
-    from fmfusion_jax.pipeline import scheduled_detections
+    from fmfusion_jax.mapping.schedule import scheduled_detections
 
     frames = tqdm(
         opened.frames(), total=len(opened), desc=desc, unit="frame", disable=not progress, dynamic_ncols=True, leave=False
@@ -116,7 +116,7 @@ def _device_memory_mb() -> float | None:
 def scene_map_config(config, opened):
     """The map `fmfusion run` starts with for the opened scene (`runner.scene_extent`, `mapper.bounded_map_config`).
     The sweep's builders keep it (they do not grow)."""
-    from fmfusion_jax.mapper import bounded_map_config
+    from fmfusion_jax.mapping.capacity import bounded_map_config
     from fmfusion_jax.runner import scene_extent
 
     bounds, expected = scene_extent(opened, config)
@@ -132,7 +132,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
     doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
     from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
     from fmfusion_jax.compile_cache import enable_compile_cache
-    from fmfusion_jax.mapper import Mapper
+    from fmfusion_jax.mapping.mapper import Mapper
     from fmfusion_jax.runner import mapper_for_scene
 
     cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)

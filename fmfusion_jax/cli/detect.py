@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.detections import label_path, write_frame_detections
     from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.pipeline import scheduled_positions
+    from fmfusion_jax.mapping.schedule import scheduled_positions
 
     if args.every is not None and args.every < 1:
         raise UserError(f"--every must be a positive integer, got {args.every}")

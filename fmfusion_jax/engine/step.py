@@ -1,6 +1,6 @@
 """The map's update functions: the whole engine as a few jitted, pure `state -> state` steps.
 
-The Python loop (`fmfusion_jax.pipeline`) calls, per frame:
+`engine.frame.fuse_frame` calls, per frame:
 
 - `integrate_frame`: global TSDF (every frame);
 - `fuse_detections`: TSDF + association + instance integration + label fusion (detection frames);
@@ -15,14 +15,15 @@ recompiles. `refine` and `finalize` are thin wrappers of one jitted `_merge_step
 traced values), and `finalize` reuses the compiled `fuse_geometry`: nothing is compiled at the end of a
 run. The state argument is donated: its buffers are reused for the result (without donation every
 call would copy the whole voxel pool), so a state passed in must not be used again. All are vmappable
-over a batch of independent maps (see `batched`).
+over a batch of independent maps (`engine.frame.fuse_frames`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -140,14 +141,60 @@ def integrate_frame(state: MapState, frame: FrameInputs, config: MapConfig) -> M
     return state._replace(blocks=blocks, frame_index=jnp.asarray(frame.frame_index, jnp.int32))
 
 
+def call_stage(name: str, stage: Callable[..., Any], *args: Any) -> Any:
+    """The plain `run` hook of `detection_frame`: calls the stage (inside a jit it is traced into the caller)."""
+    del name
+    return stage(*args)
+
+
+def detection_frame(
+    state: MapState,
+    frame: FrameInputs,
+    batch: DetectionBatch,
+    likelihood: jax.Array,
+    config: MapConfig,
+    fusion: FusionConfig,
+    run: Callable[..., Any] = call_stage,
+) -> tuple[MapState, FrameStats]:
+    """The stages of one detection frame, in their order (the one place it is written): TSDF, the detection
+    image, projection, association, label fusion on the table, instance votes into the voxels.
+
+    `run(name, stage, *args)` calls each stage (names: `DETECTION_STAGES`, and `statistics`); the default calls
+    it, so that `fuse_detections` jits the whole frame as one function, and `fmfusion bench` passes a hook that
+    runs each stage as its own timed jit.
+    """
+    state = run("tsdf", integrate_frame, state, frame, config)
+    det_image, up_heights = run("detections", detection_image, frame, batch, likelihood, state.blocks.up_heights, config, fusion)
+    state = state._replace(blocks=state.blocks._replace(up_heights=up_heights))
+    seen = run("projection", project_instances, state.blocks, frame, config)
+    matches = run("association", associate, det_image, seen, batch.valid, state.instances.valid, config, fusion)
+    table, update = run(
+        "label_fusion", fuse_table, state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config, fusion
+    )
+    blocks, table = run(
+        "integration",
+        integrate_instance_votes,
+        state.blocks,
+        table,
+        frame,
+        det_image,
+        matches.assignment.instance_for_detection,
+        config,
+        fusion,
+    )
+    stats = run("statistics", frame_stats, matches, update, table, blocks)
+    return state._replace(blocks=blocks, instances=table), stats
+
+
+#: The stages of `detection_frame`, in order (the names its `run` hook is given, and the bench's timing keys).
+DETECTION_STAGES = ("tsdf", "detections", "projection", "association", "label_fusion", "integration")
+
+
 @functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
 def fuse_detections(
     state: MapState, frame: FrameInputs, batch: DetectionBatch, likelihood: jax.Array, config: MapConfig, fusion: FusionConfig
 ) -> tuple[MapState, FrameStats]:
-    """One detection frame: TSDF, projection, association, instance integration and label fusion.
-
-    The composition of the stage functions below (which `fmfusion_jax.bench` also jits one by one to
-    time them); one jit, so XLA fuses across the stages.
+    """One detection frame (`detection_frame`) as one jit, so XLA fuses across the stages.
 
     Args:
       state: the map.
@@ -155,20 +202,11 @@ def fuse_detections(
       batch: `N` padded detections (`masks bool[N, H, W]`, `label_scores float32[N, O]`, `valid bool[N]`).
       likelihood: float32[O, C] label likelihood (a traced argument, so it can be differentiated or swapped).
     """
-    state = integrate_frame(state, frame, config)
-    det_image, up_heights = detection_image(frame, batch, likelihood, state.blocks.up_heights, config, fusion)
-    state = state._replace(blocks=state.blocks._replace(up_heights=up_heights))
-    seen = project_instances(state.blocks, frame, config)
-    matches = associate(det_image, seen, batch.valid, state.instances.valid, config, fusion)
-    table, update = fuse_table(state.instances, matches, batch.label_scores, likelihood, frame.frame_index, config, fusion)
-    blocks, table = integrate_instance_votes(
-        state.blocks, table, frame, det_image, matches.assignment.instance_for_detection, config, fusion
-    )
-    return state._replace(blocks=blocks, instances=table), frame_stats(matches, update, table, blocks)
+    return detection_frame(state, frame, batch, likelihood, config, fusion)
 
 
 # --------------------------------------------------------------------------------------------------
-# The stages of `fuse_detections` (pure, unjitted: traced inside it, or jitted alone by the benchmark).
+# The stages of `detection_frame` (pure, unjitted: traced inside `fuse_detections`, or jitted alone by the bench).
 
 #: `detection_image` value of a pixel inside a mask whose depth filter dropped it: neither the detection's
 #: pixel nor evidence against other instances.
@@ -643,17 +681,3 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
 def class_distribution(state: MapState, fusion: FusionConfig) -> jax.Array:
     """float32[K, C] normalized class distribution of every row (meaningful where `valid`)."""
     return label_fusion.class_distribution(state.instances.label_evidence, fusion.label_mode)
-
-
-def batched(step, **static):
-    """A step vmapped over a leading batch axis of its array arguments (states, frames, detections).
-
-    The likelihood is shared by the batch. Example::
-
-        fuse = batched(fuse_detections, config=map_config, fusion=fusion_config)
-        states, stats = fuse(states, frames, batches, likelihood)
-    """
-    fn = functools.partial(step, **static)
-    if step is fuse_detections:
-        return jax.jit(jax.vmap(fn, in_axes=(0, 0, 0, None)))
-    return jax.jit(jax.vmap(fn))

@@ -181,7 +181,7 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
     from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.likelihood.matching import match_instances
-    from fmfusion_jax.pipeline import extract_map_instances
+    from fmfusion_jax.mapping.export import extract_map_instances
     from fmfusion_jax.runner import fuse_scene, score_instances
 
     label_sets = label_sets or load_label_sets()

@@ -23,7 +23,7 @@ from fmfusion_jax.config import config_from_dict
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.serialization import state_from_arrays, state_to_arrays
 from fmfusion_jax.errors import DataError, UserError
-from fmfusion_jax.pipeline import FusionResult, MapBuilder
+from fmfusion_jax.mapping.builder import FusionResult
 
 METADATA_KEY = "__metadata__"
 MAP_FORMAT = "fmfusion-jax map state"
@@ -159,27 +159,3 @@ MAP_STATE_FILE = "map_state.npz"
 def save_map(path: str | Path, result: FusionResult) -> Path:
     """Saves a fused map (state, MapConfig, PipelineConfig, how far fusion got) to an `.npz` file."""
     return write_map_file(path, result.state, result.map_config, result.config, result.progress())
-
-
-def load_map(path: str | Path):
-    """`(MapState, MapConfig, PipelineConfig)` of a map saved by `save_map` (`map_state.npz` of a run).
-
-    The state is exactly the saved one (device arrays); to continue fusing it, pass it to
-    `MapBuilder(config, map_config, state=state)` (or use `resume_builder`, which also restores the
-    schedules' frame counts). A wrong or damaged file is a DataError (a UserError) naming it.
-    """
-    saved = read_map_file(path)
-    return saved.state, saved.map_config, saved.config
-
-
-def resume_builder(path: str | Path) -> MapBuilder:
-    """A `MapBuilder` that continues the map saved at `path`, with its counts of frames and detection
-    frames (which drive the refinement schedules) and counters restored.
-
-    A run's `map_state.npz` holds the finalized map (after the final geometry fusion and post-merge);
-    `save_map` of a `FusionResult` built from a builder's current state saves it mid-sequence instead.
-    """
-    saved = read_map_file(path)
-    builder = MapBuilder(saved.config, saved.map_config, state=saved.state)
-    builder.restore_progress(saved.progress)
-    return builder
