@@ -356,11 +356,9 @@ def run_method(
       gt: the scene's `SceneGroundTruth`.
       out_dir: the run's folder (replaced).
     """
-    from fmfusion_jax.io import map_outputs
-    from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.labels import load_label_sets
-    from fmfusion_jax.runner import score_instances
+    from fmfusion_jax.run.outputs import OutputContext, write_outputs
 
     label_sets = load_label_sets()
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
@@ -400,10 +398,9 @@ def run_method(
     del result  # the map (up to ~1 GB for a ScanNet room) is not needed any more
 
     _replace_run_dir(out_dir)
-    predictions, score = score_instances(instances, gt, scene.name, config, label_sets, floor=floor)
-    write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
-    map_outputs.write_instances_json(out_dir / "instances.json", map_outputs.instances_json(instances, label_sets))
-    (out_dir / "config.yaml").write_text(config.to_yaml())
+    written = OutputContext(scene, out_dir, config, label_sets, instances, ground_truth=gt, floor=floor)
+    write_outputs(written, names=("config.yaml", "instances.json", "benchmark"))
+    _, predictions, score = written.scored
     summary = {
         "scene": scene.name,
         "method": method.name,

@@ -1,6 +1,6 @@
 """The exported instance map: host-side (NumPy) post-processing of the instances taken out of the engine.
 
-The engine holds instances as voxel slots and a label table; `fmfusion_jax.pipeline` extracts each
+The engine holds instances as voxel slots and a label table; `fmfusion_jax.mapping.export` extracts each
 instance's points and fused distribution into `MapInstance`s. What happens here follows the reference
 pipeline's post-processing before evaluation (see docs): drop small instances, the shower-curtain rule,
 merging all floors, and the conversion to ScanNet benchmark predictions. Beyond the reference: each instance's

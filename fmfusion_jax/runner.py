@@ -15,27 +15,26 @@ import logging
 import os
 import shutil
 import socket
-import statistics
-import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import DataError, UserError
-from fmfusion_jax.io import map_outputs
 from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.mapping.builder import FusionResult
 from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import DetectionSource
-from fmfusion_jax.mapping.map_file import MAP_STATE_FILE, save_map
+from fmfusion_jax.mapping.map_file import MAP_STATE_FILE
 from fmfusion_jax.mapping.schedule import DetectionSchedule, camera_motion
-from fmfusion_jax.viz import overview
+from fmfusion_jax.run import outputs
+from fmfusion_jax.run.outputs import OUTPUT_NAMES
+from fmfusion_jax.run.outputs import capacity_used as capacity_used  # re-exported: experiments, likelihood, examples
+from fmfusion_jax.run.outputs import score_instances as score_instances
 
 if TYPE_CHECKING:
     from fmfusion_jax.mapping.inputs import PreparedFrame
@@ -414,32 +413,10 @@ def ground_truth_mesh_path(scene: Scene) -> Path | None:
     return path if path.is_file() else None
 
 
-#: Everything `write_outputs` may write (files and folders): removed before a run writes into a folder again,
-#: so no file of an earlier run (an instance that no longer exists, a report without ground truth) stays.
-OUTPUT_NAMES = (
-    "config.yaml",
-    "instances.json",
-    "semantic.ply",
-    "instances.ply",
-    "labelled_points.npz",
-    "labelled_points.pcd",
-    "instances",
-    "mesh.ply",
-    MAP_STATE_FILE,
-    "overview.png",
-    "run.json",
-    "benchmark",
-    "scene_graph.json",
-    "scene_graph.graphml",
-    "report.json",
-    "explain.md",
-    "explain.json",
-    "explain.png",
-)
-
-
 def clear_outputs(out_dir: Path) -> None:
-    """Removes the outputs of an earlier run from `out_dir` (only the names in `OUTPUT_NAMES`)."""
+    """Removes the outputs of an earlier run from `out_dir` (only the names in `OUTPUT_NAMES`, the files of the
+    writers of `run.outputs`), so no file of an earlier run (an instance that no longer exists, a report without
+    ground truth) stays."""
     for name in OUTPUT_NAMES:
         path = out_dir / name
         if path.is_dir() and not path.is_symlink():
@@ -456,111 +433,45 @@ def write_outputs(
     skipped: list[tuple[str, str]] | None = None,
     detection_ms: dict[str, float] | None = None,
     frame_seconds: Sequence[float] = (),
+    names: Collection[str] | None = None,
 ) -> dict:
-    """Writes every output of a run into `out_dir`; returns the run summary (also saved as run.json).
+    """Writes the outputs of a run into `out_dir` (the writers of `run.outputs.OUTPUT_WRITERS`, all or those
+    in `names`; map_state.npz unless `save_state` is False); returns the run summary (also saved as run.json).
 
-    Outputs: config.yaml, instances.json, semantic.ply, instances.ply, instances/*.ply, mesh.ply,
-    map_state.npz (the map, for `load_map`; unless `save_state` is False), overview.png, run.json, and
-    with ground truth the benchmark prediction files, report.json and the error analysis explain.md,
-    explain.json, explain.png. `detection_ms`: the models' mean ms per detected frame, when a run detected online;
-    `frame_seconds`: each frame's wall time as run (`SceneFusion.frame_seconds`), summarized in run.json.
+    `detection_ms`: the models' mean ms per detected frame, when a run detected online; `frame_seconds`: each
+    frame's wall time as run (`SceneFusion.frame_seconds`), summarized in run.json.
     """
-    from fmfusion_jax.engine import extraction
-
     label_sets = load_label_sets()
     out_dir.mkdir(parents=True, exist_ok=True)
     clear_outputs(out_dir)
-    timings: dict[str, float] = {}
     clock = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        timings[name] = round(now - clock, 3)
-        clock = now
-
-    (out_dir / "config.yaml").write_text(result.config.to_yaml())
     instances = extract_map_instances(result, label_sets)
-    lap("extract_instances")
-    records = map_outputs.instances_json(instances, label_sets)
-    map_outputs.write_instances_json(out_dir / "instances.json", records)
-    map_outputs.write_instance_clouds(out_dir, instances, label_sets)
-    lap("write_instances")
-    graph = scene_graph.build_scene_graph(records)
-    (out_dir / "scene_graph.json").write_text(json.dumps(graph, indent=1))
-    scene_graph.write_graphml(out_dir / "scene_graph.graphml", graph)
-    lap("scene_graph")
-    vertices, faces, colors = extraction.extract_mesh(result.state, result.map_config)
-    map_outputs.write_mesh(out_dir / "mesh.ply", vertices, faces, colors)
-    if len(faces) == 0:
-        log.warning("%s: the global surface is empty (no depth fused?): mesh.ply has no face", scene.name)
+    timings = {"extract_instances": round(time.perf_counter() - clock, 3)}
     if not instances:
         log.warning(
             "%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply are empty", scene.name
         )
-    lap("mesh")
-    if save_state:
-        save_map(out_dir / MAP_STATE_FILE, result)
-        lap("map_state")
-
-    summary: dict[str, Any] = {
-        "scene": scene.name,
-        "frames": result.frames_integrated,
-        "detection_frames": result.detection_frames,
-        "instances": len(instances),
-        "counters": result.counters,
-        "timings_ms": result.timings.summary(),
-        **({"frame_ms_as_run": _as_run_summary(frame_seconds)} if frame_seconds else {}),
-        **({"detection_ms_per_frame": detection_ms} if detection_ms else {}),
-        "map": result.map_config.describe(),
-        "capacity_used": capacity_used(result),
-        "skipped_frames": [{"frame": name, "reason": reason} for name, reason in (scene.skipped if skipped is None else skipped)],
-    }
     gt = load_ground_truth(scene)
-    if isinstance(gt, str):
-        summary["benchmark"] = {"error": gt}
-        gt = None
-    elif gt is not None:
-        summary["benchmark"] = _export_and_score(instances, gt, scene, result, out_dir, label_sets)
-        lap("benchmark")
-    _write_overview(
-        out_dir / "overview.png",
-        scene.name,
-        instances,
-        (vertices, faces, colors),
-        gt,
-        result,
-        summary.get("benchmark", {}),
+    ground_truth = None if isinstance(gt, str) else gt
+    context = outputs.OutputContext(
+        scene,
+        out_dir,
+        result.config,
         label_sets,
+        instances,
+        result=result,
+        ground_truth=ground_truth,
+        ground_truth_error=gt if isinstance(gt, str) else None,
+        floor=None if ground_truth is None else result.floor(),
+        skipped=scene.skipped if skipped is None else skipped,
+        detection_ms=detection_ms,
+        frame_seconds=frame_seconds,
+        timings=timings,
     )
-    lap("overview")
-    summary["export_seconds"] = timings
-    summary["peak_rss_mib"] = round(_peak_rss_mib(), 1)
-    (out_dir / "run.json").write_text(json.dumps(summary, indent=1, default=float))
+    selected = [w.name for w in outputs.select_writers(names) if save_state or w.name != MAP_STATE_FILE]
+    outputs.write_outputs(context, selected)
     log.info("outputs of %s written into %s (seconds: %s)", scene.name, out_dir, timings)
-    return summary
-
-
-def _peak_rss_mib() -> float:
-    """This process's peak resident memory so far, MiB (Linux reports KiB, macOS bytes)."""
-    import resource
-
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / 2**20 if sys.platform == "darwin" else peak / 1024
-
-
-def capacity_used(result: FusionResult) -> dict[str, int]:
-    """How full the fixed capacities got (to size tsdf.block_capacity and instances.capacity)."""
-    blocks, table = result.state.blocks, result.state.instances
-    return {
-        "blocks": int(blocks.num_blocks),
-        "block_capacity": result.map_config.block_capacity,
-        "dropped_blocks": int(blocks.dropped_blocks),
-        "touched_overflow": int(blocks.touched_overflow),
-        "instances_live": int(table.valid.sum()),
-        "instance_capacity": result.map_config.instance_capacity,
-        "table_overflow": int(table.overflow),
-    }
+    return context.summary if context.summary is not None else outputs.run_summary(context)
 
 
 def load_ground_truth(scene: Scene):
@@ -577,91 +488,6 @@ def load_ground_truth(scene: Scene):
         return str(error)
 
 
-def _write_overview(path: Path, scene_name: str, instances, mesh, gt, result: FusionResult, benchmark: dict, label_sets) -> None:
-    vertices, faces, colors = mesh
-    panels = [overview.map_overview_panel(instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)]
-    if gt is not None:
-        panels.append(
-            overview.ground_truth_overview_panel(
-                gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids, gt.instance_ids, label_sets
-            )
-        )
-    title = f"{scene_name}: {result.frames_integrated} frames"
-    if "mAP" in benchmark:
-        title += f"  |  AP {benchmark['mAP']:.3f}   AP50 {benchmark['mAP50']:.3f}   AP25 {benchmark['mAP25']:.3f}"
-    try:
-        overview.write_overview(path, panels, label_sets, title)
-    except OSError as error:
-        log.warning("no overview: %s", error)
-
-
-def score_instances(instances, gt, scene_name: str, config: PipelineConfig, label_sets, gt_ids=None, floor=None):
-    """`(predictions, BenchmarkResult)`: the ScanNet benchmark predictions of `instances` over the scene's
-    mesh vertices (transfer radius `config.export.transfer_radius`), and their score on this scene alone.
-
-    Args:
-      gt: the scene's `SceneGroundTruth`.
-      gt_ids: `gt.benchmark_ids()` when the caller already has it (computed here otherwise).
-      floor: the map's floor (`FusionResult.floor()`: `(up, height)`), whose mesh vertices no object claims.
-    """
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
-
-    on_floor = None
-    if floor is not None:
-        up, height = floor
-        on_floor = floor_vertices(gt.vertices, gt.faces, up, height, config.detections.floor_band)
-    predictions = map_outputs.benchmark_predictions(
-        instances,
-        label_sets,
-        gt.vertices,
-        config.export.transfer_radius,
-        config.export.structure_claims_vertices,
-        config.export.transfer_neighbours,
-        on_floor,
-    )
-    gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
-    return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
-
-
-def _export_and_score(instances, gt, scene: Scene, result: FusionResult, out_dir: Path, label_sets) -> dict:
-    """Benchmark prediction files over the scene's mesh vertices, and the score against its GT."""
-    from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
-
-    gt_ids = gt.benchmark_ids()
-    predictions, score = score_instances(
-        instances, gt, scene.name, result.config, label_sets, gt_ids=gt_ids, floor=result.floor()
-    )
-    txt = write_benchmark_predictions(out_dir / "benchmark", scene.name, predictions)
-    report = score.to_json_dict()
-    (out_dir / "report.json").write_text(json.dumps(report, indent=1))
-    return {
-        "predictions": str(txt.relative_to(out_dir)),  # the folder is renamed when the run completes
-        "mAP": score.mAP,
-        "mAP50": score.mAP50,
-        "mAP25": score.mAP25,
-        "table": score.to_table(),
-        "explain": _explain(gt, gt_ids, predictions, scene.name, out_dir),
-    }
-
-
-def _explain(gt, gt_ids, predictions, scene_name: str, out_dir: Path) -> dict:
-    """The error analysis beside report.json (explain.md, explain.json, explain.png); its counts for run.json.
-
-    It reads the predictions already scored; it does not run the benchmark again.
-    """
-    from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
-
-    start = time.perf_counter()
-    explanation = explain_scene(gt_ids, predictions, gt.vertices, scene_name=scene_name)
-    write_explanation(out_dir, explanation, gt_ids, predictions, gt.vertices, gt.faces)
-    return {
-        "objects": explanation.status_counts(),
-        "predictions": explanation.kind_counts(),
-        "seconds": round(time.perf_counter() - start, 3),
-    }
-
-
 def prepare_output_dir(out_dir: str | Path, create: bool = True) -> Path:
     """Checks (and creates, or with `create=False` its parent) the output folder up front, before minutes of
     fusion; a path that cannot be one is a UserError."""
@@ -676,17 +502,6 @@ def prepare_output_dir(out_dir: str | Path, create: bool = True) -> Path:
     except OSError as error:
         raise UserError(f"cannot write the output folder {out_dir} ({where}: {error.strerror or error})") from None
     return out_dir
-
-
-def _as_run_summary(frame_seconds: Sequence[float]) -> dict[str, float]:
-    """Median, mean and max ms of the frames as run (the steps not timed one by one: `-v` times them)."""
-    ms = [1000.0 * s for s in frame_seconds]
-    return {
-        "frames": len(ms),
-        "median": round(float(statistics.median(ms)), 3),
-        "mean": round(sum(ms) / len(ms), 3),
-        "max": round(max(ms), 3),
-    }
 
 
 def check_output_folder(out_dir: Path, inputs: Iterable[Path | None] = (), overwrite: bool = False) -> None:
@@ -906,20 +721,6 @@ def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: 
         lines.append(f"not scored: {benchmark['error']}")
     if summary["instances"] == 0 and result.detection_frames:
         lines.append("warning: the map has no instance although detections were fused")
-    listed = [
-        "overview.png",
-        "instances.json",
-        "semantic.ply",
-        "instances.ply",
-        "mesh.ply",
-        MAP_STATE_FILE,
-        "run.json",
-        "scene_graph.json",
-        "report.json",
-        "explain.md",
-        "explain.json",
-        "explain.png",
-    ]
-    written = [name for name in listed if (out_dir / name).is_file() or name == "run.json"]
+    written = outputs.listed_outputs(out_dir)
     lines.append(f"outputs in {out_dir}: {', '.join(written)}")
     return "\n".join(lines)

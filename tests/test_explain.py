@@ -5,7 +5,6 @@ files beside report.json of a run on a generated scene."""
 from __future__ import annotations
 
 import json
-import types
 
 import cv2
 import numpy as np
@@ -342,13 +341,14 @@ def test_cli_explain_does_not_go_with_export_gt(cli_main, generated_scene, tmp_p
 
 
 def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
-    """The scoring step of `fmfusion run` (runner._export_and_score) on map instances taken from the
+    """The scoring writers of `fmfusion run` (benchmark, report.json, explain) on map instances taken from the
     generated room's ground truth: two objects whole, one cut in three, one smeared over the floor."""
     from fmfusion_jax import runner
     from fmfusion_jax.config import load_config
     from fmfusion_jax.instances import MapInstance
     from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.labels import load_label_sets
+    from fmfusion_jax.run.outputs import OutputContext, write_outputs
 
     label_sets = load_label_sets()
     scene = open_scene(generated_scene)
@@ -379,8 +379,9 @@ def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
     config = load_config("scannet")
     out = tmp_path / "run"
     out.mkdir()
-    result = types.SimpleNamespace(config=config, floor=lambda: None)  # a map without a floor
-    benchmark = runner._export_and_score(instances, gt, scene, result, out, label_sets)
+    context = OutputContext(scene, out, config, label_sets, instances, ground_truth=gt)  # a map without a floor
+    write_outputs(context, names=("benchmark", "report.json", "explain"))
+    benchmark = context.benchmark
     for name in ("report.json", "explain.md", "explain.json", "explain.png"):
         assert (out / name).stat().st_size > 0, name
     explained = json.loads((out / "explain.json").read_text())

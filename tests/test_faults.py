@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import types
 from pathlib import Path
 
 import cv2
@@ -17,9 +18,10 @@ from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io import detections as detection_io
 from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
 from fmfusion_jax.io.image_file import read_image
-from fmfusion_jax.io.map_outputs import write_instance_clouds, write_mesh
+from fmfusion_jax.io.map_outputs import write_mesh
 from fmfusion_jax.io.scene import DepthSample, open_scene
 from fmfusion_jax.labels import load_label_sets
+from fmfusion_jax.run.outputs import OutputContext, write_outputs
 from fmfusion_jax.runner import check_depth_units
 
 # ---------------------------------------------------------------------------------------------- scenes
@@ -130,7 +132,8 @@ def test_an_empty_map_writes_valid_empty_files(tmp_path):
     import trimesh
 
     write_mesh(tmp_path / "mesh.ply", np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
-    write_instance_clouds(tmp_path, [], load_label_sets())
+    context = OutputContext(types.SimpleNamespace(name="empty"), tmp_path, None, load_label_sets(), [])
+    write_outputs(context, names=("semantic.ply", "instances.ply", "instances", "labelled_points"))
     for name in ("mesh.ply", "semantic.ply", "instances.ply"):
         assert (tmp_path / name).read_bytes().startswith(b"ply\n")
         assert "vertex 0" in (tmp_path / name).read_bytes().decode("ascii")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from fmfusion_jax.cli import HelpFormatter
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.run.outputs import outputs_help
 
 
 def register(subparsers) -> None:
@@ -15,10 +16,9 @@ def register(subparsers) -> None:
         "run",
         help="fuse a scene and its detections into an instance map",
         description="Fuses an RGB-D scene (ScanNet or SceneNN layout) and its open-set detections (authors' "
-        "file format) into a map of 3D instances, then writes the map: instances.json, PLY clouds "
-        "(semantic.ply, instances.ply, one per instance), mesh.ply, the ScanNet benchmark "
-        "prediction files (when the scene has its _vh_clean_2.ply mesh), the config used and "
-        "run.json with timings. With ground truth, it also scores the map (report.json).",
+        "file format) into a map of 3D instances, then writes the map into --out. With ground truth (the scene's "
+        "_vh_clean_2.ply mesh), it also scores the map (report.json).",
+        epilog=outputs_help(),
         formatter_class=HelpFormatter,
     )
     parser.add_argument("scene", type=Path, help="scene folder")

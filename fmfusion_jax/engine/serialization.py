@@ -9,7 +9,7 @@ initial values is saved whole (and loaded whole), so the round trip is exact eit
 
 Keys are the pytree paths, e.g. ``blocks.tsdf``, ``instances.valid``, ``frame_index``; a pool array saved
 in part has ``blocks.tsdf`` (the allocated rows) and ``blocks.tsdf@scratch`` (the scratch row, `(1, ...)`).
-`fmfusion_jax.map_file` writes these dicts to `.npz` files with the configs as metadata.
+`fmfusion_jax.mapping.map_file` writes these dicts to `.npz` files with the configs as metadata.
 """
 
 from __future__ import annotations
@@ -142,7 +142,7 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
     another config or another version of the engine) is a ValueError naming the array.
 
     Args:
-      arrays: as returned by `state_to_arrays` (or read by `fmfusion_jax.map_file.read_state_file`).
+      arrays: as returned by `state_to_arrays` (or read by `fmfusion_jax.mapping.map_file.read_state_file`).
       map_config: the config the state was saved with.
       device: return JAX arrays (True) or NumPy arrays (False).
     """

@@ -6,6 +6,7 @@ They take plain arrays and `MapInstance`s; nothing here knows the engine.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import cast
@@ -122,32 +123,43 @@ def write_labelled_points(out_dir: Path, points: np.ndarray, colors: np.ndarray,
     (out_dir / "labelled_points.pcd").write_bytes(("\n".join(header) + "\n").encode("ascii") + rows.tobytes())
 
 
-def write_instance_clouds(out_dir: Path, instances: list[MapInstance], label_sets: LabelSets) -> None:
-    """`semantic.ply` (coloured by class), `instances.ply` (per instance) and one PLY per instance.
+@dataclasses.dataclass(frozen=True)
+class InstancePoints:
+    """The points of all instances, concatenated in instance order (empty arrays without instances): `points`
+    float32 (N, 3), `class_colors` and `instance_colors` uint8 (N, 3) (by class, NYU40 palette; by instance,
+    `instance_colors`), `label` uint16 NYU40 ids, `instance` int32 instance ids (the `id` of instances.json)."""
 
-    The two whole-map clouds carry `label` (NYU40 id, as ScanNet's `*_vh_clean_2.labels.ply`) and `instance`
-    (the instance id of instances.json) vertex properties. Without instances the two clouds are written
-    empty (valid PLY files with no vertex) and the folder is empty.
-    """
-    folder = out_dir / "instances"
-    folder.mkdir(exist_ok=True)
+    points: np.ndarray
+    class_colors: np.ndarray
+    instance_colors: np.ndarray
+    label: np.ndarray
+    instance: np.ndarray
+
+
+def instance_points(instances: list[MapInstance], label_sets: LabelSets) -> InstancePoints:
+    """The points of `instances` with their colours, NYU40 labels and ids (semantic.ply, instances.ply and
+    labelled_points.* are written from them; without instances they are empty, and so valid empty files)."""
     if not instances:
-        empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.uint16), np.zeros(0, np.int32))
-        for name in ("semantic.ply", "instances.ply"):
-            write_point_cloud(out_dir / name, *empty)
-        write_labelled_points(out_dir, *empty)
-        return
-    points = np.concatenate([inst.points for inst in instances])
-    label = np.concatenate([np.full(len(inst.points), label_sets.nyu40_ids[inst.class_index], np.uint16) for inst in instances])
-    instance = np.concatenate([np.full(len(inst.points), inst.instance_id, np.int32) for inst in instances])
-    class_colors = np.concatenate(
-        [np.repeat(label_sets.class_colors[inst.class_index][None], len(inst.points), 0) for inst in instances]
-    )
+        colors = np.zeros((0, 3), np.uint8)
+        return InstancePoints(np.zeros((0, 3), np.float32), colors, colors, np.zeros(0, np.uint16), np.zeros(0, np.int32))
     palette = instance_colors(len(instances))
-    per_instance = np.concatenate([np.repeat(palette[i][None], len(inst.points), 0) for i, inst in enumerate(instances)])
-    write_point_cloud(out_dir / "semantic.ply", points, class_colors, label, instance)
-    write_point_cloud(out_dir / "instances.ply", points, per_instance, label, instance)
-    write_labelled_points(out_dir, points, class_colors, label, instance)
+    return InstancePoints(
+        points=np.concatenate([inst.points for inst in instances]),
+        class_colors=np.concatenate(
+            [np.repeat(label_sets.class_colors[inst.class_index][None], len(inst.points), 0) for inst in instances]
+        ),
+        instance_colors=np.concatenate([np.repeat(palette[i][None], len(inst.points), 0) for i, inst in enumerate(instances)]),
+        label=np.concatenate(
+            [np.full(len(inst.points), label_sets.nyu40_ids[inst.class_index], np.uint16) for inst in instances]
+        ),
+        instance=np.concatenate([np.full(len(inst.points), inst.instance_id, np.int32) for inst in instances]),
+    )
+
+
+def write_instance_folder(folder: Path, instances: list[MapInstance], label_sets: LabelSets) -> None:
+    """One PLY per instance, `NNNN_<class>.ply`, in its instance colour (the folder is empty without instances)."""
+    folder.mkdir(exist_ok=True)
+    palette = instance_colors(len(instances))
     for i, inst in enumerate(instances):
         name = label_sets.class_names[inst.class_index].replace(" ", "_")
         write_point_cloud(

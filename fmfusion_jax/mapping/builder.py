@@ -135,7 +135,7 @@ class MapBuilder:
         fuse_detections: Callable[..., Any] = step.fuse_detections,
         one_call_per_frame: bool | None = None,
     ):
-        """`state`: start from this map (e.g. `map_file.load_map`) instead of an empty one; it must have
+        """`state`: start from this map (e.g. `map_file.read_map_file(path).state`) instead of an empty one; it must have
         been made with the same `map_config`. Its buffers are donated to the first step.
 
         Hooks: `timer` times each step (default: a `StageTimer`); `fuse_detections` is the detection-frame

@@ -198,7 +198,7 @@ class Mapper:
         call it while frames are integrated. A non-finite or non-rigid pose is a UserError naming the frame."""
         if not isinstance(frame, RGBDFrame):
             raise UserError(
-                f"prepare: expected an RGBDFrame (fmfusion_jax.mapper.as_frame makes one of arrays), got {type(frame).__name__}"
+                f"prepare: expected an RGBDFrame (fmfusion_jax.mapping.as_frame makes one of arrays), got {type(frame).__name__}"
             )
         checked_pose(frame.T_world_camera, frame.name)
         layout = self._layout(*frame.depth.shape)

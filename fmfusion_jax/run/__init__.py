@@ -1,0 +1,1 @@
+"""A whole run: scene + detections -> map -> output files."""

@@ -1,0 +1,492 @@
+"""The output files of a run, as a registry of small writers (`OUTPUT_WRITERS`, in the order they are written).
+
+Each `OutputWriter` names the files it writes and says in one line what they hold; `write_outputs` runs them (all,
+or a chosen subset) on one `OutputContext`. `runner.OUTPUT_NAMES`, the end-of-run summary's outputs line,
+`fmfusion run --help` and the README's outputs table are made from the registry: a new output format is one
+writer added here (and its README row, `readme_table`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import statistics
+import sys
+import time
+from collections.abc import Callable, Collection, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from fmfusion_jax import scene_graph
+from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.instances import MapInstance
+from fmfusion_jax.io import map_outputs
+from fmfusion_jax.io.scene import Scene
+from fmfusion_jax.labels import LabelSets
+from fmfusion_jax.mapping.builder import FusionResult
+from fmfusion_jax.mapping.map_file import MAP_STATE_FILE, save_map
+from fmfusion_jax.viz import overview
+
+if TYPE_CHECKING:
+    from fmfusion_jax.evaluation.scannet_benchmark import BenchmarkResult
+    from fmfusion_jax.io.benchmark_format import InstancePredictions
+    from fmfusion_jax.io.ground_truth import SceneGroundTruth
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class OutputContext:
+    """What the writers need, built once per run; the derived values (mesh, points, score, ...) are computed on
+    first use, so a subset of writers computes only what it needs.
+
+    Attributes:
+      scene: the scene mapped.
+      out_dir: the output folder.
+      config: the run's config.
+      label_sets: the label sets of the map.
+      instances: the map's instances.
+      result: the fused map (None: instances without a map, as a baseline's; then only the writers of
+        config.yaml, instances.json, the clouds, the scene graph and the benchmark files apply).
+      ground_truth: the scene's ground truth (None: none, or `ground_truth_error`).
+      ground_truth_error: why the ground truth could not be read (run.json's benchmark error).
+      floor: the map's floor `(up, height)` (`FusionResult.floor()`), whose mesh vertices no object claims.
+      skipped: the frames skipped for bad input, `(frame, reason)` (run.json).
+      detection_ms: the models' mean ms per detected frame, when a run detected online (run.json).
+      frame_seconds: each frame's wall time as run, summarized in run.json.
+      timings: seconds per writing step (run.json's `export_seconds`), filled by `write_outputs`.
+      benchmark: run.json's `benchmark` entry, filled by the benchmark and explain writers.
+      summary: the run summary, once the run.json writer has run.
+    """
+
+    scene: Scene
+    out_dir: Path
+    config: PipelineConfig
+    label_sets: LabelSets
+    instances: list[MapInstance]
+    result: FusionResult | None = None
+    ground_truth: SceneGroundTruth | None = None
+    ground_truth_error: str | None = None
+    floor: tuple[tuple[float, float, float], float] | None = None
+    skipped: Sequence[tuple[str, str]] = ()
+    detection_ms: dict[str, float] | None = None
+    frame_seconds: Sequence[float] = ()
+    timings: dict[str, float] = dataclasses.field(default_factory=dict)
+    benchmark: dict[str, Any] = dataclasses.field(default_factory=dict)
+    summary: dict[str, Any] | None = None
+
+    @property
+    def fused_map(self) -> FusionResult:
+        if self.result is None:
+            raise ValueError(f"{self.out_dir}: this output needs the fused map, and the context has none")
+        return self.result
+
+    @functools.cached_property
+    def records(self) -> list[dict]:
+        """The records of instances.json."""
+        return map_outputs.instances_json(self.instances, self.label_sets)
+
+    @functools.cached_property
+    def points(self) -> map_outputs.InstancePoints:
+        return map_outputs.instance_points(self.instances, self.label_sets)
+
+    @functools.cached_property
+    def graph(self) -> dict[str, Any]:
+        return scene_graph.build_scene_graph(self.records)
+
+    @functools.cached_property
+    def mesh(self) -> tuple[Any, Any, Any]:
+        """`(vertices, faces, colors)` of the global TSDF surface."""
+        from fmfusion_jax.engine import extraction
+
+        return extraction.extract_mesh(self.fused_map.state, self.fused_map.map_config)
+
+    @functools.cached_property
+    def scored(self) -> tuple[Any, InstancePredictions, BenchmarkResult]:
+        """`(gt_ids, predictions, score)`: the benchmark predictions over the ground truth's mesh vertices and
+        their score on this scene alone."""
+        if self.ground_truth is None:
+            raise ValueError(f"{self.out_dir}: the benchmark outputs need the scene's ground truth")
+        gt_ids = self.ground_truth.benchmark_ids()
+        predictions, score = score_instances(
+            self.instances, self.ground_truth, self.scene.name, self.config, self.label_sets, gt_ids, self.floor
+        )
+        return gt_ids, predictions, score
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputWriter:
+    """One output of a run.
+
+    Attributes:
+      name: what `write_outputs(names=...)` calls it.
+      files: the files (and folders, ending in `/`) it writes into the output folder.
+      description: one line for `fmfusion run --help` and the README's outputs table.
+      write: writes them from the `OutputContext`.
+      lap: the run.json `export_seconds` entry its time adds to (None: its time counts toward the next writer's).
+      listed: its place in the end-of-run summary's "outputs in ..." line (None: not named there).
+      needs_ground_truth: written only when the scene has ground truth.
+    """
+
+    name: str
+    files: tuple[str, ...]
+    description: str
+    write: Callable[[OutputContext], None]
+    lap: str | None = None
+    listed: int | None = None
+    needs_ground_truth: bool = False
+
+
+def score_instances(instances, gt, scene_name: str, config: PipelineConfig, label_sets, gt_ids=None, floor=None):
+    """`(predictions, BenchmarkResult)`: the ScanNet benchmark predictions of `instances` over the scene's
+    mesh vertices (transfer radius `config.export.transfer_radius`), and their score on this scene alone.
+
+    Args:
+      gt: the scene's `SceneGroundTruth`.
+      gt_ids: `gt.benchmark_ids()` when the caller already has it (computed here otherwise).
+      floor: the map's floor (`FusionResult.floor()`: `(up, height)`), whose mesh vertices no object claims.
+    """
+    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+    from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
+
+    on_floor = None
+    if floor is not None:
+        up, height = floor
+        on_floor = floor_vertices(gt.vertices, gt.faces, up, height, config.detections.floor_band)
+    predictions = map_outputs.benchmark_predictions(
+        instances,
+        label_sets,
+        gt.vertices,
+        config.export.transfer_radius,
+        config.export.structure_claims_vertices,
+        config.export.transfer_neighbours,
+        on_floor,
+    )
+    gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
+    return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
+
+
+def capacity_used(result: FusionResult) -> dict[str, int]:
+    """How full the fixed capacities got (to size tsdf.block_capacity and instances.capacity)."""
+    blocks, table = result.state.blocks, result.state.instances
+    return {
+        "blocks": int(blocks.num_blocks),
+        "block_capacity": result.map_config.block_capacity,
+        "dropped_blocks": int(blocks.dropped_blocks),
+        "touched_overflow": int(blocks.touched_overflow),
+        "instances_live": int(table.valid.sum()),
+        "instance_capacity": result.map_config.instance_capacity,
+        "table_overflow": int(table.overflow),
+    }
+
+
+def _peak_rss_mib() -> float:
+    """This process's peak resident memory so far, MiB (Linux reports KiB, macOS bytes)."""
+    import resource
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024
+
+
+def _as_run_summary(frame_seconds: Sequence[float]) -> dict[str, float]:
+    """Median, mean and max ms of the frames as run (the steps not timed one by one: `-v` times them)."""
+    ms = [1000.0 * s for s in frame_seconds]
+    return {
+        "frames": len(ms),
+        "median": round(float(statistics.median(ms)), 3),
+        "mean": round(sum(ms) / len(ms), 3),
+        "max": round(max(ms), 3),
+    }
+
+
+def run_summary(context: OutputContext) -> dict[str, Any]:
+    """The run summary (run.json): counts, timings, capacities, skipped frames, the score."""
+    result = context.fused_map
+    summary: dict[str, Any] = {
+        "scene": context.scene.name,
+        "frames": result.frames_integrated,
+        "detection_frames": result.detection_frames,
+        "instances": len(context.instances),
+        "counters": result.counters,
+        "timings_ms": result.timings.summary(),
+        **({"frame_ms_as_run": _as_run_summary(context.frame_seconds)} if context.frame_seconds else {}),
+        **({"detection_ms_per_frame": context.detection_ms} if context.detection_ms else {}),
+        "map": result.map_config.describe(),
+        "capacity_used": capacity_used(result),
+        "skipped_frames": [{"frame": name, "reason": reason} for name, reason in context.skipped],
+    }
+    if context.ground_truth_error is not None:
+        summary["benchmark"] = {"error": context.ground_truth_error}
+    elif context.benchmark:
+        summary["benchmark"] = context.benchmark
+    summary["export_seconds"] = context.timings
+    summary["peak_rss_mib"] = round(_peak_rss_mib(), 1)
+    return summary
+
+
+# ------------------------------------------------------------------------------------------------ writers
+
+
+def _write_config(context: OutputContext) -> None:
+    (context.out_dir / "config.yaml").write_text(context.config.to_yaml())
+
+
+def _write_instances_json(context: OutputContext) -> None:
+    map_outputs.write_instances_json(context.out_dir / "instances.json", context.records)
+
+
+def _write_semantic_cloud(context: OutputContext) -> None:
+    p = context.points
+    map_outputs.write_point_cloud(context.out_dir / "semantic.ply", p.points, p.class_colors, p.label, p.instance)
+
+
+def _write_instance_cloud(context: OutputContext) -> None:
+    p = context.points
+    map_outputs.write_point_cloud(context.out_dir / "instances.ply", p.points, p.instance_colors, p.label, p.instance)
+
+
+def _write_instance_folder(context: OutputContext) -> None:
+    map_outputs.write_instance_folder(context.out_dir / "instances", context.instances, context.label_sets)
+
+
+def _write_labelled_points(context: OutputContext) -> None:
+    p = context.points
+    map_outputs.write_labelled_points(context.out_dir, p.points, p.class_colors, p.label, p.instance)
+
+
+def _write_scene_graph_json(context: OutputContext) -> None:
+    (context.out_dir / "scene_graph.json").write_text(json.dumps(context.graph, indent=1))
+
+
+def _write_scene_graph_graphml(context: OutputContext) -> None:
+    scene_graph.write_graphml(context.out_dir / "scene_graph.graphml", context.graph)
+
+
+def _write_mesh(context: OutputContext) -> None:
+    vertices, faces, colors = context.mesh
+    map_outputs.write_mesh(context.out_dir / "mesh.ply", vertices, faces, colors)
+    if len(faces) == 0:
+        log.warning("%s: the global surface is empty (no depth fused?): mesh.ply has no face", context.scene.name)
+
+
+def _write_map_state(context: OutputContext) -> None:
+    save_map(context.out_dir / MAP_STATE_FILE, context.fused_map)
+
+
+def _write_benchmark(context: OutputContext) -> None:
+    from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
+
+    _, predictions, score = context.scored
+    txt = write_benchmark_predictions(context.out_dir / "benchmark", context.scene.name, predictions)
+    context.benchmark.update(
+        predictions=str(txt.relative_to(context.out_dir)),  # the folder is renamed when the run completes
+        mAP=score.mAP,
+        mAP50=score.mAP50,
+        mAP25=score.mAP25,
+        table=score.to_table(),
+    )
+
+
+def _write_report(context: OutputContext) -> None:
+    (context.out_dir / "report.json").write_text(json.dumps(context.scored[2].to_json_dict(), indent=1))
+
+
+def _write_explain(context: OutputContext) -> None:
+    """The error analysis beside report.json; its counts go into run.json. It reads the predictions already
+    scored; it does not run the benchmark again."""
+    from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
+
+    assert context.ground_truth is not None
+    gt = context.ground_truth
+    gt_ids, predictions, _ = context.scored
+    start = time.perf_counter()
+    explanation = explain_scene(gt_ids, predictions, gt.vertices, scene_name=context.scene.name)
+    write_explanation(context.out_dir, explanation, gt_ids, predictions, gt.vertices, gt.faces)
+    context.benchmark["explain"] = {
+        "objects": explanation.status_counts(),
+        "predictions": explanation.kind_counts(),
+        "seconds": round(time.perf_counter() - start, 3),
+    }
+
+
+def _write_overview(context: OutputContext) -> None:
+    result, gt, label_sets, benchmark = context.fused_map, context.ground_truth, context.label_sets, context.benchmark
+    vertices, faces, colors = context.mesh
+    panels = [overview.map_overview_panel(context.instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)]
+    if gt is not None:
+        panels.append(
+            overview.ground_truth_overview_panel(
+                gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids, gt.instance_ids, label_sets
+            )
+        )
+    title = f"{context.scene.name}: {result.frames_integrated} frames"
+    if "mAP" in benchmark:
+        title += f"  |  AP {benchmark['mAP']:.3f}   AP50 {benchmark['mAP50']:.3f}   AP25 {benchmark['mAP25']:.3f}"
+    try:
+        overview.write_overview(context.out_dir / "overview.png", panels, label_sets, title)
+    except OSError as error:
+        log.warning("no overview: %s", error)
+
+
+def _write_run_json(context: OutputContext) -> None:
+    context.summary = run_summary(context)
+    (context.out_dir / "run.json").write_text(json.dumps(context.summary, indent=1, default=float))
+
+
+#: Every output of a run, in the order written (the overview shows the score; run.json holds every step's time).
+OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
+    OutputWriter("config.yaml", ("config.yaml",), "the config used", _write_config),
+    OutputWriter(
+        "instances.json",
+        ("instances.json",),
+        "per instance: class, confidence, fused distribution, observations, open-set label histogram, voxel count, "
+        "oriented box; metres, world frame (schema: docs/instances.schema.json)",
+        _write_instances_json,
+        lap="write_instances",
+        listed=2,
+    ),
+    OutputWriter(
+        "semantic.ply",
+        ("semantic.ply",),
+        "the instance points (binary PLY, metres, world frame) coloured by class (NYU40 palette), with `label` "
+        "(NYU40 id, as ScanNet's `*_vh_clean_2.labels.ply`) and `instance` (the `id` of instances.json) vertex properties",
+        _write_semantic_cloud,
+        lap="write_instances",
+        listed=3,
+    ),
+    OutputWriter(
+        "instances.ply",
+        ("instances.ply",),
+        "the same points coloured by instance, with the same `label` and `instance` vertex properties",
+        _write_instance_cloud,
+        lap="write_instances",
+        listed=4,
+    ),
+    OutputWriter(
+        "instances",
+        ("instances/",),
+        "one PLY per instance, `NNNN_<class>.ply`, in its instance colour",
+        _write_instance_folder,
+        lap="write_instances",
+    ),
+    OutputWriter(
+        "labelled_points",
+        ("labelled_points.npz", "labelled_points.pcd"),
+        "the instance points with their labels for robotics tools (ROS, PCL, NumPy): `points` (metres, world frame), "
+        "`colors`, `label` (NYU40 id), `instance` (id of instances.json); the PCD has fields x y z rgb label instance",
+        _write_labelled_points,
+        lap="write_instances",
+    ),
+    OutputWriter(
+        "scene_graph.json",
+        ("scene_graph.json",),
+        "the scene graph: nodes = the instances (class, confidence, top open-set labels, centroid, oriented box, "
+        "points) and the floor as root; edges `on`, `inside`, `near` computed from the boxes, each with a score",
+        _write_scene_graph_json,
+        lap="scene_graph",
+        listed=8,
+    ),
+    OutputWriter(
+        "scene_graph.graphml",
+        ("scene_graph.graphml",),
+        "the scene graph as GraphML (for networkx, Gephi, yEd)",
+        _write_scene_graph_graphml,
+        lap="scene_graph",
+    ),
+    OutputWriter(
+        "mesh.ply", ("mesh.ply",), "the global TSDF surface (marching cubes) with colour", _write_mesh, lap="mesh", listed=5
+    ),
+    OutputWriter(
+        "map_state.npz",
+        (MAP_STATE_FILE,),
+        "the map state, loadable with `fmfusion_jax.Mapper.load` to inspect or continue",
+        _write_map_state,
+        lap="map_state",
+        listed=6,
+    ),
+    OutputWriter(
+        "benchmark",
+        ("benchmark/",),
+        "ScanNet benchmark prediction files (`<scene>.txt`, `pred_mask/`) over the scene's `_vh_clean_2.ply` "
+        "vertices, when the scene has ground truth",
+        _write_benchmark,
+        lap="benchmark",
+        needs_ground_truth=True,
+    ),
+    OutputWriter(
+        "report.json",
+        ("report.json",),
+        "the evaluation, when the scene has ground truth",
+        _write_report,
+        lap="benchmark",
+        listed=9,
+        needs_ground_truth=True,
+    ),
+    OutputWriter(
+        "explain",
+        ("explain.md", "explain.json", "explain.png"),
+        "the error analysis beside report.json: why each object was (not) found and what each prediction is, "
+        "with a top-down picture (docs/error-analysis.md)",
+        _write_explain,
+        lap="benchmark",
+        listed=10,
+        needs_ground_truth=True,
+    ),
+    OutputWriter(
+        "overview.png",
+        ("overview.png",),
+        "top-down picture of the instances by class, beside the ground truth when there is one",
+        _write_overview,
+        lap="overview",
+        listed=1,
+    ),
+    OutputWriter("run.json", ("run.json",), "counts, timings per stage, capacities used", _write_run_json, listed=7),
+)
+
+#: Every file and folder the writers may write: removed before a run writes into a folder again.
+OUTPUT_NAMES: tuple[str, ...] = tuple(file.rstrip("/") for writer in OUTPUT_WRITERS for file in writer.files)
+
+
+def select_writers(names: Collection[str] | None = None) -> list[OutputWriter]:
+    """The writers named (in registry order), all with `names=None`; an unknown name is a ValueError."""
+    if names is None:
+        return list(OUTPUT_WRITERS)
+    unknown = set(names) - {writer.name for writer in OUTPUT_WRITERS}
+    if unknown:
+        known = ", ".join(writer.name for writer in OUTPUT_WRITERS)
+        raise ValueError(f"unknown outputs {', '.join(sorted(unknown))} (known: {known})")
+    return [writer for writer in OUTPUT_WRITERS if writer.name in names]
+
+
+def write_outputs(context: OutputContext, names: Collection[str] | None = None) -> None:
+    """Runs the writers named in `names` (all by default), in registry order, into `context.out_dir`; each
+    step's seconds go into `context.timings` under the writer's `lap`. The benchmark writers are skipped
+    without ground truth."""
+    clock = time.perf_counter()
+    for writer in select_writers(names):
+        if writer.needs_ground_truth and context.ground_truth is None:
+            continue
+        writer.write(context)
+        if writer.lap is not None:
+            now = time.perf_counter()
+            context.timings[writer.lap] = round(context.timings.get(writer.lap, 0.0) + now - clock, 3)
+            clock = now
+
+
+def listed_outputs(out_dir: Path) -> list[str]:
+    """The files of `out_dir` that the end-of-run summary names, in its order."""
+    listed = sorted((writer for writer in OUTPUT_WRITERS if writer.listed is not None), key=lambda w: w.listed or 0)
+    return [file for writer in listed for file in writer.files if (out_dir / file).is_file()]
+
+
+def outputs_help() -> str:
+    """The outputs paragraph of `fmfusion run --help`."""
+    return "Outputs: " + "; ".join(f"{', '.join(writer.files)}: {writer.description}" for writer in OUTPUT_WRITERS) + "."
+
+
+def readme_table() -> str:
+    """The README's outputs table (a test keeps the README equal to it)."""
+    rows = [f"| {', '.join(f'`{file}`' for file in writer.files)} | {writer.description} |" for writer in OUTPUT_WRITERS]
+    return "\n".join(["| file | content |", "|---|---|", *rows])
