@@ -39,7 +39,8 @@ def fuse(scene_dir: str | Path, detections_dir: str | Path, config="scannet", pr
 
 def score(scene_dir: str | Path, mapper: Mapper, instances):
     """The ScanNet benchmark of `instances` against the scene's ground truth (None without one)."""
-    from fmfusion_jax.runner import load_ground_truth, score_instances
+    from fmfusion_jax.run.command import load_ground_truth
+    from fmfusion_jax.run.outputs import score_instances
 
     scene = open_scene(scene_dir, layout=mapper.config.dataset.layout)
     gt = load_ground_truth(scene)

@@ -4,7 +4,7 @@
 
 Each case runs in a process of its own and reports its peak resident memory (RSS) and the map state's
 device bytes: (a) a growing `Mapper` fed the first N frames, (b) the same frames into the Mapper `fmfusion run`
-makes (`runner.mapper_for_scene`: the whole scene's bounds, the pool sized from a sample of its depth), (c) the
+makes (`run.scene_fusion.mapper_for_scene`: the whole scene's bounds, the pool sized from a sample of its depth), (c) the
 growing Mapper over every frame of the scene. No detections: geometry only (the instance table is small either way).
 """
 
@@ -19,7 +19,7 @@ import sys
 
 def measure(scene_dir: str, frames: int | None, sized: bool, config: str) -> dict:
     from fmfusion_jax import Mapper, load_config, open_scene
-    from fmfusion_jax.runner import mapper_for_scene
+    from fmfusion_jax.run.scene_fusion import mapper_for_scene
 
     pipeline_config = load_config(config)
     dataset = pipeline_config.dataset

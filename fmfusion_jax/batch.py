@@ -328,7 +328,7 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.mapping.batch import MapperBatch
-    from fmfusion_jax.runner import write_outputs
+    from fmfusion_jax.run.command import write_outputs
 
     start = time.perf_counter()
     records: list[dict[str, Any]] = [{"scene": t.name, "path": t.scene, "out": t.out} for t in group]

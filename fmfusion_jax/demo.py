@@ -4,7 +4,7 @@
    the ScanNet layout with its ground truth (`simulation.scannet_writer`) into OUT/synth<seed>_00;
 2. foundation-model detections are simulated from its ground truth with the noise model of
    `fmfusion simulate` (`simulation.simulate.simulate_scene`, authors' file format) into OUT/detections;
-3. the scene is fused with `configs/demo.yaml` (`runner.fuse_scene`), the map written into OUT (the outputs
+3. the scene is fused with `configs/demo.yaml` (`run.scene_fusion.fuse_scene`), the map written into OUT (the outputs
    of `fmfusion run`: overview.png, instances.json, PLY files, map_state.npz, ...) and scored against the
    scene's own ground truth.
 
@@ -115,7 +115,7 @@ def demo_noise(seed: int, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIG
 def _prepare(out_dir: Path) -> None:
     """Makes `out_dir`; a previous demo's folder (it holds `demo.json`) is emptied first; any other
     non-empty folder is refused, so the demo never deletes a user's files."""
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.run.folder import prepare_output_dir
 
     prepare_output_dir(out_dir)
     entries = list(out_dir.iterdir())
@@ -170,7 +170,8 @@ def run_demo(
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
     from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.runner import fuse_scene, summarize_run, write_outputs
+    from fmfusion_jax.run.command import summarize_run, write_outputs
+    from fmfusion_jax.run.scene_fusion import fuse_scene
     from fmfusion_jax.simulation.procedural import generate_scene
     from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
     from fmfusion_jax.simulation.simulate import simulate_scene

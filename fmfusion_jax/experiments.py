@@ -358,7 +358,7 @@ def run_method(
     """
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.labels import load_label_sets
-    from fmfusion_jax.run.outputs import OutputContext, write_outputs
+    from fmfusion_jax.run.outputs import OutputContext, write_files
 
     label_sets = load_label_sets()
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
@@ -382,7 +382,8 @@ def run_method(
         }
     else:
         from fmfusion_jax.mapping.export import extract_map_instances
-        from fmfusion_jax.runner import capacity_used, fuse_scene
+        from fmfusion_jax.run.outputs import capacity_used
+        from fmfusion_jax.run.scene_fusion import fuse_scene
 
         result = fuse_scene(scene, source, config, progress=progress, time_stages=True)
         instances = extract_map_instances(result, label_sets)
@@ -399,7 +400,7 @@ def run_method(
 
     _replace_run_dir(out_dir)
     written = OutputContext(scene, out_dir, config, label_sets, instances, ground_truth=gt, floor=floor)
-    write_outputs(written, names=("config.yaml", "instances.json", "benchmark"))
+    write_files(written, names=("config.yaml", "instances.json", "benchmark"))
     _, predictions, score = written.scored
     summary = {
         "scene": scene.name,
@@ -607,7 +608,7 @@ def run_experiment(
       real_detections: detection folder of the real scenes (`{scene}` in it is each scene's name) read by every
         method instead of simulated detections; the generated rooms keep theirs.
     """
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.run.folder import prepare_output_dir
 
     chosen = resolve_methods(methods)
     sources = scene_sources(real_scenes, generated)

@@ -668,7 +668,7 @@ def run_robustness(
       real_max_frames: use only the first frames of real scenes (smoke tests).
       progress: one line per run with the running total and an ETA (`report`, default stderr).
     """
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.run.folder import prepare_output_dir
 
     if mixed < 0 or noise_seed < 0:
         raise UserError(f"--mixed and --noise-seed must be >= 0 (got {mixed}, {noise_seed})")

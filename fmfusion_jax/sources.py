@@ -1,6 +1,6 @@
 """Where a run's detections come from, chosen in one place: a folder of detection files, or models run online.
 
-Every source is a `pipeline.DetectionSource`: called with a frame, it gives the frame's `FrameDetections` (or
+Every source is a `mapping.DetectionSource`: called with a frame, it gives the frame's `FrameDetections` (or
 None). `open_detection_source` is what `fmfusion run` (and so `fmfusion batch`, whose scenes each run it) calls
 with its `--detections` / `--models` arguments; the demo, the experiments and the likelihood summary read
 folders the simulator wrote (`fmfusion simulate`), so simulated detections reach the map through the same

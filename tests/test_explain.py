@@ -343,16 +343,16 @@ def test_cli_explain_does_not_go_with_export_gt(cli_main, generated_scene, tmp_p
 def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
     """The scoring writers of `fmfusion run` (benchmark, report.json, explain) on map instances taken from the
     generated room's ground truth: two objects whole, one cut in three, one smeared over the floor."""
-    from fmfusion_jax import runner
     from fmfusion_jax.config import load_config
     from fmfusion_jax.instances import MapInstance
     from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.labels import load_label_sets
-    from fmfusion_jax.run.outputs import OutputContext, write_outputs
+    from fmfusion_jax.run.command import load_ground_truth
+    from fmfusion_jax.run.outputs import OutputContext, write_files
 
     label_sets = load_label_sets()
     scene = open_scene(generated_scene)
-    gt = runner.load_ground_truth(scene)
+    gt = load_ground_truth(scene)
     ids = gt.benchmark_ids()
     objects = [i for i in np.unique(ids) if i // 1000 in BENCHMARK_NYU40_IDS and np.sum(ids == i) >= 100]
     floor = gt.vertices[ids // 1000 == FLOOR]
@@ -380,7 +380,7 @@ def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
     out = tmp_path / "run"
     out.mkdir()
     context = OutputContext(scene, out, config, label_sets, instances, ground_truth=gt)  # a map without a floor
-    write_outputs(context, names=("benchmark", "report.json", "explain"))
+    write_files(context, names=("benchmark", "report.json", "explain"))
     benchmark = context.benchmark
     for name in ("report.json", "explain.md", "explain.json", "explain.png"):
         assert (out / name).stat().st_size > 0, name

@@ -21,8 +21,8 @@ from fmfusion_jax.io.image_file import read_image
 from fmfusion_jax.io.map_outputs import write_mesh
 from fmfusion_jax.io.scene import DepthSample, open_scene
 from fmfusion_jax.labels import load_label_sets
-from fmfusion_jax.run.outputs import OutputContext, write_outputs
-from fmfusion_jax.runner import check_depth_units
+from fmfusion_jax.run.outputs import OutputContext, write_files
+from fmfusion_jax.run.scene_fusion import check_depth_units
 
 # ---------------------------------------------------------------------------------------------- scenes
 
@@ -133,7 +133,7 @@ def test_an_empty_map_writes_valid_empty_files(tmp_path):
 
     write_mesh(tmp_path / "mesh.ply", np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8))
     context = OutputContext(types.SimpleNamespace(name="empty"), tmp_path, None, load_label_sets(), [])
-    write_outputs(context, names=("semantic.ply", "instances.ply", "instances", "labelled_points"))
+    write_files(context, names=("semantic.ply", "instances.ply", "instances", "labelled_points"))
     for name in ("mesh.ply", "semantic.ply", "instances.ply"):
         assert (tmp_path / name).read_bytes().startswith(b"ply\n")
         assert "vertex 0" in (tmp_path / name).read_bytes().decode("ascii")

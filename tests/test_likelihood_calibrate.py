@@ -232,7 +232,7 @@ def test_histogram_identity_on_a_fused_map_and_matching(tmp_path):
     from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.likelihood.workflow import with_likelihood
     from fmfusion_jax.mapping.export import extract_map_instances
-    from fmfusion_jax.runner import fuse_scene
+    from fmfusion_jax.run.scene_fusion import fuse_scene
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, prepare_generated
 
     rng = np.random.default_rng(5)

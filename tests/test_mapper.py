@@ -26,7 +26,7 @@ from fmfusion_jax.mapping.engine_configs import build_map_config
 from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import as_config
 from fmfusion_jax.mapping.mapper import Mapper
-from fmfusion_jax.runner import fuse_scene
+from fmfusion_jax.run.scene_fusion import fuse_scene
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 from fmfusion_jax.types import FrameDetections
 

@@ -8,7 +8,7 @@ import pytest
 
 from fmfusion_jax import cli
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.runner import check_output_folder
+from fmfusion_jax.run.folder import check_output_folder
 
 
 @pytest.fixture
@@ -87,7 +87,7 @@ def test_a_place_that_cannot_be_written_fails_before_any_work(tmp_path, monkeypa
     import errno
     import tempfile
 
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.run.folder import prepare_output_dir
 
     def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system")
@@ -112,7 +112,7 @@ def test_a_map_that_cannot_fit_is_refused_before_allocation():
 def test_a_camera_that_never_moves_is_warned(tmp_path, caplog):
     import numpy as np
 
-    from fmfusion_jax.runner import warn_static_trajectory
+    from fmfusion_jax.run.scene_fusion import warn_static_trajectory
 
     class Scene:
         name = "still"
@@ -126,7 +126,7 @@ def test_a_camera_that_never_moves_is_warned(tmp_path, caplog):
     still = np.repeat(np.eye(4)[None], 20, axis=0)
     moving = still.copy()
     moving[:, 0, 3] = np.linspace(0, 1, 20)
-    with caplog.at_level("WARNING", logger="fmfusion_jax.runner"):
+    with caplog.at_level("WARNING", logger="fmfusion_jax.run"):
         assert warn_static_trajectory(Scene(still)) and not warn_static_trajectory(Scene(moving))
     assert "does not move" in caplog.text
 
@@ -138,7 +138,7 @@ def test_one_writer_per_output_folder(tmp_path, caplog):
     import subprocess
     import sys
 
-    from fmfusion_jax.runner import OutputLock
+    from fmfusion_jax.run.folder import OutputLock
 
     out = tmp_path / "out"
     with OutputLock(out) as lock:
@@ -148,7 +148,7 @@ def test_one_writer_per_output_folder(tmp_path, caplog):
     assert not lock.path.exists()
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     lock.path.write_text(json.dumps({"pid": int(gone.stdout), "host": socket.gethostname()}))
-    with caplog.at_level("WARNING", logger="fmfusion_jax.runner"), OutputLock(out):
+    with caplog.at_level("WARNING", logger="fmfusion_jax.run"), OutputLock(out):
         assert "taking over" in caplog.text
     lock.path.write_text(json.dumps({"pid": 1, "host": "another-machine"}))  # a shared file system: never taken
     with pytest.raises(UserError, match="another-machine"):
@@ -162,7 +162,7 @@ def test_a_second_run_on_the_same_output_folder_is_refused(tmp_path):
     import sys
 
     from fmfusion_jax.demo import demo_noise
-    from fmfusion_jax.runner import OutputLock
+    from fmfusion_jax.run.folder import OutputLock
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
     spec = GeneratedSceneSpec(seed=2, num_objects=2, num_frames=4, width=96, height=72)

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from fmfusion_jax import runner
-from fmfusion_jax.run.outputs import OUTPUT_WRITERS, listed_outputs, outputs_help, select_writers
+from fmfusion_jax.run.outputs import OUTPUT_NAMES, OUTPUT_WRITERS, listed_outputs, outputs_help, select_writers
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -39,7 +38,7 @@ def test_names_help_and_cleared_files_come_from_the_registry():
     names = [writer.name for writer in OUTPUT_WRITERS]
     assert len(set(names)) == len(names)
     files = [file.rstrip("/") for writer in OUTPUT_WRITERS for file in writer.files]
-    assert len(set(files)) == len(files) and tuple(files) == runner.OUTPUT_NAMES
+    assert len(set(files)) == len(files) and tuple(files) == OUTPUT_NAMES
     assert all(file in outputs_help() for writer in OUTPUT_WRITERS for file in writer.files)
     assert OUTPUT_WRITERS[-1].name == "run.json"  # it holds every other writer's time
     ranks = [writer.listed for writer in OUTPUT_WRITERS if writer.listed is not None]

@@ -143,7 +143,7 @@ def _graph_against_generator(seed: int, tmp_path) -> tuple[dict, dict, list[dict
     from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.labels import load_label_sets
     from fmfusion_jax.mapping.export import extract_map_instances
-    from fmfusion_jax.runner import fuse_scene
+    from fmfusion_jax.run.scene_fusion import fuse_scene
     from fmfusion_jax.simulation.noise import NoiseModel
     from fmfusion_jax.simulation.procedural import box_distance, generate_scene
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections

@@ -142,7 +142,7 @@ def test_front_end_settings_become_manifest_overrides():
 def test_models_run_in_a_detection_thread_on_due_frames_in_order_and_make_the_same_map(room):
     import threading
 
-    from fmfusion_jax.runner import fuse_scene
+    from fmfusion_jax.run.scene_fusion import fuse_scene
 
     scene_dir, detections, config = room
     motion = config.model_copy(update={"detections": load_config("scannet", ["detections.sparse_motion=0"]).detections})

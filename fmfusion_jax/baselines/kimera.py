@@ -487,7 +487,7 @@ def run_kimera(
     scene, detection_source, config: PipelineConfig, progress: bool = True, label_sets: LabelSets | None = None
 ) -> KimeraResult:
     """The Kimera-style baseline over every frame of an opened `scene` (`io.scene.Scene`), with detections
-    from `detection_source(frame)` on the detection frames (`pipeline.DetectionSchedule`, as FM-Fusion)."""
+    from `detection_source(frame)` on the detection frames (`mapping.schedule.DetectionSchedule`, as FM-Fusion)."""
     from fmfusion_jax.mapping.engine_configs import build_map_config
     from fmfusion_jax.mapping.schedule import scheduled_detections
 

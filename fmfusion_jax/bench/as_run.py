@@ -27,7 +27,7 @@ def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say
     import numpy as np
 
     from fmfusion_jax.bench import worker
-    from fmfusion_jax.runner import mapper_for_scene
+    from fmfusion_jax.run.scene_fusion import mapper_for_scene
 
     config, opened, folder = worker._open(scene, frames)
     sample = opened.sample_depth(max_frames=60)

@@ -301,7 +301,7 @@ def _union_groups(pairs: list[tuple[int, int]]) -> list[list[int]]:
 class Open3DInstancePipeline:
     """The authors' design on Open3D: a global TSDF volume plus one TSDF volume per instance (module docstring).
 
-    `add_frame` per frame (the caller applies the detection schedule, as with `pipeline.MapBuilder`);
+    `add_frame` per frame (the caller applies the detection schedule, as with `mapping.MapBuilder`);
     `instance_points` for sanity checks.
     """
 

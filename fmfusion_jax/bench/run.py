@@ -64,7 +64,7 @@ def run_bench(
 ) -> dict:
     """Runs the benchmark; writes `bench.md` and `bench.json` into `options.out`; returns the summary."""
     from fmfusion_jax.bench.worker import peer_unavailable_reason
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.run.folder import prepare_output_dir
 
     out = prepare_output_dir(options.out)
     cache = options.cache or out / "cache"

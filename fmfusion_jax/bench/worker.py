@@ -7,7 +7,7 @@ SPEC: `{"pipeline": "ours" | "peer" | "vbg" | "ours-sweep" | "peer-sweep", "scen
 per-frame stage times in milliseconds and the counts and memory figures the report needs (see each
 `run_*`). A pipeline that cannot run (Open3D missing) writes `{"unavailable": reason}`.
 
-- `ours`: the engine as `fmfusion run` drives it (`pipeline.MapBuilder`: its schedules), three times over the
+- `ours`: the engine as `fmfusion run` drives it (`mapping.MapBuilder`: its schedules), three times over the
   same frames: with the fused `fuse_detections` and a timer around each jitted step (each then waits for the
   device; the peak memory), with its stages jitted one by one (`bench.stages`) to see where the time goes,
   and as run, without timers (the whole frame: the host's work overlaps the device's). All make the same map.
@@ -114,10 +114,10 @@ def _device_memory_mb() -> float | None:
 
 
 def scene_map_config(config, opened):
-    """The map `fmfusion run` starts with for the opened scene (`runner.scene_extent`, `mapper.bounded_map_config`).
-    The sweep's builders keep it (they do not grow)."""
+    """The map `fmfusion run` starts with for the opened scene (`run.scene_fusion.scene_extent`,
+    `mapping.capacity.bounded_map_config`). The sweep's builders keep it (they do not grow)."""
     from fmfusion_jax.mapping.capacity import bounded_map_config
-    from fmfusion_jax.runner import scene_extent
+    from fmfusion_jax.run.scene_fusion import scene_extent
 
     bounds, expected = scene_extent(opened, config)
     return bounded_map_config(config, bounds, opened.intrinsics.height, opened.intrinsics.width, expected)
@@ -128,12 +128,12 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
     `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`), then the
     pass as run, without timers (`run_frames`: `call`, the wall time of each `Mapper.integrate`).
 
-    The map is `fmfusion run`'s (`runner.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
+    The map is `fmfusion run`'s (`run.scene_fusion.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
     doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
     from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
     from fmfusion_jax.compile_cache import enable_compile_cache
     from fmfusion_jax.mapping.mapper import Mapper
-    from fmfusion_jax.runner import mapper_for_scene
+    from fmfusion_jax.run.scene_fusion import mapper_for_scene
 
     cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)
     cache_entries = _entries(cache)
@@ -238,7 +238,7 @@ def _as_run_pass(
 
     from fmfusion_jax.bench import profile as tracing
     from fmfusion_jax.bench.report import AS_RUN_CHUNK
-    from fmfusion_jax.runner import SceneFusion, read_ahead
+    from fmfusion_jax.run.scene_fusion import SceneFusion, read_ahead
 
     frames: list[dict] = []
     left_out: list[dict] = []

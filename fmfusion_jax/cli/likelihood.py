@@ -176,7 +176,7 @@ def _say(text: str) -> None:
 def run_summarize(args: argparse.Namespace) -> int:
     from fmfusion_jax.likelihood import workflow
     from fmfusion_jax.likelihood.summarize import estimate, write_summary
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.run.folder import prepare_output_dir
 
     if not args.scenes and args.generated < 1:
         raise UserError("give SCENE folders and/or --generated N")
@@ -224,7 +224,7 @@ def run_summarize(args: argparse.Namespace) -> int:
 def run_calibrate(args: argparse.Namespace) -> int:
     from fmfusion_jax.labels import load_likelihood
     from fmfusion_jax.likelihood import workflow
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.run.folder import prepare_output_dir
 
     for name in ("steps", "max_steps"):
         if getattr(args, name) is not None and getattr(args, name) < 1:

@@ -88,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.cli.interrupt import StopRequest
     from fmfusion_jax.config import load_config
     from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.runner import check_output_folder, prepare_output_dir, run_and_export
+    from fmfusion_jax.run.command import run_and_export
+    from fmfusion_jax.run.folder import check_output_folder, prepare_output_dir
     from fmfusion_jax.sources import open_detection_source
 
     if not args.scene.is_dir():

@@ -263,7 +263,7 @@ def write_frame_detections(folder: str | Path, detections: FrameDetections, mask
 
 class DetectionFolder:
     """A folder of detection files: `.get(frame_name)` reads one frame (None when it has none). Called with a
-    frame it is a detection source (`pipeline.DetectionSource`) that `fmfusion run` reads ahead."""
+    frame it is a detection source (`mapping.DetectionSource`) that `fmfusion run` reads ahead."""
 
     #: no state and no model to run: a reader thread may read frames that the schedule then leaves out
     reads_ahead = True

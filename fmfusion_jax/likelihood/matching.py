@@ -80,7 +80,7 @@ def match_instances(
     """The instances of one map matched to the scene's ground truth (see the module docstring).
 
     Args:
-      instances: the map's instances (`pipeline.extract_map_instances(result, postprocess=False)`: with
+      instances: the map's instances (`mapping.extract_map_instances(result, postprocess=False)`: with
         post-processing the merged floor's distribution is an average, no longer `h @ L`).
       gt: the scene's `io.ground_truth.SceneGroundTruth`.
       radius: the transfer radius (config `export.transfer_radius`).

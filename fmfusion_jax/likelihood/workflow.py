@@ -182,7 +182,8 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
     from fmfusion_jax.io.scene import open_dataset_scene
     from fmfusion_jax.likelihood.matching import match_instances
     from fmfusion_jax.mapping.export import extract_map_instances
-    from fmfusion_jax.runner import fuse_scene, score_instances
+    from fmfusion_jax.run.outputs import score_instances
+    from fmfusion_jax.run.scene_fusion import fuse_scene
 
     label_sets = label_sets or load_label_sets()
     start = time.perf_counter()

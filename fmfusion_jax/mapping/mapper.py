@@ -144,7 +144,7 @@ class Mapper:
         arrays: `depth` `(H, W)` float metres, `color` `(H, W, 3)` uint8 RGB (optional), `T_world_camera`
         `(4, 4)` and `intrinsics` (default: the Mapper's). Detections of a frame that is not due are ignored
         (ask `detection_due` first to skip running the detectors). `detections` may also be a detection source
-        (`pipeline.DetectionSource`: a `DetectionFolder`, `sources.ModelSource`, any function of the frame), which
+        (`mapping.DetectionSource`: a `DetectionFolder`, `sources.ModelSource`, any function of the frame), which
         is called on due frames only.
         """
         if self._result is not None:

@@ -1,7 +1,7 @@
 """The output files of a run, as a registry of small writers (`OUTPUT_WRITERS`, in the order they are written).
 
-Each `OutputWriter` names the files it writes and says in one line what they hold; `write_outputs` runs them (all,
-or a chosen subset) on one `OutputContext`. `runner.OUTPUT_NAMES`, the end-of-run summary's outputs line,
+Each `OutputWriter` names the files it writes and says in one line what they hold; `write_files` runs them (all,
+or a chosen subset) on one `OutputContext`. `OUTPUT_NAMES`, the end-of-run summary's outputs line,
 `fmfusion run --help` and the README's outputs table are made from the registry: a new output format is one
 writer added here (and its README row, `readme_table`).
 """
@@ -56,7 +56,7 @@ class OutputContext:
       skipped: the frames skipped for bad input, `(frame, reason)` (run.json).
       detection_ms: the models' mean ms per detected frame, when a run detected online (run.json).
       frame_seconds: each frame's wall time as run, summarized in run.json.
-      timings: seconds per writing step (run.json's `export_seconds`), filled by `write_outputs`.
+      timings: seconds per writing step (run.json's `export_seconds`), filled by `write_files`.
       benchmark: run.json's `benchmark` entry, filled by the benchmark and explain writers.
       summary: the run summary, once the run.json writer has run.
     """
@@ -121,7 +121,7 @@ class OutputWriter:
     """One output of a run.
 
     Attributes:
-      name: what `write_outputs(names=...)` calls it.
+      name: what `write_files(names=...)` calls it.
       files: the files (and folders, ending in `/`) it writes into the output folder.
       description: one line for `fmfusion run --help` and the README's outputs table.
       write: writes them from the `OutputContext`.
@@ -460,7 +460,7 @@ def select_writers(names: Collection[str] | None = None) -> list[OutputWriter]:
     return [writer for writer in OUTPUT_WRITERS if writer.name in names]
 
 
-def write_outputs(context: OutputContext, names: Collection[str] | None = None) -> None:
+def write_files(context: OutputContext, names: Collection[str] | None = None) -> None:
     """Runs the writers named in `names` (all by default), in registry order, into `context.out_dir`; each
     step's seconds go into `context.timings` under the writer's `lap`. The benchmark writers are skipped
     without ground truth."""

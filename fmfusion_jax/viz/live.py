@@ -19,7 +19,7 @@ from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 
 class RerunView:
-    """Logs a fusion to a Rerun recording (an observer of `runner.SceneFusion`)."""
+    """Logs a fusion to a Rerun recording (an observer of `run.scene_fusion.SceneFusion`)."""
 
     def __init__(self, save: str | Path | None = None, spawn: bool = False, map_every: int = 30, image_stride: int = 2):
         try:

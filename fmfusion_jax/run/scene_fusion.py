@@ -1,6 +1,6 @@
-"""A whole run: scene + detection source -> fused map -> output files (and a score when GT exists).
-
-Shared by `fmfusion run`, `fmfusion demo` and the experiments; the loop itself is `pipeline.py`.
+"""A scene fused frame by frame as `fmfusion run` does it: bad frames skipped or fatal (`ON_ERROR_POLICIES`), frames
+read ahead in threads, detections ahead in a thread of their own, checkpoints, a stop between frames; and the
+checks of a scene before its first frame (depth units, a static trajectory).
 """
 
 from __future__ import annotations
@@ -10,37 +10,26 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import functools
-import json
 import logging
 import os
-import shutil
-import socket
-import tempfile
 import time
-from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import DataError, UserError
-from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.scene import DepthSample, Scene
-from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.mapping.builder import FusionResult
-from fmfusion_jax.mapping.export import extract_map_instances
-from fmfusion_jax.mapping.inputs import DetectionSource
-from fmfusion_jax.mapping.map_file import MAP_STATE_FILE
+from fmfusion_jax.mapping.inputs import DetectionSource, PreparedFrame
 from fmfusion_jax.mapping.schedule import DetectionSchedule, camera_motion
-from fmfusion_jax.run import outputs
-from fmfusion_jax.run.outputs import OUTPUT_NAMES
+from fmfusion_jax.run.checkpoint import Checkpoint
 from fmfusion_jax.run.outputs import capacity_used as capacity_used  # re-exported: experiments, likelihood, examples
 from fmfusion_jax.run.outputs import score_instances as score_instances
-
-if TYPE_CHECKING:
-    from fmfusion_jax.mapping.inputs import PreparedFrame
-    from fmfusion_jax.types import FrameDetections
+from fmfusion_jax.types import FrameDetections
 
 log = logging.getLogger(__name__)
+
 
 T = TypeVar("T")
 
@@ -48,48 +37,10 @@ T = TypeVar("T")
 #: What a bad frame (unreadable image, malformed detection file) does: `skip` it with a warning naming the file,
 #: or `stop` the run with that error.
 ON_ERROR_POLICIES = ("skip", "stop")
+
+
 #: Under `skip`, this many bad frames before the first good one mean the input is wrong as a whole: stop.
 _MAX_LEADING_BAD_FRAMES = 10
-
-
-class Checkpoint:
-    """A resumable run's state in `folder`: `checkpoint.npz` (the map, `Mapper.save`) and `checkpoint.json`
-    (the scene position reached, the frames skipped and the config, to refuse a resume that differs)."""
-
-    MAP_FILE = "checkpoint.npz"
-    INFO_FILE = "checkpoint.json"
-
-    def __init__(self, folder: Path, every: int = 0):
-        """`every`: write one every this many frames (0: only when the run is interrupted)."""
-        self.folder = Path(folder)
-        self.every = int(every)
-
-    def exists(self) -> bool:
-        return (self.folder / self.INFO_FILE).is_file() and (self.folder / self.MAP_FILE).is_file()
-
-    def info(self) -> dict[str, Any]:
-        try:
-            return json.loads((self.folder / self.INFO_FILE).read_text())
-        except (OSError, json.JSONDecodeError) as error:
-            raise UserError(f"{self.folder / self.INFO_FILE}: unreadable checkpoint ({error})") from None
-
-    def save(self, mapper, scene: Scene, position: int, skipped: list[tuple[str, str]]) -> None:
-        """Writes the map, then the info that names it (each atomically: a crash leaves the previous pair)."""
-        self.folder.mkdir(parents=True, exist_ok=True)
-        mapper.save(self.folder / self.MAP_FILE)
-        info = {
-            "scene": str(scene.path),
-            "frames": len(scene),
-            "position": position,
-            "frames_integrated": mapper.frames_integrated,
-            "skipped": [list(item) for item in skipped],
-            "config": mapper.config.to_dict(),
-        }
-        write_atomic(self.folder / self.INFO_FILE, json.dumps(info, indent=1))
-
-    def remove(self) -> None:
-        for name in (self.MAP_FILE, self.INFO_FILE):
-            (self.folder / name).unlink(missing_ok=True)
 
 
 class SceneFusion:
@@ -388,6 +339,8 @@ def progress_bar(total: int, description: str, enabled: bool = True) -> Iterator
 
 #: Depth a room-scale RGB-D scene cannot have: nearly all of it (99%) closer than this, in metres ...
 _NEAR_DEPTH_LIMIT = 0.5
+
+
 #: ... or valid (within dataset.depth_max) on fewer than this share of the sampled pixels.
 _MIN_VALID_DEPTH_SHARE = 0.01
 
@@ -406,321 +359,3 @@ def check_depth_units(scene: Scene, sample: DepthSample) -> None:
         raise UserError(f"{where}: only {100 * share:.2f}% of the pixels have depth within {scene.depth_max:g} m; {hint}")
     if p99 < _NEAR_DEPTH_LIMIT:
         raise UserError(f"{where}: 99% of the depth is closer than {p99:.3g} m, which no room-scale scene is; {hint}")
-
-
-def ground_truth_mesh_path(scene: Scene) -> Path | None:
-    path = scene.path / f"{scene.name}_vh_clean_2.ply"
-    return path if path.is_file() else None
-
-
-def clear_outputs(out_dir: Path) -> None:
-    """Removes the outputs of an earlier run from `out_dir` (only the names in `OUTPUT_NAMES`, the files of the
-    writers of `run.outputs`), so no file of an earlier run (an instance that no longer exists, a report without
-    ground truth) stays."""
-    for name in OUTPUT_NAMES:
-        path = out_dir / name
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        elif path.exists() or path.is_symlink():
-            path.unlink()
-
-
-def write_outputs(
-    result: FusionResult,
-    scene: Scene,
-    out_dir: Path,
-    save_state: bool = True,
-    skipped: list[tuple[str, str]] | None = None,
-    detection_ms: dict[str, float] | None = None,
-    frame_seconds: Sequence[float] = (),
-    names: Collection[str] | None = None,
-) -> dict:
-    """Writes the outputs of a run into `out_dir` (the writers of `run.outputs.OUTPUT_WRITERS`, all or those
-    in `names`; map_state.npz unless `save_state` is False); returns the run summary (also saved as run.json).
-
-    `detection_ms`: the models' mean ms per detected frame, when a run detected online; `frame_seconds`: each
-    frame's wall time as run (`SceneFusion.frame_seconds`), summarized in run.json.
-    """
-    label_sets = load_label_sets()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    clear_outputs(out_dir)
-    clock = time.perf_counter()
-    instances = extract_map_instances(result, label_sets)
-    timings = {"extract_instances": round(time.perf_counter() - clock, 3)}
-    if not instances:
-        log.warning(
-            "%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply are empty", scene.name
-        )
-    gt = load_ground_truth(scene)
-    ground_truth = None if isinstance(gt, str) else gt
-    context = outputs.OutputContext(
-        scene,
-        out_dir,
-        result.config,
-        label_sets,
-        instances,
-        result=result,
-        ground_truth=ground_truth,
-        ground_truth_error=gt if isinstance(gt, str) else None,
-        floor=None if ground_truth is None else result.floor(),
-        skipped=scene.skipped if skipped is None else skipped,
-        detection_ms=detection_ms,
-        frame_seconds=frame_seconds,
-        timings=timings,
-    )
-    selected = [w.name for w in outputs.select_writers(names) if save_state or w.name != MAP_STATE_FILE]
-    outputs.write_outputs(context, selected)
-    log.info("outputs of %s written into %s (seconds: %s)", scene.name, out_dir, timings)
-    return context.summary if context.summary is not None else outputs.run_summary(context)
-
-
-def load_ground_truth(scene: Scene):
-    """The scene's ground truth; None without a GT mesh; the error text when GT files are incomplete."""
-    from fmfusion_jax.errors import DataError
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-
-    if ground_truth_mesh_path(scene) is None:
-        return None
-    try:
-        return load_scannet_ground_truth(scene.path)
-    except DataError as error:
-        log.warning("no benchmark export: %s", error)
-        return str(error)
-
-
-def prepare_output_dir(out_dir: str | Path, create: bool = True) -> Path:
-    """Checks (and creates, or with `create=False` its parent) the output folder up front, before minutes of
-    fusion; a path that cannot be one is a UserError."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise UserError(f"--out {out_dir} is a file, not a folder")
-    where = out_dir if create else out_dir.parent
-    try:
-        where.mkdir(parents=True, exist_ok=True)
-        # the outputs are staged beside --out (OUT.partial): a read-only place fails now, not after the fusion
-        os.rmdir(tempfile.mkdtemp(prefix=".fmfusion-write-check-", dir=where))
-    except OSError as error:
-        raise UserError(f"cannot write the output folder {out_dir} ({where}: {error.strerror or error})") from None
-    return out_dir
-
-
-def check_output_folder(out_dir: Path, inputs: Iterable[Path | None] = (), overwrite: bool = False) -> None:
-    """Refuses, before any work, an `--out` that `fmfusion run` must not replace: a folder holding one of the
-    run's `inputs` (the scene, the detections, the models: replacing it would delete them), or an existing
-    folder with files that is not a previous run's output (no run.json of one) unless `overwrite`."""
-    target = out_dir.resolve()
-    for path in inputs:
-        if path is None:
-            continue
-        source = Path(path).resolve()
-        if source == target or target in source.parents:
-            raise UserError(f"--out {out_dir} holds the run's input {path}: the outputs would replace it; choose another folder")
-    if not out_dir.is_dir() or overwrite or not any(out_dir.iterdir()):
-        return
-    try:
-        previous = json.loads((out_dir / "run.json").read_text())
-        if isinstance(previous, dict) and {"scene", "frames"} <= previous.keys():
-            return
-    except (OSError, ValueError):
-        pass
-    raise UserError(
-        f"--out {out_dir} is a folder with files that is not an earlier `fmfusion run`'s output (no run.json): its "
-        "contents would be replaced; choose a new folder, or pass --overwrite to replace it"
-    )
-
-
-class OutputLock:
-    """One writer per output folder: `OUT.lock` beside `--out` holds the owner's pid and host while a run writes.
-
-    A second run on the same `--out` is a UserError naming the owner; a lock whose process is gone (same host, dead
-    pid: a run killed outright) is taken over with a warning. Created with O_EXCL, so two runs starting together
-    cannot both take it."""
-
-    def __init__(self, out_dir: Path):
-        self.path = out_dir.with_name(out_dir.name + ".lock")
-        self.owner = {"pid": os.getpid(), "host": socket.gethostname()}
-
-    def __enter__(self) -> "OutputLock":
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                holder = self._holder()
-                if holder is None:  # being written this instant, or left half written: look again once
-                    time.sleep(0.2)
-                    holder = self._holder()
-                if holder is not None and not self._stale(holder):
-                    raise UserError(
-                        f"--out {self.path.with_suffix('')} is being written by another run (pid {holder.get('pid')} on "
-                        f"{holder.get('host')}, {self.path}): wait for it, or choose another folder"
-                    ) from None
-                log.warning("taking over %s, left by a run that is gone (%s)", self.path, holder)
-                self.path.unlink(missing_ok=True)
-                continue
-            with os.fdopen(fd, "w") as file:
-                json.dump(self.owner, file)
-            return self
-        raise UserError(f"cannot take the lock {self.path}: another run keeps taking it")
-
-    def __exit__(self, *exc_info) -> None:
-        if self._holder() == self.owner:
-            self.path.unlink(missing_ok=True)
-
-    def _holder(self) -> dict | None:
-        try:
-            holder = json.loads(self.path.read_text())
-        except (OSError, ValueError):
-            return None  # half written or gone: treated as stale
-        return holder if isinstance(holder, dict) else None
-
-    def _stale(self, holder: dict) -> bool:
-        if holder.get("host") != self.owner["host"]:
-            return False  # another machine's run (a shared file system): never taken over
-        try:
-            os.kill(int(holder.get("pid", -1)), 0)
-        except ProcessLookupError:
-            return True
-        except (PermissionError, ValueError, TypeError, OverflowError):
-            return False
-        return False
-
-
-def partial_dir(out_dir: Path) -> Path:
-    """Where `run_and_export` builds a run's outputs and keeps its checkpoint: `OUT.partial` beside `OUT`."""
-    return out_dir.with_name(out_dir.name + ".partial")
-
-
-@dataclasses.dataclass
-class RunOutcome:
-    """What `run_and_export` did: `summary` (the lines to print), `complete` (False: interrupted, the map so far
-    and a checkpoint are in `folder`), `folder` (where the outputs are)."""
-
-    summary: str
-    complete: bool
-    folder: Path
-
-
-def run_and_export(
-    scene: Scene,
-    detection_source: DetectionSource,
-    config: PipelineConfig,
-    out_dir: Path,
-    progress: bool = True,
-    *,
-    on_error: str = "skip",
-    checkpoint_every: int = 0,
-    resume: bool = False,
-    restart: bool = False,
-    should_stop: Callable[[], bool] | None = None,
-    time_stages: bool = False,
-    observer: Callable[..., None] | None = None,
-) -> RunOutcome:
-    """`fmfusion run`: fuse, write, and summarize.
-
-    The outputs are built in `OUT.partial` and renamed to `OUT` when complete, replacing an earlier run's
-    folder as a whole (never mixing two runs). When `should_stop()` turns true, fusion stops between frames:
-    a checkpoint and the outputs of what was fused are written into `OUT.partial`, and `resume=True` later
-    continues from the checkpoint (the map equals an uninterrupted run's). `checkpoint_every` frames also
-    writes one. An unfinished `OUT.partial` is continued (`resume`) or discarded (`restart`), never silently.
-    """
-    start = time.perf_counter()
-    out_dir = prepare_output_dir(out_dir, create=False)
-    with OutputLock(out_dir):
-        staging = partial_dir(out_dir)
-        checkpoint = Checkpoint(staging, checkpoint_every)
-        if staging.exists() and not resume:
-            if checkpoint.exists() and not restart:
-                info = checkpoint.info()
-                raise UserError(
-                    f"{staging} holds an unfinished run (checkpoint at frame {info.get('position')} of "
-                    f"{info.get('frames')}): add --resume to continue it, or --restart to discard it"
-                )
-            shutil.rmtree(staging)  # a run that failed before its first checkpoint: nothing to keep
-        fusion = SceneFusion(
-            scene,
-            detection_source,
-            config,
-            on_error=on_error,
-            checkpoint=checkpoint,
-            resume=resume,
-            time_stages=time_stages,
-            observer=observer,
-        )
-        staging.mkdir(parents=True, exist_ok=True)
-        with progress_bar(len(scene), f"fusing {scene.name}", progress) as update:
-            complete = fusion.run(update, should_stop)
-        if observer is not None and hasattr(observer, "close"):
-            observer.close(fusion.mapper)
-        if not complete:
-            log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
-        result = fusion.finalize()
-        try:
-            timings_ms = getattr(detection_source, "timings_ms", None)
-            detection_ms = timings_ms() if callable(timings_ms) else None
-            summary = write_outputs(
-                result, scene, staging, skipped=fusion.skipped, detection_ms=detection_ms, frame_seconds=fusion.frame_seconds
-            )
-            if complete:
-                checkpoint.remove()
-                _replace_folder(staging, out_dir)
-        except OSError as error:
-            raise UserError(f"cannot write the outputs into {staging}: {error}") from None
-        folder = out_dir if complete else staging
-        text = summarize_run(summary, result, time.perf_counter() - start, folder)
-        return RunOutcome(text, complete, folder)
-
-
-def _replace_folder(new: Path, target: Path) -> None:
-    """Renames `new` to `target`; an existing `target` is moved aside first and removed after."""
-    if target.exists():
-        aside = target.with_name(f".{target.name}.replaced")
-        if aside.exists():
-            shutil.rmtree(aside)
-        target.rename(aside)
-        new.rename(target)
-        shutil.rmtree(aside, ignore_errors=True)
-    else:
-        new.rename(target)
-
-
-def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: Path) -> str:
-    """The lines `fmfusion run` / `fmfusion demo` print at the end: AP table, counts, timings, outputs."""
-    lines = [
-        f"{summary['scene']}: {summary['frames']} frames, {summary['detection_frames']} with detections, "
-        f"{summary['instances']} instances "
-        f"(created {result.counters['created']}, merged {result.counters['merged']}, "
-        f"removed {result.counters['removed']}) in {seconds:.1f} s"
-    ]
-    timings = result.timings.summary()
-    stage = "fusion" if "fusion" in timings else "tsdf"
-    frames_per_s = summary["frames"] / max(seconds, 1e-9)
-    if stage in timings:
-        lines.append(
-            f"{'fusion' if stage == 'fusion' else 'integration'} step: median "
-            f"{timings[stage]['median_ms']:.1f} ms/frame (first call incl. compile "
-            f"{timings[stage]['first_call_ms'] / 1e3:.1f} s); {frames_per_s:.1f} frames/s overall"
-        )
-    else:
-        lines.append(f"{frames_per_s:.1f} frames/s overall, reading and writing included (-v times each engine step)")
-    models_ms = summary.get("detection_ms_per_frame")
-    if models_ms:
-        parts = ", ".join(f"{name} {ms:.0f}" for name, ms in models_ms.items() if name != "front_end")
-        lines.append(f"models: {models_ms['front_end']:.0f} ms per detected frame ({parts})")
-    skipped = summary.get("skipped_frames", [])
-    if skipped:
-        lines.append(
-            f"warning: {len(skipped)} frames skipped or partly skipped for bad input (listed in run.json; "
-            f"first: {skipped[0]['frame']}: {skipped[0]['reason']})"
-        )
-    if result.detection_frames == 0:
-        lines.append("warning: no frame had detections, so the map has no instances: check the detections folder")
-    benchmark = summary.get("benchmark", {})
-    if "table" in benchmark:
-        lines.insert(0, benchmark["table"])
-    elif "error" in benchmark:
-        lines.append(f"not scored: {benchmark['error']}")
-    if summary["instances"] == 0 and result.detection_frames:
-        lines.append("warning: the map has no instance although detections were fused")
-    written = outputs.listed_outputs(out_dir)
-    lines.append(f"outputs in {out_dir}: {', '.join(written)}")
-    return "\n".join(lines)
