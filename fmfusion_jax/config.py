@@ -22,9 +22,10 @@ from fmfusion_jax.errors import UserError
 
 #: What a knob is read by, as the schema records it (`Field(json_schema_extra={"kind": ...})`):
 #: ``shape``: sizes of the map state and of the per-pixel grids, fixed when a map is made (a change makes
-#: another map layout and recompiles); ``engine``: parameters of the jitted fusion and refinement steps
-#: (compiled in as static arguments today: a change recompiles); ``host``: read by the Python loop, the
-#: readers or the export only (no recompilation).
+#: another map layout and recompiles); ``engine``: parameters of the jitted fusion and refinement steps (the
+#: thresholds are traced values: a change reuses the compiled steps; the few that choose code paths, the modes of
+#: `engine.step.FUSION_MODES`, compile other steps); ``host``: read by the Python loop, the readers or the export
+#: only (no recompilation).
 KINDS = ("shape", "engine", "host")
 
 Float = StrictFloat
@@ -361,9 +362,10 @@ def config_reference_markdown() -> str:
         "Generated from the schema in `fmfusion_jax/config.py` (`config_reference_markdown()`; a test keeps this",
         "page equal to it). Every value can be set in a YAML config (`configs/scannet.yaml` is the default) or",
         'on the command line as `--set section.key=value`, or from Python as `Mapper({"section": {"key": value}})`.',
-        "Kinds: `shape` fixes the map's sizes (a change makes another map layout and recompiles), `engine` is",
-        "compiled into the jitted steps (a change recompiles), `host` is read by the Python loop, the readers or",
-        "the export.",
+        "Kinds: `shape` fixes the map's sizes (a change makes another map layout and recompiles), `engine` is read",
+        "by the jitted steps (a threshold is a traced value: a change reuses the compiled steps; the few knobs that",
+        "choose code paths, such as `label_fusion.mode`, compile other steps), `host` is read by the Python loop,",
+        "the readers or the export.",
         "",
     ]
     descriptions = {name: field.description for name, field in PipelineConfig.model_fields.items()}
@@ -503,8 +505,3 @@ def detection_frame_stride(config: PipelineConfig) -> int:
     """Frames read per possible detection frame: `every` on the fixed schedule, 1 on the motion schedule
     (any frame may be due), e.g. for simulating detections only where the fusion can use them."""
     return config.detections.every if config.detections.schedule == "every" else 1
-
-
-def validate_config(config: PipelineConfig) -> None:
-    """Checks a config built or changed in Python (ranges and cross-field rules; YAML is checked on load)."""
-    config_from_dict(config.to_dict(), "config")

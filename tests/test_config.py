@@ -1,10 +1,14 @@
+import dataclasses
 from pathlib import Path
 
 import pytest
 import yaml
 
 from fmfusion_jax.config import PipelineConfig, load_config
+from fmfusion_jax.engine import step
+from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.mapping.engine_configs import build_map_config
 
 
 def test_packaged_configs_load_with_paper_defaults():
@@ -113,7 +117,7 @@ def test_the_schema_is_the_one_definition_of_every_knob():
 def test_values_set_from_python_are_checked_too():
     from pydantic import ValidationError
 
-    from fmfusion_jax.config import validate_config
+    from fmfusion_jax.config import config_from_dict
 
     config = load_config("scannet")
     with pytest.raises(ValidationError):
@@ -122,4 +126,24 @@ def test_values_set_from_python_are_checked_too():
         config.tsdf.sdf_trunc = 0.001  # in range alone, not with the voxel size
     unchecked = config.model_copy(update={"tsdf": config.tsdf.model_copy(update={"sdf_trunc": 0.001})})
     with pytest.raises(UserError, match="sdf_trunc"):
-        validate_config(unchecked)
+        config_from_dict(unchecked.to_dict(), "config")
+
+
+def test_each_engine_knob_has_one_default_the_schemas():
+    """The engine's configs carry no default of their own: `FusionConfig` has none, and `MapConfig`'s defaults are
+    what the translator makes of the default config (all but the block index, which comes from the scene's bounds)."""
+    assert all(
+        field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING
+        for field in dataclasses.fields(step.FusionConfig)
+    )
+    from_schema = build_map_config(PipelineConfig(), (0.0, 0.0, 0.0), (4.0, 4.0, 3.0), 480, 640)
+    engine_default = MapConfig()
+    differing = {
+        field.name
+        for field in dataclasses.fields(MapConfig)
+        if getattr(from_schema, field.name) != getattr(engine_default, field.name)
+    }
+    assert differing <= {"grid_origin", "grid_shape"}, differing
+    # and the schema's values do reach it: a changed knob changes the engine config
+    changed = PipelineConfig().model_copy(update={"tsdf": PipelineConfig().tsdf.model_copy(update={"block_capacity": 4096})})
+    assert build_map_config(changed, (0.0, 0.0, 0.0), (4.0, 4.0, 3.0), 480, 640).block_capacity == 4096

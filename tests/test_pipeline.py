@@ -23,7 +23,7 @@ from fmfusion_jax.engine.frame import fuse_frame, fuse_frames
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.mapping.builder import MapBuilder
-from fmfusion_jax.mapping.engine_configs import build_map_config
+from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config
 from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import frame_inputs
 from fmfusion_jax.mapping.telemetry import StageTimer, joined_tree_to_host
@@ -169,9 +169,10 @@ def test_one_call_per_detection_frame_makes_the_same_map(room_frames, monkeypatc
 
 
 def test_fusion_thresholds_go_to_the_device_once_per_config():
-    fusion = step.FusionConfig(association_threshold=0.4)
+    fusion = dataclasses.replace(build_fusion_config(small_config()), association_threshold=0.4)
     on_device = step.fusion_on_device(fusion)
-    assert step.fusion_on_device(step.FusionConfig(association_threshold=0.4)) is on_device  # cached per config
+    again = dataclasses.replace(build_fusion_config(small_config()), association_threshold=0.4)
+    assert step.fusion_on_device(again) is on_device  # cached per config
     assert jax.tree.structure(on_device) == jax.tree.structure(fusion)
     for leaf, value in zip(jax.tree.leaves(on_device), jax.tree.leaves(fusion)):
         assert isinstance(leaf, jax.Array) and leaf.weak_type and float(leaf) == pytest.approx(value)  # same trace
@@ -209,7 +210,7 @@ def test_batch_of_two_maps_equals_two_runs(room_frames):
     other_frames = make_frames(other_room, 3, seed=3)
     config = small_config()
     map_config = build_map_config(config, (0, 0, 0), (4.0, 3.5, 2.5), H, W)
-    fusion = step.FusionConfig(min_projected_pixels=200.0)
+    fusion = dataclasses.replace(build_fusion_config(config), min_projected_pixels=200.0)
     likelihood = jax.numpy.asarray(load_likelihood("statistical"), jax.numpy.float32)
 
     def inputs(frame, seed=0):

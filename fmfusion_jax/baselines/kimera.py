@@ -492,7 +492,8 @@ def run_kimera(
     from fmfusion_jax.mapping.schedule import scheduled_detections
 
     bounds_min, bounds_max = scene.bounds()
-    map_config = build_map_config(config, bounds_min, bounds_max, scene.intrinsics.height, scene.intrinsics.width)
+    label_sets = label_sets or load_label_sets()
+    map_config = build_map_config(config, bounds_min, bounds_max, scene.intrinsics.height, scene.intrinsics.width, label_sets)
     mapper = KimeraMapper(config, map_config, label_sets)
     frames: Iterable[RGBDFrame] = scene.frames()
     bar = None

@@ -33,8 +33,10 @@ def integrate_chunk_for_backend(backend: str) -> int:
 class MapConfig:
     """Sizes and parameters of one map (static argument of the jitted engine functions).
 
-    Defaults fit a ScanNet room: 1.5625 cm voxels, blocks of 8^3 voxels (12.5 cm), a dense block
-    index of 12 x 12 x 4 m, a pool of 32k blocks and 640x480 frames.
+    The defaults of the knobs the config schema sets are the schema's (`tests/test_config.py` proves it; a map is
+    built from the schema by `mapping.engine_configs.build_map_config`): 1.5625 cm voxels, blocks of 8^3 voxels
+    (12.5 cm), a pool of 64k blocks; the block index (12 x 12 x 4 m here) and the 640x480 frames come from the
+    scene, the class counts from the label sets.
     """
 
     # --- geometry ---
@@ -47,8 +49,8 @@ class MapConfig:
     # world xyz of the block index's min corner; on the block lattice it is the state's (`compiled_layout`)
     grid_origin: tuple[float, float, float] = (-6.0, -6.0, -2.0)
     grid_shape: tuple[int, int, int] = (96, 96, 32)  # dense block index size, in blocks per axis
-    block_capacity: int = 32768  # B: pool slots, the last one a scratch slot never allocated
-    max_touched_blocks: int = 8192  # M: touched-block list length per frame (more are counted, not integrated)
+    block_capacity: int = 65536  # B: pool slots, the last one a scratch slot never allocated
+    max_touched_blocks: int = 12288  # M: touched-block list length per frame (more are counted, not integrated)
     alloc_pixel_stride: int = 4  # depth subsampling used to find the blocks a frame touches
     alloc_depth_samples: int = 3  # samples per pixel ray over [d - trunc, d + trunc] for block finding
     # touched blocks integrated per loop step (cost follows the touched count; the map is the same for any);
@@ -60,7 +62,7 @@ class MapConfig:
     image_width: int = 640  # W of every depth/colour frame
     pixel_stride: int = 2  # subsampling of the per-pixel instance images (lookup and integration)
     # --- instances ---
-    instance_capacity: int = 512  # K: rows of the instance table
+    instance_capacity: int = 1024  # K: rows of the instance table
     instance_slots: int = 2  # S: instance ids stored per voxel
     instance_lookup_offsets: tuple[float, ...] = (-1.0, 0.0, 1.0)  # ray offsets (voxels) probed per pixel lookup
     overlap_cell_capacity: int = 0  # occupied 2x2x2 cells counted at most (pool order); 0 = all cells (no drops)

@@ -65,45 +65,47 @@ FUSION_MODES = ("association_metric", "label_mode", "contrary_vote_weight", "sep
     ],
     meta_fields=list(FUSION_MODES),
 )
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class FusionConfig:
-    """Parameters of association, label fusion and refinement (paper / reference defaults).
+    """Parameters of association, label fusion and refinement. No defaults here: every value comes from the config
+    schema (`fmfusion_jax.config`, through `mapping.engine_configs.build_fusion_config`), where each knob has its one
+    default.
 
     A pytree: the modes (`FUSION_MODES`) are static, the thresholds are leaves, traced by the jitted steps
     that take it as an ordinary argument (`fuse_detections`, `fuse_geometry`, `refine`, `finalize`).
     """
 
-    association_metric: str = "projection_overlap"  # or "iou"
-    association_threshold: float = 0.5
-    min_projected_pixels: float = 800.0  # full-resolution pixels for an instance to count as in view
-    depth_low: float = 0.1  # a detection's pixels keep depth between these quantiles of its mask
-    depth_high: float = 0.9
-    label_mode: str = "additive"  # or "bayes"
-    merge_similarity: float = 0.15
-    merge_overlap: float = 0.4
-    remove_missed: int = 5
-    remove_min_voxels: int = 500
-    post_merge_iou: float = 0.2
-    post_merge_similarity: float = 0.1
-    geometry_min_weight: float = 1.0  # global TSDF weight a voxel needs to support instances
+    association_metric: str  # "projection_overlap" or "iou"
+    association_threshold: float
+    min_projected_pixels: float  # full-resolution pixels for an instance to count as in view
+    depth_low: float  # a detection's pixels keep depth between these quantiles of its mask
+    depth_high: float
+    label_mode: str  # "additive" or "bayes"
+    merge_similarity: float
+    merge_overlap: float
+    remove_missed: int
+    remove_min_voxels: int
+    post_merge_iou: float
+    post_merge_similarity: float
+    geometry_min_weight: float  # global TSDF weight a voxel needs to support instances
     # Weight of a contrary vote: a pixel that sees an instance's voxel outside the mask of that instance's
     # detection in the same frame (0: membership by hits alone, the paper's rule). See `instance_volume`.
     # Static: 0 leaves the contrary-vote scatters out of the compiled step.
-    contrary_vote_weight: float = 0.0
+    contrary_vote_weight: float
     # Reunite instance b with a when b was covered by a's detections in at least this many detection frames
     # and in at least as many as b was detected itself (0: off, the paper's merge tests alone).
-    reunite_min_frames: int = 0
+    reunite_min_frames: int
     # Never merge a and b while two different detections of one frame were fused into them in at least this
     # many frames and at least as often as one detection covered both (0: off, the paper's tests alone).
     # Static: 0 leaves the separation counts out of the compiled steps.
-    separate_min_frames: int = 0
+    separate_min_frames: int
     # The floor filter (`engine.support`): the world's up axis (a unit vector; None: off), the pixels of a
     # detection on the floor (up-facing, within `floor_band` m above it) are not the object's, and a detection
     # with more than `floor_max_share` of its pixels there is dropped, unless its labels favour `floor_class`.
-    floor_up: tuple[float, float, float] | None = None
-    floor_class: int = -1
-    floor_band: float = 0.05
-    floor_max_share: float = 0.5
+    floor_up: tuple[float, float, float] | None
+    floor_class: int
+    floor_band: float
+    floor_max_share: float
 
 
 class FrameInputs(NamedTuple):

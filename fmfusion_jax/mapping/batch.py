@@ -62,10 +62,10 @@ class MapperBatch:
         self.batch_size = batch_size
         self._bounds = (np.asarray(bounds[0], float), np.asarray(bounds[1], float))
         height, width = image_shape
-        self.map_config = build_map_config(self.config, *self._bounds, height, width)
+        self.map_config = build_map_config(self.config, *self._bounds, height, width, self.label_sets)
         self._step_config = self.map_config.compiled_layout()  # the steps' static config (the states hold the origin)
         self.states = jax.tree.map(lambda leaf: jnp.stack([leaf] * batch_size), init_map_state(self.map_config))
-        self.fusion_config = build_fusion_config(self.config)
+        self.fusion_config = build_fusion_config(self.config, self.label_sets)
         if likelihood is None:
             likelihood = load_likelihood(self.config.label_fusion.likelihood)
         self._likelihood = jnp.asarray(likelihood, jnp.float32)

@@ -143,8 +143,8 @@ class MapBuilder:
         twin). `one_call_per_frame`: see `one_call_per_frame` (None: off the CPU)."""
         self.config = config
         self.map_config = map_config
-        self.fusion_config = build_fusion_config(config)
         self.label_sets = label_sets or load_label_sets()
+        self.fusion_config = build_fusion_config(config, self.label_sets)
         if likelihood is None:
             likelihood = load_likelihood(config.label_fusion.likelihood)
         self.likelihood = jnp.asarray(likelihood, jnp.float32)

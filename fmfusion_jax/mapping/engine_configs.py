@@ -16,9 +16,13 @@ from fmfusion_jax.labels import LabelSets, load_label_sets
 log = logging.getLogger(__name__)
 
 
-def build_map_config(config: PipelineConfig, bounds_min, bounds_max, height: int, width: int) -> MapConfig:
-    """The engine's static sizes for a scene with these world bounds and image size; a map that could never fit in
-    this machine's memory is a UserError naming the knobs (before anything is allocated)."""
+def build_map_config(
+    config: PipelineConfig, bounds_min, bounds_max, height: int, width: int, label_sets: LabelSets | None = None
+) -> MapConfig:
+    """The engine's static sizes for a scene with these world bounds and image size, and these label sets (default:
+    the packaged ones); a map that could never fit in this machine's memory is a UserError naming the knobs (before
+    anything is allocated)."""
+    label_sets = label_sets or load_label_sets()
     map_config = MapConfig.for_bounds(
         bounds_min,
         bounds_max,
@@ -35,6 +39,8 @@ def build_map_config(config: PipelineConfig, bounds_min, bounds_max, height: int
         pixel_stride=config.association.pixel_stride,
         instance_capacity=config.instances.capacity,
         instance_slots=config.instances.voxel_slots,
+        num_classes=label_sets.num_classes,
+        num_open_labels=len(label_sets.open_labels),
     )
     check_map_fits(map_config, config)
     return map_config
@@ -64,7 +70,8 @@ def check_map_fits(map_config: MapConfig, config: PipelineConfig) -> None:
         )
 
 
-def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
+def build_fusion_config(config: PipelineConfig, label_sets: LabelSets | None = None) -> step.FusionConfig:
+    """The engine's fusion parameters from the schema (the floor class from `label_sets`, default: the packaged)."""
     lo, hi = config.detections.depth_percentiles
     return step.FusionConfig(
         association_metric=config.association.metric,
@@ -84,7 +91,7 @@ def build_fusion_config(config: PipelineConfig) -> step.FusionConfig:
         separate_min_frames=config.refinement.separate_min_frames,
         geometry_min_weight=config.refinement.geometry_min_weight,
         floor_up=UP_AXES[config.detections.floor_up_axis],
-        floor_class=floor_class_index(load_label_sets()),
+        floor_class=floor_class_index(label_sets or load_label_sets()),
         floor_band=config.detections.floor_band,
         floor_max_share=config.detections.floor_max_share,
     )

@@ -366,7 +366,7 @@ class Mapper:
         (cached: `prepare` asks for it per frame)."""
         key = (height, width)
         if key not in self._layouts:
-            self._layouts[key] = build_map_config(self.config, np.zeros(3), np.ones(3), height, width)
+            self._layouts[key] = build_map_config(self.config, np.zeros(3), np.ones(3), height, width, self.label_sets)
         return self._layouts[key]
 
     @staticmethod
@@ -394,7 +394,7 @@ class Mapper:
         if self._bounds is not None:
             expected = self._expected_blocks
             if expected is not None:  # at least what the first frame needs
-                index = build_map_config(self.config, *self._bounds, height, width)
+                index = build_map_config(self.config, *self._bounds, height, width, self.label_sets)
                 expected = max(expected, self._block_extent(frame, index, prepared)[0])
             map_config = bounded_map_config(self.config, self._bounds, height, width, expected)
         else:
