@@ -159,7 +159,7 @@ def drop_far_specks(points: np.ndarray, voxel_size: float, max_distance: float) 
     `max_distance` metres of the body. A mask that bled onto a far wall or a wrong association far away
     leaves specks that claim mesh vertices there (and lower the instance's IoU) without being the object.
     `max_distance <= 0`, or a largest piece under `BODY_MIN_SHARE` of the points: every point."""
-    from scipy import ndimage
+    from scipy import ndimage  # heavy: imported at export only
     from scipy.spatial import cKDTree
 
     points = np.asarray(points)

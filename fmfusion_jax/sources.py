@@ -79,7 +79,7 @@ def open_detection_source(
     if (detections is None) == (models is None):
         raise UserError("give exactly one detection source: a folder of detection files, or a models folder")
     if models is not None:
-        from detectors import load_front_end
+        from detectors import load_front_end  # onnxruntime: only when models are run
 
         overrides = config.front_end.manifest_overrides() if config is not None else None
         front_end = load_front_end(Path(models), providers=providers, overrides=overrides)

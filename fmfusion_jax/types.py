@@ -27,6 +27,38 @@ def rotation_error(T_world_camera: np.ndarray) -> float:
     return float(np.abs(rotation.T @ rotation - np.eye(3)).max())
 
 
+def pose_problem(T_world_camera: np.ndarray) -> str | None:
+    """What makes `T_world_camera` not a camera-to-world pose (not 4x4, not finite, a last row other than
+    [0, 0, 0, 1], a rotation block that is not a rotation), or None: the one rule of the readers and the `Mapper`."""
+    pose = np.asarray(T_world_camera, np.float64)
+    if pose.shape != (4, 4):
+        return f"a pose must be a 4x4 matrix, got shape {pose.shape}"
+    if not np.all(np.isfinite(pose)):
+        return "the pose is not finite (a lost track?)"
+    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
+        return (
+            f"the pose is not a rigid transform: its last row is {pose[3].tolist()}, not [0, 0, 0, 1] (a transposed pose? "
+            "the translation belongs "
+            "in the last column)"
+        )
+    error = rotation_error(pose)
+    if error > ROTATION_TOLERANCE:
+        return f"the pose is not a rigid transform: |R^T R - I| = {error:.3g} (check the pose's convention)"
+    if np.linalg.det(pose[:3, :3]) < 0:
+        return f"the pose's rotation is a reflection (det R = {np.linalg.det(pose[:3, :3]):.3g}), not a camera pose"
+    return None
+
+
+def score_problem(label: object, score: object) -> str | None:
+    """What makes `label: score` not a detection's label score (a non-empty string, a number in [0, 1]), or None:
+    the one rule of the detection readers and the `Mapper`."""
+    if not isinstance(label, str) or not label.strip():
+        return f"label {label!r} is not a non-empty string"
+    if isinstance(score, bool) or not isinstance(score, (int, float, np.integer, np.floating)) or not 0.0 <= score <= 1.0:
+        return f"score of {label!r} must be a number in [0, 1], found {score!r}"
+    return None
+
+
 @dataclasses.dataclass(frozen=True)
 class CameraIntrinsics:
     """Pinhole intrinsics of a `width x height` image (pixels)."""

@@ -30,7 +30,7 @@ from fmfusion_jax.run.scene_fusion import check_depth_units
 def test_a_reflected_pose_is_refused_naming_its_file(tmp_path):
     mirror = np.diag([-1.0, 1.0, 1.0, 1.0])  # orthonormal, det -1: passes R^T R = I, is no camera pose
     root = make_scene(tmp_path / "s", poses=[np.eye(4), mirror, np.eye(4)], num_frames=3)
-    with pytest.raises(DataError, match=r"frame-000001\.txt: the rotation is a reflection"):
+    with pytest.raises(DataError, match=r"frame-000001\.txt: the pose.s rotation is a reflection"):
         open_scene(root)
 
 
@@ -45,10 +45,10 @@ def test_the_readers_and_the_mapper_take_a_pose_by_one_rule(tmp_path):
     root = make_scene(tmp_path / "s", poses=[np.eye(4), rounded, np.eye(4)], num_frames=3)
     assert len(open_scene(root)) == 3
     checked_pose(rounded, "frame-000001")
-    with pytest.raises(UserError, match="frame-000001: T_world_camera's rotation is not a rotation"):
+    with pytest.raises(UserError, match="frame-000001: T_world_camera: the pose is not a rigid transform"):
         checked_pose(skewed, "frame-000001")
     root = make_scene(tmp_path / "t", poses=[np.eye(4), skewed, np.eye(4)], num_frames=3)
-    with pytest.raises(DataError, match=r"frame-000001\.txt: not a rigid transform"):
+    with pytest.raises(DataError, match=r"frame-000001\.txt: the pose is not a rigid transform"):
         open_scene(root)
 
 

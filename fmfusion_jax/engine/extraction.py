@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.state import MapState, VoxelBlocks, local_voxel_index
+from fmfusion_jax.engine.state import MapState, VoxelBlocks, local_voxel_index, voxel_offsets
 
 
 def _host_blocks(state_or_blocks) -> dict[str, np.ndarray]:
@@ -114,7 +114,7 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
       oriented with normals pointing to free space (positive tsdf). Vertices shared by two chunks
       are merged.
     """
-    from skimage.measure import marching_cubes
+    from skimage.measure import marching_cubes  # heavy (~0.5 s): imported when a mesh is asked for
 
     host = _host_blocks(state)
     verts, faces, colors = [], [], []
@@ -224,7 +224,6 @@ def extract_instance_points(
     host = _host_blocks(state)
     if len(host["coords"]) == 0:
         return {}
-    from fmfusion_jax.engine.state import voxel_offsets
 
     ids, weights = host["instance_id"], host["instance_weight"]
     keep = (ids >= 0) & (weights >= min_weight)

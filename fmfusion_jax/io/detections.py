@@ -39,7 +39,7 @@ import numpy as np
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.image_file import read_image
-from fmfusion_jax.types import FrameDetections, RGBDFrame
+from fmfusion_jax.types import FrameDetections, RGBDFrame, score_problem
 
 logger = logging.getLogger(__name__)
 
@@ -298,10 +298,9 @@ def _check_labels(labels: Any, where: str, error: type[Exception] = DataError) -
         raise error(f"{where}: 'labels' must be an object of label -> score, found {labels!r}")
     checked = {}
     for label, score in labels.items():
-        if not isinstance(label, str) or not label.strip():
-            raise error(f"{where}: label {label!r} is not a non-empty string")
-        if isinstance(score, bool) or not isinstance(score, (int, float)) or not 0.0 <= score <= 1.0:
-            raise error(f"{where}: score of {label!r} must be a number in [0, 1], found {score!r}")
+        problem = score_problem(label, score)
+        if problem is not None:
+            raise error(f"{where}: {problem}")
         checked[label] = float(score)
     return checked
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
-from fmfusion_jax.types import ROTATION_TOLERANCE, CameraIntrinsics, RGBDFrame, rotation_error
+from fmfusion_jax.types import CameraIntrinsics, RGBDFrame, pose_problem
 
 if TYPE_CHECKING:
     from fmfusion_jax.config import DatasetConfig
@@ -124,13 +124,9 @@ def read_pose(path: Path) -> np.ndarray | None:
     if values.size != 16:
         raise DataError(f"{path}: expected a 4x4 pose, found {values.size} numbers")
     pose = values.reshape(4, 4)
-    if np.all(np.isfinite(pose)):
-        rotation = pose[:3, :3]
-        error = rotation_error(pose)
-        if error > ROTATION_TOLERANCE or not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6):
-            raise DataError(f"{path}: not a rigid transform (|R^T R - I| = {error:.3g}, last row {pose[3]})")
-        if np.linalg.det(rotation) < 0:
-            raise DataError(f"{path}: the rotation is a reflection (det R = {np.linalg.det(rotation):.3g}), not a camera pose")
+    problem = pose_problem(pose) if np.all(np.isfinite(pose)) else None
+    if problem is not None:
+        raise DataError(f"{path}: {problem}")
     return pose
 
 

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -18,7 +19,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch, pack_detections
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets
-from fmfusion_jax.types import ROTATION_TOLERANCE, CameraIntrinsics, FrameDetections, RGBDFrame, rotation_error
+from fmfusion_jax.types import CameraIntrinsics, FrameDetections, RGBDFrame, pose_problem, score_problem
 
 log = logging.getLogger(__name__)
 
@@ -38,15 +39,14 @@ class DetectionSource(Protocol):
 
 
 def frame_inputs(frame: RGBDFrame, map_config: MapConfig) -> step.FrameInputs:
-    """A frame as engine arrays; wrong image sizes and non-finite poses are errors naming the frame."""
+    """A frame as engine arrays; a wrong image size is an error naming the frame. (Its pose was checked where it
+    came in: by the scene readers, or `Mapper` through `checked_pose`.)"""
     expected = (map_config.image_height, map_config.image_width)
     if frame.depth.shape != expected or frame.color.shape[:2] != expected:
         raise UserError(
             f"{frame.name}: depth {frame.depth.shape} / colour {frame.color.shape[:2]} differ from "
             f"the sequence's image size {expected}"
         )
-    if not np.all(np.isfinite(frame.T_world_camera)):
-        raise UserError(f"{frame.name}: pose is not finite")
     k = frame.intrinsics
     # host arrays (the step's call transfers them): a `jnp.asarray` that converts dispatches a jitted op each
     return step.FrameInputs(
@@ -125,7 +125,6 @@ def as_config(config: "str | Path | Mapping[str, Any] | PipelineConfig | None") 
 
 
 def _yaml_value(value: Any) -> str:
-    import json
 
     return json.dumps(list(value) if isinstance(value, tuple) else value)
 
@@ -203,30 +202,20 @@ def check_detections(frame_name: str, detections: FrameDetections) -> None:
     they are another frame's (their `frame_name` differs from `frame_name`)."""
     for k, labels in enumerate(detections.labels):
         for label, score in labels.items():
-            if not 0.0 <= float(score) <= 1.0:
-                raise UserError(f"{frame_name}: detection {k} scores {label!r} {score}: scores must lie in [0, 1]")
+            problem = score_problem(label, score)
+            if problem is not None:
+                raise UserError(f"{frame_name}: detection {k}: {problem}")
     if detections.frame_name and detections.frame_name != frame_name:
         log.warning("%s: fusing the detections of %s (another frame's?)", frame_name, detections.frame_name)
 
 
 def checked_pose(T_world_camera, name: str) -> np.ndarray:
-    """float64 `(4, 4)` camera-to-world pose; a non-finite or non-rigid one is a UserError naming frame `name` (a NaN
-    pose would otherwise size the map from NaN block coordinates)."""
-    pose = np.asarray(T_world_camera, np.float64)
-    if pose.shape != (4, 4):
-        raise UserError(f"{name}: T_world_camera must be a 4x4 matrix, got shape {pose.shape}")
-    if not np.all(np.isfinite(pose)):
-        raise UserError(f"{name}: T_world_camera is not finite (a lost track? skip the frame)")
-    if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
-        raise UserError(
-            f"{name}: T_world_camera's bottom row is {pose[3].tolist()}, not [0, 0, 0, 1] (a transposed pose? the "
-            "translation belongs in the last column)"
-        )
-    if rotation_error(pose) > ROTATION_TOLERANCE or np.linalg.det(pose[:3, :3]) < 0:  # the readers' rule
-        raise UserError(
-            f"{name}: T_world_camera's rotation is not a rotation (check the pose's convention and that it maps camera to world)"
-        )
-    return pose
+    """float64 `(4, 4)` camera-to-world pose; one that is not (`types.pose_problem`) is a UserError naming frame
+    `name` (a NaN pose would otherwise size the map from NaN block coordinates)."""
+    problem = pose_problem(T_world_camera)
+    if problem is not None:
+        raise UserError(f"{name}: T_world_camera: {problem}")
+    return np.asarray(T_world_camera, np.float64)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -292,7 +292,7 @@ class Mapper:
 
     def extract_mesh(self):
         """The global TSDF's surface as a coloured `trimesh.Trimesh` (world metres)."""
-        import trimesh
+        import trimesh  # heavy: imported when a mesh is asked for
 
         vertices, faces, colors = extraction.extract_mesh(self._require_builder().state, self.map_config)
         mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces), process=False)

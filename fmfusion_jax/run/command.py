@@ -12,7 +12,8 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 
 from fmfusion_jax.config import PipelineConfig
-from fmfusion_jax.errors import UserError
+from fmfusion_jax.errors import DataError, UserError
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 from fmfusion_jax.io.scene import Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.mapping.builder import FusionResult
@@ -85,8 +86,6 @@ def write_outputs(
 
 def load_ground_truth(scene: Scene):
     """The scene's ground truth; None without a GT mesh; the error text when GT files are incomplete."""
-    from fmfusion_jax.errors import DataError
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 
     if ground_truth_mesh_path(scene) is None:
         return None

@@ -21,8 +21,13 @@ from typing import TYPE_CHECKING, Any
 
 from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.engine import extraction
+from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
+from fmfusion_jax.evaluation.scannet_benchmark import BenchmarkResult, evaluate_scenes
+from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
 from fmfusion_jax.instances import MapInstance
 from fmfusion_jax.io import map_outputs
+from fmfusion_jax.io.benchmark_format import InstancePredictions, write_benchmark_predictions
 from fmfusion_jax.io.scene import Scene
 from fmfusion_jax.labels import LabelSets
 from fmfusion_jax.mapping.builder import FusionResult
@@ -30,8 +35,6 @@ from fmfusion_jax.mapping.map_file import MAP_STATE_FILE, save_map
 from fmfusion_jax.viz import overview
 
 if TYPE_CHECKING:
-    from fmfusion_jax.evaluation.scannet_benchmark import BenchmarkResult
-    from fmfusion_jax.io.benchmark_format import InstancePredictions
     from fmfusion_jax.io.ground_truth import SceneGroundTruth
 
 log = logging.getLogger(__name__)
@@ -99,7 +102,6 @@ class OutputContext:
     @functools.cached_property
     def mesh(self) -> tuple[Any, Any, Any]:
         """`(vertices, faces, colors)` of the global TSDF surface."""
-        from fmfusion_jax.engine import extraction
 
         return extraction.extract_mesh(self.fused_map.state, self.fused_map.map_config)
 
@@ -148,8 +150,6 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
       gt_ids: `gt.benchmark_ids()` when the caller already has it (computed here otherwise).
       floor: the map's floor (`FusionResult.floor()`: `(up, height)`), whose mesh vertices no object claims.
     """
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
 
     on_floor = None
     if floor is not None:
@@ -184,7 +184,7 @@ def capacity_used(result: FusionResult) -> dict[str, int]:
 
 def _peak_rss_mib() -> float:
     """This process's peak resident memory so far, MiB (Linux reports KiB, macOS bytes)."""
-    import resource
+    import resource  # POSIX only
 
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024
@@ -276,7 +276,6 @@ def _write_map_state(context: OutputContext) -> None:
 
 
 def _write_benchmark(context: OutputContext) -> None:
-    from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
 
     _, predictions, score = context.scored
     txt = write_benchmark_predictions(context.out_dir / "benchmark", context.scene.name, predictions)
@@ -296,7 +295,6 @@ def _write_report(context: OutputContext) -> None:
 def _write_explain(context: OutputContext) -> None:
     """The error analysis beside report.json; its counts go into run.json. It reads the predictions already
     scored; it does not run the benchmark again."""
-    from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
 
     assert context.ground_truth is not None
     gt = context.ground_truth

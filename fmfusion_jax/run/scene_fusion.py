@@ -21,7 +21,10 @@ from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.mapping.builder import FusionResult
+from fmfusion_jax.mapping.capacity import sample_block_count
+from fmfusion_jax.mapping.engine_configs import build_map_config
 from fmfusion_jax.mapping.inputs import DetectionSource, PreparedFrame
+from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.mapping.schedule import DetectionSchedule, camera_motion
 from fmfusion_jax.run.checkpoint import Checkpoint
 from fmfusion_jax.run.outputs import capacity_used as capacity_used  # re-exported: experiments, likelihood, examples
@@ -67,7 +70,6 @@ class SceneFusion:
     ):
         """`observer(position, frame, detections or None, mapper)` is called after each frame is fused (e.g. a
         `viz.live.RerunView`)."""
-        from fmfusion_jax.mapping.mapper import Mapper
 
         if on_error not in ON_ERROR_POLICIES:
             raise UserError(f"on_error {on_error!r}: expected one of {ON_ERROR_POLICIES}")
@@ -287,8 +289,6 @@ def read_ahead(read: Callable[[Any], T], items: Iterable[Any], reader: concurren
 def scene_extent(scene: Scene, config: PipelineConfig, sample: DepthSample | None = None):
     """`(bounds, expected_blocks)` of `scene` as `fmfusion run` sizes its map: the bounds of the sampled frames'
     poses and depth (`sample`: a `Scene.sample_depth`, default 60 frames) and the blocks those frames allocate."""
-    from fmfusion_jax.mapping.capacity import sample_block_count
-    from fmfusion_jax.mapping.engine_configs import build_map_config
 
     sample = sample or scene.sample_depth(max_frames=60)
     bounds = scene.bounds(sample=sample)
@@ -302,7 +302,6 @@ def mapper_for_scene(
     """The `Mapper` `fmfusion run` fuses `scene` into: its block index over the scene's bounds, its pool
     starting at the blocks the sampled frames allocate (`scene_extent`) and doubling if the others show more.
     `hooks`: the Mapper's `timer` and `fuse_detections` (the benchmark's)."""
-    from fmfusion_jax.mapping.mapper import Mapper
 
     bounds, expected = scene_extent(scene, config, sample)
     return Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages, **hooks)
@@ -330,7 +329,7 @@ def progress_bar(total: int, description: str, enabled: bool = True) -> Iterator
     if not enabled:
         yield None
         return
-    from tqdm import tqdm
+    from tqdm import tqdm  # only when a bar is shown
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     with logging_redirect_tqdm(), tqdm(total=total, desc=description, unit="frame", dynamic_ncols=True) as bar:
