@@ -647,7 +647,8 @@ def _explain(gt, gt_ids, predictions, scene_name: str, out_dir: Path) -> dict:
 
     It reads the predictions already scored; it does not run the benchmark again.
     """
-    from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
+    from fmfusion_jax.evaluation.explain import explain_scene
+    from fmfusion_jax.evaluation.explain_report import write_explanation
 
     start = time.perf_counter()
     explanation = explain_scene(gt_ids, predictions, gt.vertices, scene_name=scene_name)

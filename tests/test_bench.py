@@ -19,9 +19,9 @@ import pytest
 from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 
 from fmfusion_jax.bench import report
+from fmfusion_jax.bench.harness import peer_unavailable_reason
 from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
 from fmfusion_jax.bench.sweep import cap_detections, groups_that_fit
-from fmfusion_jax.bench.worker import peer_unavailable_reason
 from fmfusion_jax.cli import main
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step

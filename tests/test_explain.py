@@ -13,7 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fmfusion_jax.evaluation.explain import GT_STATUSES, PREDICTION_KINDS, SHARE_NAMES, explain_scene, write_explanation
+from fmfusion_jax.evaluation.explain import GT_STATUSES, PREDICTION_KINDS, SHARE_NAMES, explain_scene
+from fmfusion_jax.evaluation.explain_report import write_explanation
 from fmfusion_jax.evaluation.scannet_benchmark import OVERLAPS, match_scene, scene_class_detections
 from fmfusion_jax.io.benchmark_format import InstancePredictions, write_benchmark_predictions
 from fmfusion_jax.labels import BENCHMARK_NYU40_IDS

@@ -14,7 +14,7 @@ from fmfusion_jax.cli import simulate as cli_simulate
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.simulation import noise as noise_module
-from fmfusion_jax.simulation.noise import NoiseModel, bleed_kernel, mask_box
+from fmfusion_jax.simulation.noise import FAMILIES, FAMILY_DOSES, NoiseModel, bleed_kernel, family_noise, mask_box
 from fmfusion_jax.simulation.simulate import (
     BLOB_LABELS,
     CONFUSER_CLASSES,
@@ -25,7 +25,7 @@ from fmfusion_jax.simulation.simulate import (
     simulate_frame,
     wrong_labels,
 )
-from fmfusion_jax.simulation.zoo import FAMILIES, FAMILY_DOSES, MIXED, family_noise, noise_zoo
+from fmfusion_jax.simulation.zoo import MIXED, noise_zoo
 
 LABELS = load_label_sets()
 LIKELIHOOD = load_likelihood("statistical")

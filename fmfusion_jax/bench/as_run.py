@@ -26,10 +26,10 @@ def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say
     """`passes` as-run passes over the first `frames` frames of `scene` (None: all); one dict per pass."""
     import numpy as np
 
-    from fmfusion_jax.bench import worker
+    from fmfusion_jax.bench import harness, worker
     from fmfusion_jax.runner import mapper_for_scene
 
-    config, opened, folder = worker._open(scene, frames)
+    config, opened, folder = harness.open_bench_scene(scene, frames)
     sample = opened.sample_depth(max_frames=60)
     rows = []
     for number in range(passes):
@@ -45,7 +45,7 @@ def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say
             "mean_ms": round(float(calls.mean()), 3) if calls.size else None,
             "p90_ms": round(float(np.percentile(calls, 90)), 3) if calls.size else None,
             "wall_s": round(wall, 2),
-            "device": worker.device_description()["device_kind"],
+            "device": harness.device_description()["device_kind"],
         }
         say(json.dumps(row))
         rows.append(row)

@@ -63,7 +63,7 @@ def run_bench(
     say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True),
 ) -> dict:
     """Runs the benchmark; writes `bench.md` and `bench.json` into `options.out`; returns the summary."""
-    from fmfusion_jax.bench.worker import peer_unavailable_reason
+    from fmfusion_jax.bench.harness import peer_unavailable_reason
     from fmfusion_jax.runner import prepare_output_dir
 
     out = prepare_output_dir(options.out)

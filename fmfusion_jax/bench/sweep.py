@@ -97,14 +97,20 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     live instances per frame."""
     import jax.numpy as jnp
 
+    from fmfusion_jax.bench.harness import (
+        device_description,
+        frames_with_detections,
+        open_bench_scene,
+        peak_rss_mb,
+        scene_map_config,
+    )
     from fmfusion_jax.bench.stages import FrameTimer
-    from fmfusion_jax.bench.worker import _frames_with_detections, _open, device_description, peak_rss_mb, scene_map_config
     from fmfusion_jax.labels import load_label_sets, load_likelihood
     from fmfusion_jax.pipeline import MapBuilder
 
-    config, opened, folder = _open(scene, frames)
+    config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
-    map_config = scene_map_config(config, _open(scene, None)[1])  # the map of the ours worker (all the scene's frames)
+    map_config = scene_map_config(config, open_bench_scene(scene, None)[1])  # the map of the ours worker (all the scene's frames)
     label_sets = load_label_sets()
     likelihood = jnp.asarray(load_likelihood(config.label_fusion.likelihood), jnp.float32)
     open_labels, det = label_sets.open_labels, config.detections
@@ -116,7 +122,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     start = time.perf_counter()
     warm = FrameTimer()  # the uncapped pass that compiles everything
     warm_builder = builder(warm)
-    for frame, detections in _frames_with_detections(opened, folder, config, progress, f"ours warm-up {scene.name}"):
+    for frame, detections in frames_with_detections(opened, folder, config, progress, f"ours warm-up {scene.name}"):
         warm.start_frame()
         warm_builder.add_frame(frame, detections)
     del warm_builder
@@ -133,7 +139,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
         timers = {k: FrameTimer(first_ms=dict(warm.first_ms), warm=set(warm.warm)) for k in group}  # compiled: all samples
         builders = {k: builder(timers[k]) for k in group}
         for position, (frame, detections) in enumerate(
-            _frames_with_detections(opened, folder, config, progress, f"ours sweep {scene.name} k={','.join(map(str, group))}")
+            frames_with_detections(opened, folder, config, progress, f"ours sweep {scene.name} k={','.join(map(str, group))}")
         ):
             for k in _rotated(group, position):
                 capped = None if detections is None else cap_detections(detections, k, open_labels, det.min_mask_pixels)
@@ -161,10 +167,10 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     together: its pipelines are small)."""
     import importlib
 
-    from fmfusion_jax.bench.worker import (
+    from fmfusion_jax.bench.harness import (
         PEER_MODULE,
-        _frames_with_detections,
-        _open,
+        frames_with_detections,
+        open_bench_scene,
         peak_rss_mb,
         peer_unavailable_reason,
     )
@@ -174,7 +180,7 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     if reason:
         return {"pipeline": "peer-sweep", "unavailable": reason}
     peer = importlib.import_module(PEER_MODULE)
-    config, opened, folder = _open(scene, frames)
+    config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
     label_sets = load_label_sets()
     likelihood = load_likelihood(config.label_fusion.likelihood)
@@ -183,7 +189,7 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     runs = {k: _new_run(k) for k in sweep}
     start = time.perf_counter()
     for position, (frame, detections) in enumerate(
-        _frames_with_detections(opened, folder, config, progress, f"Open3D peer sweep {scene.name}")
+        frames_with_detections(opened, folder, config, progress, f"Open3D peer sweep {scene.name}")
     ):
         for k in _rotated(list(sweep), position):
             capped = None if detections is None else cap_detections(detections, k, open_labels, det.min_mask_pixels)

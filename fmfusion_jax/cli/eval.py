@@ -194,7 +194,8 @@ def _reach(scene_dir: Path, detections: Path, found: dict[int, bool] | None, out
 def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) -> dict[int, bool]:
     """The error analysis of each scene (`evaluation.explain`): files in `explain_dir` (one scene) or
     `explain_dir/<scene>/`, and its counts printed. Returns whether each object (benchmark id) was found."""
-    from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
+    from fmfusion_jax.evaluation.explain import explain_scene
+    from fmfusion_jax.evaluation.explain_report import write_explanation
 
     print("error analysis (objects by status | predictions by kind; docs/error-analysis.md):")
     found: dict[int, bool] = {}

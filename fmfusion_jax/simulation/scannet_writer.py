@@ -33,7 +33,10 @@ import numpy as np
 
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.simulation import raycast
-from fmfusion_jax.simulation.procedural import CEILING_CLASS, CEILING_NYU40, RAW_LABELS, ProceduralScene, build_mesh
+from fmfusion_jax.simulation.furniture import CEILING_CLASS, CEILING_NYU40, RAW_LABELS
+from fmfusion_jax.simulation.procedural import ProceduralScene
+from fmfusion_jax.simulation.scene_mesh import build_mesh
+from fmfusion_jax.simulation.scene_views import RenderedFrame, render_frame
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +98,7 @@ def write_scannet_scene(
       depth_noise: Kinect-like depth noise, mm quantization, holes and grazing-angle dropouts (else exact depth).
       progress: show a tqdm progress bar.
       overwrite: allow a non-empty `out_dir` (frame files from an earlier run are deleted first).
-      mesh_spacing, max_vertices: mesh resolution (see `procedural.build_mesh`).
+      mesh_spacing, max_vertices: mesh resolution (see `scene_mesh.build_mesh`).
       jpeg_quality: of the colour images.
 
     Returns:
@@ -130,7 +133,7 @@ def write_scannet_scene(
     pending: list[concurrent.futures.Future] = []
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as writer:
         for k, pose in enumerate(poses):
-            frame = raycast.render_frame(
+            frame = render_frame(
                 scene,
                 pose,
                 intrinsics,
@@ -223,7 +226,7 @@ def _progress(total: int, enabled: bool, name: str):
     return tqdm(total=total, desc=f"rendering {name}", unit="frame")
 
 
-def _write_frame(out: Path, stem: str, frame: raycast.RenderedFrame, pose: np.ndarray, jpeg_quality: int) -> None:
+def _write_frame(out: Path, stem: str, frame: RenderedFrame, pose: np.ndarray, jpeg_quality: int) -> None:
     import cv2
 
     _imwrite(
