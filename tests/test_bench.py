@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 
-from fmfusion_jax.bench import report
-from fmfusion_jax.bench.harness import peer_unavailable_reason
-from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
-from fmfusion_jax.bench.sweep import cap_detections, groups_that_fit
+from fmfusion_jax.apps.bench import report
+from fmfusion_jax.apps.bench.harness import peer_unavailable_reason
+from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+from fmfusion_jax.apps.bench.sweep import cap_detections, groups_that_fit
 from fmfusion_jax.cli import main
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step
@@ -287,7 +287,7 @@ def test_quick_bench_without_the_peer(bench_dirs, monkeypatch):
 
 
 def test_sweep_options(monkeypatch, tmp_path):
-    import fmfusion_jax.bench.run as bench_run
+    import fmfusion_jax.apps.bench.run as bench_run
 
     given = []
     monkeypatch.setattr(bench_run, "run_bench", lambda options, command: given.append((options, command)) or {"markdown": ""})
@@ -363,7 +363,7 @@ def test_the_gpu_target_says_by_how_much_it_is_missed_and_what_bounds_the_frame(
 def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_path):
     """Nested events (a call and the calls it makes) add to the busy time once, a thread's waits on locks and
     queues not at all (an idle reader thread); time and calls per frame."""
-    from fmfusion_jax.bench.profile import profile_lines, summarize_trace
+    from fmfusion_jax.apps.bench.profile import profile_lines, summarize_trace
 
     meta = [
         {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/host:CPU"}},
@@ -402,10 +402,10 @@ def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_pa
 
 
 def test_the_as_run_passes_alone_report_each_pass(tmp_path, capsys):
-    """`python -m fmfusion_jax.bench.as_run`: the bench's as-run pass, repeated, one line per pass; bad input is a
+    """`python -m fmfusion_jax.apps.bench.as_run`: the bench's as-run pass, repeated, one line per pass; bad input is a
     message and exit status 2, not a traceback."""
-    from fmfusion_jax.bench import as_run
-    from fmfusion_jax.bench.scenes import prepare_generated_scene
+    from fmfusion_jax.apps.bench import as_run
+    from fmfusion_jax.apps.bench.scenes import prepare_generated_scene
 
     scene = prepare_generated_scene(tmp_path / "cache", 2, 6, 160, 120, 0, False, ())
     rows = as_run.as_run_passes(scene, passes=2)

@@ -15,7 +15,6 @@ import pytest
 
 import fmfusion_jax
 from fmfusion_jax.config import load_config
-from fmfusion_jax.demo import demo_config, demo_noise
 from fmfusion_jax.engine import growth
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
@@ -23,6 +22,7 @@ from fmfusion_jax.io.scene import open_scene
 from fmfusion_jax.mapper import Mapper, as_config, frame_block_extent, frame_block_keys, initial_pool_blocks, sample_block_count
 from fmfusion_jax.pipeline import build_map_config, extract_map_instances
 from fmfusion_jax.runner import fuse_scene
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 from fmfusion_jax.types import FrameDetections
 
@@ -160,7 +160,7 @@ def test_a_bounded_map_grows_its_instance_table_to_the_same_map(room, monkeypatc
 def test_the_timed_stages_of_a_frame_add_up_to_the_whole_integrate_call(room):
     """What `fmfusion bench` calls the whole frame is all of `Mapper.integrate`: the steps, the builder's host work
     (packing, sending, statistics) and the Mapper's own (checks, schedule, growth check), each timed once."""
-    from fmfusion_jax.bench.stages import FrameTimer
+    from fmfusion_jax.apps.bench.stages import FrameTimer
 
     scene_dir, detections, config = room
     folder = DetectionFolder(detections)

@@ -64,7 +64,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.batch import Batch, list_scenes, pooled_benchmark, write_reports
+    from fmfusion_jax.apps.batch import Batch, list_scenes, pooled_benchmark, write_reports
     from fmfusion_jax.config import load_config
 
     if args.workers < 1:

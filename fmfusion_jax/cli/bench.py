@@ -113,7 +113,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.bench.run import QUICK_SIZES, BenchOptions, run_bench
+    from fmfusion_jax.apps.bench.run import QUICK_SIZES, BenchOptions, run_bench
     from fmfusion_jax.errors import UserError
 
     for name in ("frames", "generated_frames", "peer_frames", "sweep_frames"):

@@ -10,7 +10,8 @@ from fmfusion_jax.errors import UserError
 
 
 def register(subparsers) -> None:
-    from fmfusion_jax.demo import DEFAULT_FRAMES, DEFAULT_HEIGHT, DEFAULT_OBJECTS, DEFAULT_OUT, DEFAULT_WIDTH
+    from fmfusion_jax.apps.demo import DEFAULT_OUT
+    from fmfusion_jax.simulation.demo_setup import DEFAULT_FRAMES, DEFAULT_HEIGHT, DEFAULT_OBJECTS, DEFAULT_WIDTH
 
     parser = subparsers.add_parser(
         "demo",
@@ -51,7 +52,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.demo import run_demo
+    from fmfusion_jax.apps.demo import run_demo
 
     if args.frames < 2 or args.objects < 1 or args.stacked < 0:
         raise UserError(

@@ -10,17 +10,16 @@ from fmfusion_jax.errors import UserError
 
 
 def register(subparsers) -> None:
-    from fmfusion_jax import robustness
-    from fmfusion_jax.experiments import (
+    from fmfusion_jax.apps import robustness
+    from fmfusion_jax.apps.experiments import (
         DEFAULT_GENERATED,
         DEFAULT_GENERATED_FRAMES,
         DEFAULT_GENERATED_OBJECTS,
-        DEFAULT_METHODS,
         DEFAULT_OUT,
-        METHODS,
         QUICK_GENERATED,
         QUICK_REAL_FRAMES,
     )
+    from fmfusion_jax.comparison.methods import DEFAULT_METHODS, METHODS
 
     methods = "; ".join(f"{m.name}: {m.title}" for m in METHODS.values())
     parser = subparsers.add_parser(
@@ -143,8 +142,8 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax import robustness
-    from fmfusion_jax.experiments import (
+    from fmfusion_jax.apps import robustness
+    from fmfusion_jax.apps.experiments import (
         DEFAULT_GENERATED,
         DEFAULT_GENERATED_FRAMES,
         DEFAULT_GENERATED_OBJECTS,
@@ -153,9 +152,9 @@ def run(args: argparse.Namespace) -> int:
         QUICK_REAL_FRAMES,
         default_real_scenes,
         generated_specs,
-        resolve_methods,
         run_experiment,
     )
+    from fmfusion_jax.comparison.methods import resolve_methods
 
     if args.detections is not None and args.robustness:
         raise UserError("--detections: the robustness evaluation simulates its detections (the noise zoo)")

@@ -26,7 +26,7 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def _add_generated_arguments(parser: argparse.ArgumentParser) -> None:
-    from fmfusion_jax.likelihood.workflow import DEFAULT_CACHE, GeneratedSize
+    from fmfusion_jax.apps.likelihood import DEFAULT_CACHE, GeneratedSize
 
     size = GeneratedSize()
     group = parser.add_argument_group("generated scenes (made once, cached)")
@@ -162,7 +162,7 @@ def register(subparsers) -> None:
 
 
 def _size(args: argparse.Namespace):
-    from fmfusion_jax.likelihood.workflow import GeneratedSize
+    from fmfusion_jax.apps.likelihood import GeneratedSize
 
     if args.objects < 1 or args.frames < 2 or args.width < 32 or args.height < 24:
         raise UserError("generated scenes need at least 1 object, 2 frames and 32x24 pixels")
@@ -174,7 +174,7 @@ def _say(text: str) -> None:
 
 
 def run_summarize(args: argparse.Namespace) -> int:
-    from fmfusion_jax.likelihood import workflow
+    from fmfusion_jax.apps import likelihood as workflow
     from fmfusion_jax.likelihood.summarize import estimate, write_summary
     from fmfusion_jax.runner import prepare_output_dir
 
@@ -222,8 +222,8 @@ def run_summarize(args: argparse.Namespace) -> int:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
+    from fmfusion_jax.apps import likelihood as workflow
     from fmfusion_jax.labels import load_likelihood
-    from fmfusion_jax.likelihood import workflow
     from fmfusion_jax.runner import prepare_output_dir
 
     for name in ("steps", "max_steps"):

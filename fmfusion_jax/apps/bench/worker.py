@@ -1,6 +1,6 @@
 """One pipeline on one scene, in a process of its own (so that peak memory is that pipeline's alone).
 
-    python -m fmfusion_jax.bench.worker SPEC.json RESULT.json
+    python -m fmfusion_jax.apps.bench.worker SPEC.json RESULT.json
 
 SPEC: `{"pipeline": "ours" | "peer" | "vbg" | "ours-sweep" | "peer-sweep", "scene": BenchScene.to_json(),
 "frames": N | null, "progress": bool}`; the sweeps (`bench.sweep`) add `"sweep": [k, ...]`. RESULT:
@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from fmfusion_jax.bench.harness import (
+from fmfusion_jax.apps.bench.harness import (
     PEER_MODULE,
     device_description,
     device_memory_mb,
@@ -34,7 +34,7 @@ from fmfusion_jax.bench.harness import (
     peak_rss_mb,
     peer_unavailable_reason,
 )
-from fmfusion_jax.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.scenes import BenchScene
 
 
 def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dict | None = None) -> dict:
@@ -44,7 +44,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
 
     The map is `fmfusion run`'s (`runner.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
     doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
-    from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+    from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
     from fmfusion_jax.compile_cache import enable_compile_cache
     from fmfusion_jax.mapper import Mapper
     from fmfusion_jax.runner import mapper_for_scene
@@ -150,8 +150,8 @@ def _as_run_pass(
 
     import jax
 
-    from fmfusion_jax.bench import profile as tracing
-    from fmfusion_jax.bench.report import AS_RUN_CHUNK
+    from fmfusion_jax.apps.bench import profile as tracing
+    from fmfusion_jax.apps.bench.report import AS_RUN_CHUNK
     from fmfusion_jax.runner import SceneFusion, read_ahead
 
     frames: list[dict] = []
@@ -300,7 +300,7 @@ def main(argv: list[str]) -> int:
     scene = BenchScene.from_json(spec["scene"])
     args = (scene, spec.get("frames"), bool(spec.get("progress", True)))
     if spec["pipeline"].endswith("-sweep"):
-        from fmfusion_jax.bench.sweep import RUNNERS as SWEEP_RUNNERS
+        from fmfusion_jax.apps.bench.sweep import RUNNERS as SWEEP_RUNNERS
 
         result = SWEEP_RUNNERS[spec["pipeline"]](*args, [int(k) for k in spec["sweep"]])
     else:

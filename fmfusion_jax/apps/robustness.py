@@ -34,23 +34,25 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fmfusion_jax.errors import UserError
-from fmfusion_jax.experiments import (
-    DETECTIONS_DEFAULT,
-    DETECTIONS_NO_AUGMENTATION,
-    REAL_SCENE_CONFIG,
+from fmfusion_jax.comparison.methods import (
     Method,
     RunOutcome,
-    SceneSource,
-    _check_config,
-    _markdown_table,
-    _stderr_report,
+    check_config,
     copy_run,
     resolve_methods,
     run_method,
-    scene_sources,
     score_methods,
 )
+from fmfusion_jax.comparison.scenes import (
+    DETECTIONS_DEFAULT,
+    DETECTIONS_NO_AUGMENTATION,
+    REAL_SCENE_CONFIG,
+    SceneSource,
+    scene_sources,
+)
+from fmfusion_jax.comparison.tables import markdown_table, stderr_report
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.simulation.demo_setup import scale_noise_to_image
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 from fmfusion_jax.simulation.zoo import FAMILIES, MIXED, ZooEntry, noise_zoo
 
@@ -78,22 +80,10 @@ METRICS = (("AP", "mAP"), ("AP50", "mAP50"), ("AP25", "mAP25"))
 PRECISION = (("no-object %", "no_object_share", True), ("inst/obj", "instances_per_object", True), ("AP50", "AP50", False))
 #: Decoded frames of a scene are kept in memory across its runs below this size.
 FRAME_CACHE_BYTES = 2 << 30
-#: The demo's image area: noise pixel counts are meant for it (`demo.demo_noise`).
-_REFERENCE_AREA = 640 * 480
 
 
 # --------------------------------------------------------------------------------------------------
 # Noise of each (scene, zoo entry), and its cache name.
-
-
-def scale_noise_to_image(noise, width: int, height: int):
-    """`noise` with its pixel-count parameters scaled from 640x480 to `width x height`, as `demo.demo_noise`
-    scales the default model's (generated rooms may be rendered smaller)."""
-    area_scale = (width * height) / _REFERENCE_AREA
-    return noise.replace(
-        min_mask_pixels=max(10, round(noise.min_mask_pixels * area_scale)),
-        small_object_pixels=max(20, round(noise.small_object_pixels * area_scale)),
-    )
 
 
 def entry_noise(source: SceneSource, entry: ZooEntry, variant: str = DETECTIONS_DEFAULT):
@@ -313,7 +303,7 @@ def entries_table(entries: Sequence[ZooEntry], scores: dict, summary: dict, meth
     rows.append(["**mean**", ""] + [_pct(summary[m.name]["mean"][metric]) for m in methods for metric, _ in METRICS])
     worst = [summary[m.name]["worst"][metric] for m in methods for metric, _ in METRICS]
     rows.append(["**worst**", ""] + [f"{_pct(w['value'])} ({w['entry']})" if w["entry"] else "-" for w in worst])
-    return _markdown_table(header, rows)
+    return markdown_table(header, rows)
 
 
 def _precision_cell(key: str, value: float | None) -> str:
@@ -340,7 +330,7 @@ def precision_table(entries: Sequence[ZooEntry], precision: dict, summary: dict,
     rows.append(
         ["**worst**", ""] + [f"{_precision_cell(key, w['value'])} ({w['entry']})" if w["entry"] else "-" for key, w in worst]
     )
-    return _markdown_table(header, rows)
+    return markdown_table(header, rows)
 
 
 def family_table(summary: dict, methods: Sequence[Method], metric: str = "AP50") -> str:
@@ -350,7 +340,7 @@ def family_table(summary: dict, methods: Sequence[Method], metric: str = "AP50")
     for title, values in family_rows(summary, names, metric):
         best = best_methods(values)
         rows.append([title] + [f"**{_pct(values[n])}**" if n in best else _pct(values[n]) for n in names])
-    return _markdown_table(["Family", *names], rows)
+    return markdown_table(["Family", *names], rows)
 
 
 def verdict_lines(record: dict) -> list[str]:
@@ -383,7 +373,7 @@ def noise_table(entries: Sequence[ZooEntry]) -> str:
     header = ["Parameter", "default preset", *(e.name for e in entries)]
     show = lambda v: f"{v:.3g}" if isinstance(v, float) else str(v)  # noqa: E731
     rows = [[k, show(default[k]), *(show(v[k]) for v in values)] for k in changed]
-    return _markdown_table(header, rows) if rows else "(every entry is the default preset)"
+    return markdown_table(header, rows) if rows else "(every entry is the default preset)"
 
 
 def robustness_markdown(
@@ -660,7 +650,7 @@ def run_robustness(
     Args:
       out_dir: output folder (run folders of an earlier evaluation there are replaced).
       real_scenes, generated: the scenes (as `experiments.run_experiment`).
-      methods: names of `experiments.METHODS` (default `DEFAULT_METHODS`).
+      methods: names of `comparison.methods.METHODS` (default `DEFAULT_METHODS`).
       entries: the zoo (default `noise_zoo(mixed, noise_seed)`).
       noise_seed, mixed: the zoo's seed and number of random mixtures, when `entries` is not given.
       cache_dir: generated scenes and simulated detections (default OUT/cache).
@@ -680,10 +670,10 @@ def run_robustness(
     names = [e.name for e in entries]
     if len(set(names)) != len(names):
         raise UserError(f"zoo entry names repeat: {names}")
-    report = report or (_stderr_report if progress else log.info)
+    report = report or (stderr_report if progress else log.info)
     for method in chosen:  # bad overrides fail before anything is made
         for kind in sorted({s.kind for s in sources}):
-            _check_config(kind, sources, list(overrides) + list(method.overrides), real_max_frames)
+            check_config(kind, sources, list(overrides) + list(method.overrides), real_max_frames)
     out_dir = prepare_output_dir(out_dir)
     cache_dir = Path(cache_dir) if cache_dir is not None else out_dir / "cache"
 

@@ -17,8 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from fmfusion_jax.bench import report
-from fmfusion_jax.bench.scenes import BenchScene, prepare_generated_scene, prepare_real_scene
+from fmfusion_jax.apps.bench import report
+from fmfusion_jax.apps.bench.scenes import BenchScene, prepare_generated_scene, prepare_real_scene
 from fmfusion_jax.errors import UserError
 
 DEFAULT_OUT = Path("outputs/bench")
@@ -63,7 +63,7 @@ def run_bench(
     say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True),
 ) -> dict:
     """Runs the benchmark; writes `bench.md` and `bench.json` into `options.out`; returns the summary."""
-    from fmfusion_jax.bench.harness import peer_unavailable_reason
+    from fmfusion_jax.apps.bench.harness import peer_unavailable_reason
     from fmfusion_jax.runner import prepare_output_dir
 
     out = prepare_output_dir(options.out)
@@ -173,7 +173,9 @@ def _child(
     caps = f", detections capped to {' '.join(map(str, sweep))}" if sweep else ""
     say(f"running {names[pipeline]} on {scene.name} ({min(frames or scene.frames, scene.frames)} frames{caps})")
     start = time.perf_counter()
-    completed = subprocess.run([sys.executable, "-m", "fmfusion_jax.bench.worker", str(spec_path), str(result_path)], check=False)
+    completed = subprocess.run(
+        [sys.executable, "-m", "fmfusion_jax.apps.bench.worker", str(spec_path), str(result_path)], check=False
+    )
     seconds = time.perf_counter() - start
     if completed.returncode != 0 or not result_path.is_file():
         say(f"  {names[pipeline]} failed (exit {completed.returncode}) after {seconds:.0f} s")

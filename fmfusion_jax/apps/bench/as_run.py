@@ -1,6 +1,6 @@
 """The bench's as-run pass alone, repeated: a quick A/B of two versions of the code on the same device.
 
-    python -m fmfusion_jax.bench.as_run --scene ../shared/data/scannet/scene0000_00 --cache outputs/bench/cache
+    python -m fmfusion_jax.apps.bench.as_run --scene ../shared/data/scannet/scene0000_00 --cache outputs/bench/cache
 
 Fuses the real scene `--passes` times in this process, as `fmfusion run` does (reader threads preparing the next
 frames, the steps dispatched without waiting; `worker._as_run_pass`), and prints one JSON line per pass: the median,
@@ -19,14 +19,14 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from fmfusion_jax.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.scenes import BenchScene
 
 
 def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say=print) -> list[dict]:
     """`passes` as-run passes over the first `frames` frames of `scene` (None: all); one dict per pass."""
     import numpy as np
 
-    from fmfusion_jax.bench import harness, worker
+    from fmfusion_jax.apps.bench import harness, worker
     from fmfusion_jax.runner import mapper_for_scene
 
     config, opened, folder = harness.open_bench_scene(scene, frames)
@@ -57,7 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from fmfusion_jax.compile_cache import enable_compile_cache
     from fmfusion_jax.xla_options import enable_gpu_command_buffers
 
-    parser = argparse.ArgumentParser(prog="python -m fmfusion_jax.bench.as_run", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m fmfusion_jax.apps.bench.as_run", description=__doc__.splitlines()[0])
     parser.add_argument("--scene", type=Path, required=True, help="real ScanNet-layout scene with ground truth")
     parser.add_argument("--cache", type=Path, default=Path("outputs/bench/cache"), help="simulated detections (made once)")
     parser.add_argument("--passes", type=int, default=3, help="passes over the frames (default 3; the first compiles)")
@@ -67,7 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--passes must be at least 1")
     enable_gpu_command_buffers()  # as the `fmfusion` commands: before JAX starts a backend
     enable_compile_cache()
-    from fmfusion_jax.bench.scenes import prepare_real_scene
+    from fmfusion_jax.apps.bench.scenes import prepare_real_scene
     from fmfusion_jax.errors import UserError
 
     try:

@@ -6,10 +6,10 @@ from __future__ import annotations
 import os
 import resource
 
-from fmfusion_jax.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.scenes import BenchScene
 
 #: Module of the Open3D peer pipelines (an optional dependency: `open3d-cpu`).
-PEER_MODULE = "fmfusion_jax.bench.open3d_peer"
+PEER_MODULE = "fmfusion_jax.apps.bench.open3d_peer"
 
 
 def peak_rss_mb() -> float:

@@ -13,7 +13,7 @@ the packer's own rule when a frame has more detections than its capacity; ties: 
 their original order; a frame with `k` or fewer usable detections is left as it is. So a run capped at
 `k` fuses what a run with `detections.max_detections = k` would fuse.
 
-    python -m fmfusion_jax.bench.worker SPEC.json RESULT.json   (pipeline "ours-sweep" or "peer-sweep")
+    python -m fmfusion_jax.apps.bench.worker SPEC.json RESULT.json   (pipeline "ours-sweep" or "peer-sweep")
 
 The runs of the different caps advance together, one frame each in turn (the order rotating from frame
 to frame), so that a change in the machine's load hits every cap alike; for ours, as many maps as fit in
@@ -31,7 +31,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from fmfusion_jax.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.scenes import BenchScene
 from fmfusion_jax.engine.detections import select_detections
 from fmfusion_jax.types import FrameDetections
 
@@ -97,14 +97,14 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     live instances per frame."""
     import jax.numpy as jnp
 
-    from fmfusion_jax.bench.harness import (
+    from fmfusion_jax.apps.bench.harness import (
         device_description,
         frames_with_detections,
         open_bench_scene,
         peak_rss_mb,
         scene_map_config,
     )
-    from fmfusion_jax.bench.stages import FrameTimer
+    from fmfusion_jax.apps.bench.stages import FrameTimer
     from fmfusion_jax.labels import load_label_sets, load_likelihood
     from fmfusion_jax.pipeline import MapBuilder
 
@@ -167,7 +167,7 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     together: its pipelines are small)."""
     import importlib
 
-    from fmfusion_jax.bench.harness import (
+    from fmfusion_jax.apps.bench.harness import (
         PEER_MODULE,
         frames_with_detections,
         open_bench_scene,

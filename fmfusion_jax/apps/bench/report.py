@@ -16,8 +16,8 @@ from typing import Any, TypeGuard
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fmfusion_jax.bench.profile import profile_lines
-from fmfusion_jax.bench.stages import FUSION_STAGES
+from fmfusion_jax.apps.bench.profile import profile_lines
+from fmfusion_jax.apps.bench.stages import FUSION_STAGES
 from fmfusion_jax.xla_options import GPU_COMMAND_BUFFER_FLAG
 
 #: Frames the worker's pass without timers reads ahead at a time (`worker._as_run_pass`; the first call of each

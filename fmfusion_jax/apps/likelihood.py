@@ -48,9 +48,9 @@ DEFAULT_REAL_CONFIG = "scannet-subsampled"
 
 
 def default_real_scene() -> Path | None:
-    """The shared ScanNet sample (`experiments.sample_scene_dir`: `$FMFUSION_SCANNET_DIR/scene0000_00` or
+    """The shared ScanNet sample (`io.scene.sample_scene_dir`: `$FMFUSION_SCANNET_DIR/scene0000_00` or
     ../shared/data/scannet/...), if present."""
-    from fmfusion_jax.experiments import sample_scene_dir
+    from fmfusion_jax.io.scene import sample_scene_dir
 
     scene = sample_scene_dir()
     return scene if scene.is_dir() else None
@@ -82,7 +82,7 @@ def generated_cases(
 ) -> list[Case]:
     """Generated scenes (seeds) with simulated detections (the demo's noise model, seeded like the scene),
     cached under `root`; each fused with the demo config scaled to its size."""
-    from fmfusion_jax.demo import demo_config, demo_noise
+    from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
     from fmfusion_jax.simulation.procedural import generate_scene
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, prepare_generated
 

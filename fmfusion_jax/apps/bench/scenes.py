@@ -77,12 +77,12 @@ def prepare_generated_scene(
     """A generated room with `objects` objects (its size grows with them, `procedural.default_room_size`),
     `frames` frames of `width x height` along a loop around it, and simulated detections on every frame.
 
-    Fused with the demo's config for these sizes (`demo.demo_config`), detections on every frame and geometry
+    Fused with the demo's config for these sizes (`demo_setup.demo_config`), detections on every frame and geometry
     fusion timed however short the run.
     Everything lives in `cache_dir/synth-o<objects>-f<frames>-<W>x<H>-s<seed>` and is reused when there.
     """
     from fmfusion_jax.config import load_config
-    from fmfusion_jax.demo import demo_config, demo_noise
+    from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
     folder = cache_dir / f"synth-o{objects}-f{frames}-{width}x{height}-s{seed}"
