@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.errors import UserError
 
 
@@ -34,7 +34,7 @@ def register(subparsers) -> None:
         metavar="DIR",
         help="detect with the models of DIR (`fmfusion detect`, into OUT/_detections/<scene>, continued on --resume)",
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    options.add_out(parser, required=True, help="output folder")
     parser.add_argument("--workers", type=int, default=1, help="scenes fused at once on this machine (default 1)")
     parser.add_argument("--ray", metavar="ADDRESS", help="run one Ray task per scene on this cluster (auto, local or an address)")
     parser.add_argument("--ray-cpus", type=float, default=1.0, metavar="N", help="CPUs a scene's Ray task declares")
@@ -48,18 +48,9 @@ def register(subparsers) -> None:
         metavar="GIB",
         help="stop a scene whose process holds more than this resident memory (recorded as memory)",
     )
-    parser.add_argument("--config", help="config of every scene's run (default: scannet)")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value of every scene's run (repeatable)",
-    )
-    parser.add_argument(
-        "--no-progress", action="store_true", help="no progress lines (a line per finished scene, and how far running scenes got)"
-    )
+    options.add_config(parser, help="config of every scene's run (default: scannet)")
+    options.add_overrides(parser, help="override a config value of every scene's run (repeatable)")
+    options.add_no_progress(parser, help="no progress lines (a line per finished scene, and how far running scenes got)")
     parser.set_defaults(func=run)
 
 

@@ -7,7 +7,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.cli import HelpFormatter, options
 
 #: The real scene used when --scene is not given (and present).
 DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
@@ -90,15 +90,10 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke test in well under a minute")
     parser.add_argument("--cache", type=Path, default=None, help="folder of the prepared scenes (default OUT/cache)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the generated rooms and simulated detections")
-    parser.add_argument("--out", type=Path, default=Path("outputs/bench"), help="output folder")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 (repeatable)",
+    options.add_seed(parser, help="seed of the generated rooms and simulated detections")
+    options.add_out(parser, default=Path("outputs/bench"), help="output folder")
+    options.add_overrides(
+        parser, help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 (repeatable)"
     )
     parser.add_argument(
         "--profile",
@@ -108,7 +103,7 @@ def register(subparsers) -> None:
         help="trace the last N frames of our pass as run on the main scene with jax.profiler (left out of the figures): "
         "bench.md summarizes where each thread's time went, the trace opens in ui.perfetto.dev (default: 0, none)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    options.add_no_progress(parser, help="no progress bars")
     parser.set_defaults(func=run)
 
 

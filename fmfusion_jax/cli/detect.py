@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.errors import UserError
 
 #: What `fmfusion detect` records in its output folder: the run's settings, so that a rerun continues (skipping
@@ -36,9 +36,9 @@ def register(subparsers) -> None:
         help="models folder: a models.yaml naming each model's file, the shared layout (detector/, sam/, classifier/) "
         "or ram.onnx, groundingdino.onnx, sam_encoder.onnx, sam_decoder.onnx (docs/detectors.md)",
     )
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="detection folder to write (created)")
-    parser.add_argument("--layout", default="auto", choices=("auto", "scannet", "scenenn"), help="scene layout")
-    parser.add_argument("--stride", type=int, default=1, metavar="N", help="read every N-th frame of the sequence")
+    options.add_out(parser, required=True, metavar="DIR", help="detection folder to write (created)")
+    options.add_layout(parser, choices=("auto", "scannet", "scenenn"), help="scene layout")
+    options.add_stride(parser, metavar="N", help="read every N-th frame of the sequence")
     parser.add_argument(
         "--every",
         type=int,
@@ -46,7 +46,7 @@ def register(subparsers) -> None:
         metavar="N",
         help="detect on every N-th frame read instead of the frames the detection schedule fuses",
     )
-    parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="read at most N frames")
+    options.add_max_frames(parser, help="read at most N frames")
     parser.add_argument(
         "--providers",
         default="cpu",
@@ -66,18 +66,11 @@ def register(subparsers) -> None:
     grounded.add_argument(
         "--prompt-window", type=int, metavar="N", help="detection frames whose labels augment the prompt (5; 0: none)"
     )
-    parser.add_argument(
-        "--config", default="scannet", help="config of the `fmfusion run` to detect for (its schedule and front_end section)"
+    options.add_config(
+        parser, default="scannet", help="config of the `fmfusion run` to detect for (its schedule and front_end section)"
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value, e.g. --set front_end.proposals=false (repeatable)",
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    options.add_overrides(parser, help="override a config value, e.g. --set front_end.proposals=false (repeatable)")
+    options.add_no_progress(parser, help="no progress bar")
     parser.set_defaults(func=run)
 
 

@@ -8,6 +8,7 @@ import json
 import logging
 from pathlib import Path
 
+from fmfusion_jax.cli import options
 from fmfusion_jax.errors import UserError
 
 log = logging.getLogger(__name__)
@@ -70,7 +71,7 @@ def register(subparsers) -> None:
         help="raw label -> nyu40 tsv for scene folders (default: scannetv2-labels.combined.tsv or "
         "scannet-labels.combined.tsv in the scene folder, then its parent)",
     )
-    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores to this JSON file")
+    options.add_json(parser, help="also write the scores to this JSON file")
     parser.add_argument(
         "--explain",
         nargs="?",

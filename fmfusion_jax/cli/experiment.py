@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fmfusion_jax.cli import options
 from fmfusion_jax.errors import UserError
 
 
@@ -84,14 +85,11 @@ def register(subparsers) -> None:
         help=f"methods to run, some of: {', '.join(METHODS)} (default: {' '.join(DEFAULT_METHODS)}; "
         f"with --robustness: {' '.join(robustness.DEFAULT_METHODS)})",
     )
-    parser.add_argument(
-        "--seed", type=int, default=None, help="seed of the simulated detections (default 0; with --robustness use --noise-seed)"
+    options.add_seed(
+        parser, default=None, help="seed of the simulated detections (default 0; with --robustness use --noise-seed)"
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help=f"output folder (default {DEFAULT_OUT}; with --robustness {robustness.DEFAULT_OUT})",
+    options.add_out(
+        parser, default=None, help=f"output folder (default {DEFAULT_OUT}; with --robustness {robustness.DEFAULT_OUT})"
     )
     parser.add_argument(
         "--robustness",
@@ -128,16 +126,12 @@ def register(subparsers) -> None:
         f"{QUICK_GENERATED['width']}x{QUICK_GENERATED['height']}, real scenes (only those named) "
         f"cut to {QUICK_REAL_FRAMES} frames; with --robustness also a zoo of one mixture",
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
+    options.add_overrides(
+        parser,
         help="override a config value for every method, e.g. --set detections.every=2 "
         "(repeatable; a method's own setting, such as ablation A's likelihood, wins)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars or per-run lines")
+    options.add_no_progress(parser, help="no progress bars or per-run lines")
     parser.set_defaults(func=run)
 
 

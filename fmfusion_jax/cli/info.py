@@ -7,6 +7,8 @@ import collections
 from collections.abc import Sequence
 from pathlib import Path
 
+from fmfusion_jax.cli import options
+
 #: Depth images read for the depth statistics and the bounds (the rest of the scene is never decoded).
 SAMPLED_FRAMES = 30
 
@@ -20,9 +22,9 @@ def register(subparsers) -> None:
         f"{SAMPLED_FRAMES} depth images, so it takes a few seconds at most.",
     )
     parser.add_argument("scene", type=Path, help="scene folder (ScanNet color/ depth/ pose/ intrinsic/, or SceneNN)")
-    parser.add_argument("--layout", default="auto", choices=("auto", "scannet", "scenenn"), help="default: auto")
-    parser.add_argument("--stride", type=int, default=1, help="use every N-th frame (default 1)")
-    parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")
+    options.add_layout(parser, choices=("auto", "scannet", "scenenn"), help="default: auto")
+    options.add_stride(parser, help="use every N-th frame (default 1)")
+    options.add_depth_max(parser)
     parser.add_argument(
         "--detections", type=Path, metavar="DIR", help="folder of <frame>_label.json + <frame>_mask.{npy,png} detection files"
     )

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.errors import UserError
 
 
@@ -37,7 +37,7 @@ def _add_generated_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--frames", type=int, default=size.num_frames, help="frames per generated scene")
     group.add_argument("--width", type=int, default=size.width, help="image width of generated scenes")
     group.add_argument("--height", type=int, default=size.height, help="image height of generated scenes")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    options.add_no_progress(parser, help="no progress bars")
 
 
 def register(subparsers) -> None:
@@ -81,7 +81,7 @@ def register(subparsers) -> None:
     summarize.add_argument(
         "--generated", type=int, default=0, metavar="N", help="also N generated scenes (seeds 1..N) with simulated detections"
     )
-    summarize.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    options.add_out(summarize, required=True, help="output folder (created)")
     summarize.add_argument(
         "--min-pixels",
         type=int,
@@ -123,7 +123,7 @@ def register(subparsers) -> None:
         "../shared/data/scannet/scene0000_00 when present; give none to leave it out)",
     )
     calibrate.add_argument("--real-config", default="scannet-subsampled", help="config the real scenes are fused with")
-    calibrate.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    options.add_out(calibrate, required=True, help="output folder (created)")
     calibrate.add_argument(
         "--init", default="statistical", help="initial matrix: statistical, manual or a CSV path (the training runs use it)"
     )

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.errors import UserError
 
 
@@ -23,7 +23,7 @@ def register(subparsers) -> None:
     parser.add_argument("map", type=Path, help="output folder of fmfusion run / demo (instances.json)")
     parser.add_argument("text", help="what to find, e.g. 'chair', 'something to sit on', 'lamp on the table'")
     parser.add_argument("--top", type=int, default=10, help="at most this many instances (default 10)")
-    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the matches to this JSON file")
+    options.add_json(parser, help="also write the matches to this JSON file")
     parser.add_argument(
         "--picture",
         type=Path,

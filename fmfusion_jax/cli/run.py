@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.errors import UserError
 
 
@@ -32,9 +32,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--providers", default="cpu", choices=("cpu", "cuda", "auto"), help="onnxruntime execution providers for --models"
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
+    options.add_out(
+        parser,
         required=True,
         help="output folder (created; an earlier run's output folder is replaced, any other folder with files is "
         "refused unless --overwrite, and never one holding the scene, the detections or the models)",
@@ -42,17 +41,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--overwrite", action="store_true", help="replace --out even when it is not an earlier run's output folder"
     )
-    parser.add_argument(
-        "--config", default="scannet", help="config file, or a packaged one: scannet, scannet-subsampled, scenenn"
-    )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value, e.g. --set detections.every=1 (repeatable)",
-    )
+    options.add_config(parser, default="scannet", help="config file, or a packaged one: scannet, scannet-subsampled, scenenn")
+    options.add_overrides(parser, help="override a config value, e.g. --set detections.every=1 (repeatable)")
     parser.add_argument(
         "--on-error",
         choices=("skip", "stop"),
@@ -80,7 +70,7 @@ def register(subparsers) -> None:
         metavar="FILE.rrd",
         help="record the live view to a Rerun file instead of opening a window (headless)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    options.add_no_progress(parser, help="no progress bar")
     parser.set_defaults(func=run)
 
 

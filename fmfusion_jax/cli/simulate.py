@@ -6,6 +6,8 @@ import argparse
 import collections
 from pathlib import Path
 
+from fmfusion_jax.cli import options
+
 # Kept equal to fmfusion_jax.simulation.noise.PRESETS (a test checks) without importing it at start-up.
 PRESETS = (
     "clean",
@@ -36,14 +38,10 @@ def register(subparsers) -> None:
         "docs/simulated-detections.md for the noise model.",
     )
     parser.add_argument("scene", type=Path, help="ScanNet scene folder with its ground truth (mesh, segs, aggregation)")
-    parser.add_argument(
-        "--out",
-        type=Path,
-        required=True,
-        metavar="DIR",
-        help="output folder (new, empty, or a previous simulation's, which is replaced)",
+    options.add_out(
+        parser, required=True, metavar="DIR", help="output folder (new, empty, or a previous simulation's, which is replaced)"
     )
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    options.add_seed(parser, help="random seed (default 0)")
     parser.add_argument(
         "--noise-preset",
         default="default",
@@ -56,16 +54,15 @@ def register(subparsers) -> None:
         "taken for furniture, over-segmented textures), on top of default "
         "(default: default)",
     )
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
+    options.add_overrides(
+        parser,
         metavar="NAME=VALUE",
         help="override one noise parameter, e.g. --set missed_tag_prob=0.4 or, with "
         "--noise-preset border, --set bleed_px=8 (repeatable; value parsed as YAML)",
+        dest="set",
     )
     parser.add_argument("--no-prompt-augmentation", action="store_true", help="leave missed tags uncorrected (ablation B)")
-    parser.add_argument("--stride", type=int, default=1, help="read every N-th frame of the sequence (default 1)")
+    options.add_stride(parser, help="read every N-th frame of the sequence (default 1)")
     parser.add_argument(
         "--every",
         type=int,
@@ -73,7 +70,7 @@ def register(subparsers) -> None:
         help="simulate the frames whose index is a multiple of N: the detection frames of the "
         "fusion (default 1: all frames read)",
     )
-    parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N simulated frames")
+    options.add_max_frames(parser, help="stop after N simulated frames")
     parser.add_argument(
         "--mask-format",
         default="png",
@@ -92,9 +89,9 @@ def register(subparsers) -> None:
         default=0.05,
         help="m; depth farther than this from the ground-truth mesh stays unlabelled (default 0.05)",
     )
-    parser.add_argument("--layout", default="auto", choices=("auto", "scannet"), help="default: auto")
-    parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    options.add_layout(parser, choices=("auto", "scannet"), help="default: auto")
+    options.add_depth_max(parser)
+    options.add_no_progress(parser, help="no progress bar")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     parser.set_defaults(func=run)
 

@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from fmfusion_jax.cli import options
 from fmfusion_jax.errors import UserError
 
 _EPILOG = """\
@@ -37,7 +38,7 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="scene folder to write (must be empty or new)")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    options.add_seed(parser, help="scene seed (default 0)")
     parser.add_argument(
         "--objects", type=int, default=15, metavar="N", help="objects besides walls/floor/ceiling, 1..900 (default 15)"
     )
