@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 
+from fmfusion_jax.apps.simulate import parse_overrides
 from fmfusion_jax.cli import simulate as cli_simulate
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import load_label_sets, load_likelihood
@@ -169,7 +170,7 @@ def test_cli_accepts_family_presets_and_their_parameters():
     args = build_parser().parse_args(
         ["simulate", "scene", "--out", "sim", "--noise-preset", "border", "--set", "bleed_px=8", "--set", "erode_prob=0.1"]
     )
-    noise = NoiseModel.preset(args.noise_preset, **cli_simulate.parse_overrides(args.set))
+    noise = NoiseModel.preset(args.noise_preset, **parse_overrides(args.set))
     assert (noise.bleed_px, noise.erode_prob, noise.bleed_prob) == (8, 0.1, FAMILY_DOSES["border"]["bleed_prob"])
 
 

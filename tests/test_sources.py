@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmfusion_jax.cli.detect import RECORD_FILE, _frames_done
+from fmfusion_jax.apps.detect import RECORD_FILE, _frames_done
 from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder, label_path

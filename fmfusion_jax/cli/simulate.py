@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import collections
 from pathlib import Path
 
 from fmfusion_jax.cli import options
@@ -96,63 +95,24 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def parse_overrides(items: list[str]) -> dict:
-    """``["a=1", "b=true"]`` -> ``{"a": 1, "b": True}`` (values parsed as YAML)."""
-    import yaml
-
-    from fmfusion_jax.errors import UserError
-
-    overrides = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep or not name.strip():
-            raise UserError(f"--set {item!r}: expected NAME=VALUE")
-        try:
-            overrides[name.strip()] = yaml.safe_load(value)
-        except yaml.YAMLError as error:
-            raise UserError(f"--set {item!r}: value is not valid YAML ({error})") from None
-    return overrides
-
-
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.errors import UserError
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.simulation.noise import NoiseModel
-    from fmfusion_jax.simulation.simulate import simulate_scene
+    from fmfusion_jax.apps.simulate import run_simulate  # lazy: the command's work loads only when it runs
 
-    for name in ("stride", "every", "render_stride"):
-        if getattr(args, name) < 1:
-            raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise UserError(f"--max-frames must be >= 1, got {args.max_frames}")
-    overrides = parse_overrides(args.set)
-    overrides["seed"] = args.seed
-    if args.no_prompt_augmentation:
-        overrides["prompt_augmentation"] = False
-    noise = NoiseModel.preset(args.noise_preset, **overrides)
-
-    scene = open_scene(args.scene, layout=args.layout, stride=args.stride, depth_max=args.depth_max)
-    if scene.layout != "scannet":
-        raise UserError(f"{args.scene}: simulation needs ScanNet instance ground truth; this is a {scene.layout} scene")
-    gt = load_scannet_ground_truth(scene.path)
-    summary = simulate_scene(
-        scene,
-        gt,
-        args.out,
-        noise,
+    return run_simulate(
+        max_frames=args.max_frames,
+        noise_set=args.set,
+        seed=args.seed,
+        no_prompt_augmentation=args.no_prompt_augmentation,
+        noise_preset=args.noise_preset,
+        scene_dir=args.scene,
+        layout=args.layout,
+        stride=args.stride,
+        depth_max=args.depth_max,
+        out=args.out,
         render_stride=args.render_stride,
         every=args.every,
-        max_frames=args.max_frames,
         mask_format=args.mask_format,
         max_distance=args.max_distance,
-        progress=not (args.quiet or args.no_progress),
+        quiet=args.quiet,
+        no_progress=args.no_progress,
     )
-    if not args.quiet:
-        frames = len(summary.frame_names)
-        rate = frames / summary.seconds if summary.seconds > 0 else float("inf")
-        print(f"simulated {frames} frames of {scene.name} in {summary.seconds:.1f} s ({rate:.1f} frames/s) -> {summary.out_dir}")
-        print(f"detections per frame: median {summary.median_detections:g}, total {sum(summary.detections_per_frame)}")
-        top = collections.Counter(summary.label_counts).most_common(12)
-        print("main labels: " + ", ".join(f"{name} {count}" for name, count in top))
-    return 0
