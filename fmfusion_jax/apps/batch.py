@@ -427,3 +427,84 @@ def write_reports(out: Path, records: Sequence[dict[str, Any]], pooled, scored: 
     text = "\n".join(lines) + "\n"
     write_atomic(out / "batch.md", text)
     return text
+
+
+def run_batch(
+    *,
+    workers: int,
+    scene_timeout: float | None,
+    scene_memory: float | None,
+    config: str | None,
+    overrides: list[str],
+    dataset: Path,
+    root: Path | None,
+    out: Path,
+    detections: str | None,
+    simulate: bool,
+    models: Path | None,
+    resume: bool,
+    no_progress: bool,
+    batch_size: int | None,
+    ray: str | None,
+    ray_cpus: float,
+    ray_gpus: float,
+) -> int:
+    from fmfusion_jax.config import load_config
+
+    if workers < 1:
+        raise UserError(f"--workers must be >= 1, got {workers}")
+    if scene_timeout is not None and scene_timeout <= 0:
+        raise UserError(f"--scene-timeout must be > 0, got {scene_timeout}")
+    if scene_memory is not None and scene_memory <= 0:
+        raise UserError(f"--scene-memory must be > 0 GiB, got {scene_memory}")
+    load_config(config or "scannet", overrides)  # a bad config fails now, not in every scene
+    scenes = list_scenes(dataset, root)
+    options = ["--config", str(Path(config).resolve()) if os.path.isfile(config) else config] if config else []
+    for item in overrides:
+        options += ["--set", item]
+    options.append("--restart")  # an interrupted scene of an earlier batch starts over
+    out.mkdir(parents=True, exist_ok=True)
+    batch = Batch(
+        scenes,
+        out,
+        detections=detections,
+        simulate=simulate,
+        models=models,
+        run_options=options,
+        timeout_s=scene_timeout,
+        memory_mib=None if scene_memory is None else 1024 * scene_memory,
+    )
+    if resume:
+        batch.load()
+    tasks = batch.pending(resume)
+    skipped = len(batch.tasks) - len(tasks)
+    total = len(tasks)
+    print(f"{len(batch.tasks)} scenes, {total} to run" + (f" ({skipped} done before)" if skipped else ""), file=sys.stderr)
+    done = 0
+
+    def report(record: dict) -> None:
+        nonlocal done
+        done += 1
+        if not no_progress:
+            score = f", AP50 {100 * record['mAP50']:.1f}" if record.get("mAP50") is not None else ""
+            what = record["status"] if record["status"] == "ok" else f"{record['status']}: {record.get('error')}"
+            print(f"[{done}/{total}] {record['scene']}: {what}{score} ({record.get('seconds', 0):.0f} s)", file=sys.stderr)
+
+    if batch_size:
+        if batch_size < 1 or ray:
+            raise UserError("--batch K needs K >= 1 and no --ray")
+        batch.run_vmapped(tasks, batch_size, load_config(config or "scannet", overrides), report)
+    elif ray:
+        batch.run_ray(tasks, ray, report, cpus_per_scene=ray_cpus, gpus_per_scene=ray_gpus)
+    else:
+        batch.run_local(
+            tasks,
+            workers,
+            report,
+            None if no_progress else lambda scene, text: print(f"  {scene}: {text}", file=sys.stderr),
+        )
+    records = [batch.records[t.name] for t in batch.tasks if t.name in batch.records]
+    pooled, scored = pooled_benchmark(records)
+    print(write_reports(out, records, pooled, scored))
+    failed = sum(r.get("status") != "ok" for r in records)
+    return 1 if failed else 0

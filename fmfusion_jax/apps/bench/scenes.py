@@ -13,6 +13,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, cast
 
+#: The real scene `fmfusion bench` runs when none is given (when present).
+DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
+
 #: Config the real scene is fused with (its frames are ~18 original frames apart: detections on every frame).
 REAL_SCENE_CONFIG = "scannet-subsampled"
 
