@@ -16,16 +16,16 @@ from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.simulation import noise as noise_module
 from fmfusion_jax.simulation.noise import FAMILIES, FAMILY_DOSES, NoiseModel, bleed_kernel, family_noise, mask_box
-from fmfusion_jax.simulation.simulate import (
-    BLOB_LABELS,
+from fmfusion_jax.simulation.sim_false_positives import BLOB_LABELS
+from fmfusion_jax.simulation.sim_labels import (
     CONFUSER_CLASSES,
     EXTRA_CONFUSIONS,
     _LabelModel,
     consistent_mislabels,
     perturb_likelihood,
-    simulate_frame,
     wrong_labels,
 )
+from fmfusion_jax.simulation.simulate import simulate_frame
 from fmfusion_jax.simulation.zoo import MIXED, noise_zoo
 
 LABELS = load_label_sets()

@@ -93,7 +93,7 @@ class NoiseModel:
       likelihood_perturbation: sigma of log-normal factors on every entry of the likelihood the labels
         are drawn from (one perturbed matrix per seed: one "detector"), plus `0.05 * sigma` of mass moved
         onto a few labels each column lacks; columns re-normalized.
-      extra_confusion_prob: probability that a detection of a class of `simulate.EXTRA_CONFUSIONS` takes
+      extra_confusion_prob: probability that a detection of a class of `sim_labels.EXTRA_CONFUSIONS` takes
         one of the labels listed there (confusions the published matrix lacks) as its main label.
       consistent_mislabel_prob: probability, per seed and class, that the class is always named by one
         fixed wrong open-set label (one that the published matrix ascribes to another class) at a normal
@@ -148,7 +148,7 @@ class NoiseModel:
       persistent_detect_prob: probability that a phantom in view (at least `min_mask_pixels` of the
         seen surface inside its sphere, target objects excluded) is detected in a frame, normal score.
       background_rate: mean number (Poisson) per frame of background regions (wall, floor, pixels
-        without ground truth) detected as furniture (`simulate.BACKGROUND_CLASSES`), normal score:
+        without ground truth) detected as furniture (`sim_false_positives.BACKGROUND_CLASSES`), normal score:
         thin strips along the surface or large patches. Drawn afresh in every frame.
       background_strip_share: share of those regions that are thin strips; the rest are large patches.
       texture_prob: probability, per frame and visible region (any instance, wall and floor included) of
