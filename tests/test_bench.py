@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 
-from fmfusion_jax.apps.bench import report
+from fmfusion_jax.apps.bench import figures, report, targets
 from fmfusion_jax.apps.bench.harness import peer_unavailable_reason
 from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
 from fmfusion_jax.apps.bench.sweep import cap_detections, groups_that_fit
@@ -101,23 +101,23 @@ def test_the_targets_judge_the_whole_frame_as_run_when_that_pass_ran():
     peer = {"frames": [{"tsdf": 100.0, "merge": 300.0}] * 4}
     for result, whole_ms in ((ours, 23.0), (as_run, 20.0)):
         table = report.stage_table(result, peer)
-        row = report.whole_frame_row(table)
+        row = figures.whole_frame_row(table)
         assert row is not None and row["ours_all"] == whole_ms and row["ratio"] == pytest.approx(400.0 / whole_ms)
-    assert report.whole_frame_row(report.stage_table(as_run, peer))["label"] == report.AS_RUN_LABEL
-    assert report.whole_frame_row(None) is None
+    assert figures.whole_frame_row(report.stage_table(as_run, peer))["label"] == figures.AS_RUN_LABEL
+    assert figures.whole_frame_row(None) is None
 
 
 def test_frame_sums_leave_out_warm_up_and_compiling_frames():
     frames = [{"fusion": 900.0}, {"fusion": 10.0, "refine": 5.0}, {"fusion": 12.0}, {"fusion": 11.0, "refine": 7.0}]
     compiled = [{"fusion": 3000.0}, {}, {"refine": 2000.0}, {}]
-    assert report.frame_sums(frames, compiled, ("fusion",)) == [10.0, 12.0, 11.0]  # frame 2 compiled refine only
-    assert report.frame_sums(frames, compiled, None) == [15.0, 18.0]
-    assert report.frame_sums(frames, None, ("refine",), stop=3) == [5.0]
+    assert figures.frame_sums(frames, compiled, ("fusion",)) == [10.0, 12.0, 11.0]  # frame 2 compiled refine only
+    assert figures.frame_sums(frames, compiled, None) == [15.0, 18.0]
+    assert figures.frame_sums(frames, None, ("refine",), stop=3) == [5.0]
 
 
 def test_compile_cache_state_says_whether_the_steps_were_compiled_in_the_measured_process():
     """Peak memory depends on it: a process that compiles its steps peaks higher than one that loads them."""
-    state = lambda **cache: report.compile_cache_state({"compile_cache": cache})  # noqa: E731
+    state = lambda **cache: targets.compile_cache_state({"compile_cache": cache})  # noqa: E731
     assert state(dir=None).startswith("compile cache off")
     assert state(dir="c", entries_before=0, entries_after=12).startswith("compile cache cold")
     assert state(dir="c", entries_before=248, entries_after=248).startswith("compile cache warm (248 entries")
@@ -186,9 +186,9 @@ def test_sweep_fit_over_the_caps():
     assert costs["fits"]["ours_fusion"]["per_object_ms"] == pytest.approx(0.5)
     assert costs["fits"]["ours_whole"]["base_ms"] == pytest.approx(11.0)
     assert math.isnan(costs["fits"]["peer_whole"]["per_object_ms"]) and costs["peer_note"] == "--no-peer"
-    target = report._per_object_target(costs)
+    target = targets._per_object_target(costs)
     assert target["met"] is True and "+0.50 ms per detection" in target["figure"]
-    assert report._per_object_target(None)["met"] is None
+    assert targets._per_object_target(None)["met"] is None
 
 
 @pytest.fixture(scope="module")
@@ -335,7 +335,7 @@ def test_the_memory_target_is_judged_on_the_cpu_and_reported_with_the_device_pea
     }
     main = {"scene": {"kind": "real", "frames": 300, "name": "scene0000_00"}, "ours": ours, "peer": None}
     memory_row = lambda platform: next(  # noqa: E731
-        row for row in report.targets({"device": {"platform": platform}}, main) if row["target"].startswith("peak RSS")
+        row for row in targets.targets({"device": {"platform": platform}}, main) if row["target"].startswith("peak RSS")
     )
     on_cpu, on_gpu = memory_row("cpu"), memory_row("gpu")
     assert on_cpu["met"] is False and "3.12x the target" in on_cpu["figure"]
@@ -350,14 +350,14 @@ def test_the_gpu_target_says_by_how_much_it_is_missed_and_what_bounds_the_frame(
     ours = {"frames": frames, "compiled": [{}] * 6, "geometry_fusion_every": 11}
     main = {"scene": {"kind": "generated", "frames": 6, "name": "room"}, "ours": ours, "peer": None}
     summary = {"stages": report.stage_table(ours, None), "device": {"platform": "gpu", "device_kind": "H100"}}
-    row = report.targets(summary, main)[-1]
+    row = targets.targets(summary, main)[-1]
     assert row["target"].startswith("GPU") and row["met"] is False
-    whole = report.whole_frame_row(summary["stages"])["ours_all"]
+    whole = figures.whole_frame_row(summary["stages"])["ours_all"]
     assert f"{whole / 3:.2f}x the target" in row["figure"]
     assert "bound by: fusion step 2.00 ms, merge 1.50 ms" in row["figure"] and "the host's work 1.80 ms" in row["figure"]
     assert "the reader thread's 1.30 ms beside them" in row["figure"]  # `fmfusion run` prepares frames in another thread
     summary["device"]["platform"] = "cpu"
-    assert report.targets(summary, main)[-1] == {"target": row["target"], "figure": "n/a (no GPU in this run)", "met": None}
+    assert targets.targets(summary, main)[-1] == {"target": row["target"], "figure": "n/a (no GPU in this run)", "met": None}
 
 
 def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_path):

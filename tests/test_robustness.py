@@ -11,18 +11,8 @@ import numpy as np
 import pytest
 
 from fmfusion_jax.apps import robustness
-from fmfusion_jax.apps.robustness import (
-    best_methods,
-    detections_tag,
-    entry_noise,
-    family_rows,
-    robustness_markdown,
-    run_robustness,
-    summarize,
-    verdict,
-    verdict_lines,
-    write_reports,
-)
+from fmfusion_jax.apps.robustness import detections_tag, entry_noise, run_robustness, write_reports
+from fmfusion_jax.apps.robustness.report import best_methods, family_rows, robustness_markdown, summarize, verdict, verdict_lines
 from fmfusion_jax.comparison.methods import METHODS, PREVIOUS_MAP_OVERRIDES
 from fmfusion_jax.comparison.scenes import SceneSource
 from fmfusion_jax.simulation.demo_setup import scale_noise_to_image
@@ -288,7 +278,7 @@ def test_tiny_evaluation_end_to_end(tmp_path):
 
 
 def test_precision_counts_pool_and_summarize_on_a_tiny_case():
-    from fmfusion_jax.apps.robustness import pooled_precision, precision_counts, precision_table, summarize_precision
+    from fmfusion_jax.apps.robustness.report import pooled_precision, precision_counts, precision_table, summarize_precision
     from fmfusion_jax.io.benchmark_format import InstancePredictions
 
     chair, table = 5, 7  # nyu40
