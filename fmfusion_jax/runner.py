@@ -602,7 +602,7 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
       floor: the map's floor (`FusionResult.floor()`: `(up, height)`), whose mesh vertices no object claims.
     """
     from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
+    from fmfusion_jax.io.vertex_transfer import floor_vertices
 
     on_floor = None
     if floor is not None:

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from detectors import load_front_end
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
@@ -79,8 +80,6 @@ def open_detection_source(
     if (detections is None) == (models is None):
         raise UserError("give exactly one detection source: a folder of detection files, or a models folder")
     if models is not None:
-        from detectors import load_front_end
-
         overrides = config.front_end.manifest_overrides() if config is not None else None
         front_end = load_front_end(Path(models), providers=providers, overrides=overrides)
         log.info("%s: detecting with %s (%s)", scene.name, type(front_end).__name__, models)

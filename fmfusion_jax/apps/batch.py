@@ -24,6 +24,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -31,9 +32,16 @@ from typing import Any
 
 import numpy as np
 
+from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 from fmfusion_jax.io.atomic import write_atomic
-from fmfusion_jax.io.scene import detect_layout
+from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.scene import detect_layout, open_dataset_scene
+from fmfusion_jax.mapper import MapperBatch
+from fmfusion_jax.runner import write_outputs
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +160,6 @@ def _run_child(
     """One child process: its status (ok, failed, timeout, memory) and its error line. The child is stopped
     past `timeout_s` seconds or `memory_mib` MiB of resident memory (polled twice a second); `progress` hears
     the last frame count of its progress bar every `PROGRESS_EVERY_S` seconds."""
-    import tempfile
 
     with tempfile.TemporaryFile("w+") as stderr_file:
         process = subprocess.Popen(
@@ -325,10 +332,6 @@ class Batch:
 
 
 def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.mapper import MapperBatch
-    from fmfusion_jax.runner import write_outputs
 
     start = time.perf_counter()
     records: list[dict[str, Any]] = [{"scene": t.name, "path": t.scene, "out": t.out} for t in group]
@@ -373,9 +376,6 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
 def pooled_benchmark(records: Sequence[dict[str, Any]]):
     """`(result, scene names)`: the ScanNet benchmark pooled over the scenes that ran and have ground truth
     (result None when none has)."""
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 
     pairs, names = [], []
     for record in records:
@@ -449,7 +449,6 @@ def run_batch(
     ray_cpus: float,
     ray_gpus: float,
 ) -> int:
-    from fmfusion_jax.config import load_config
 
     if workers < 1:
         raise UserError(f"--workers must be >= 1, got {workers}")

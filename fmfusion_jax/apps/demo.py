@@ -25,6 +25,9 @@ from typing import TYPE_CHECKING
 
 from fmfusion_jax.config import detection_frame_stride
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.scene import open_dataset_scene
 from fmfusion_jax.simulation.demo_setup import (
     DEFAULT_FRAMES,
     DEFAULT_HEIGHT,
@@ -33,6 +36,9 @@ from fmfusion_jax.simulation.demo_setup import (
     demo_config,
     demo_noise,
 )
+from fmfusion_jax.simulation.procedural import generate_scene
+from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
+from fmfusion_jax.simulation.simulate import simulate_scene
 
 if TYPE_CHECKING:  # pragma: no cover
     from fmfusion_jax.pipeline import FusionResult
@@ -66,7 +72,7 @@ class DemoResult:
 def _prepare(out_dir: Path) -> None:
     """Makes `out_dir`; a previous demo's folder (it holds `demo.json`) is emptied first; any other
     non-empty folder is refused, so the demo never deletes a user's files."""
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.runner import prepare_output_dir  # lazy: JAX (`fmfusion --help` imports this module)
 
     prepare_output_dir(out_dir)
     entries = list(out_dir.iterdir())
@@ -118,13 +124,11 @@ def run_demo(
     out_dir = Path(out_dir)
     _prepare(out_dir)
 
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.runner import fuse_scene, summarize_run, write_outputs
-    from fmfusion_jax.simulation.procedural import generate_scene
-    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
-    from fmfusion_jax.simulation.simulate import simulate_scene
+    from fmfusion_jax.runner import (  # lazy: JAX (`fmfusion --help` imports this module)
+        fuse_scene,
+        summarize_run,
+        write_outputs,
+    )
 
     seconds: dict[str, float] = {}
     start = clock = time.perf_counter()

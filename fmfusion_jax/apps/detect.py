@@ -6,7 +6,14 @@ import json
 import time
 from pathlib import Path
 
+from tqdm import tqdm
+
+from detectors import build_front_end, read_manifest
+from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import label_path, write_frame_detections
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.pipeline import scheduled_positions
 
 #: What `fmfusion detect` records in its output folder: the run's settings, so that a rerun continues (skipping
 #: the frames done) only when it would make the same detections.
@@ -31,13 +38,6 @@ def run_detect(
     out: Path,
     no_progress: bool,
 ) -> int:
-    from tqdm import tqdm
-
-    from detectors import build_front_end, read_manifest
-    from fmfusion_jax.config import load_config
-    from fmfusion_jax.io.detections import label_path, write_frame_detections
-    from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.pipeline import scheduled_positions
 
     if every is not None and every < 1:
         raise UserError(f"--every must be a positive integer, got {every}")

@@ -10,6 +10,16 @@ import logging
 from pathlib import Path
 
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.evaluation.explain import explain_scene
+from fmfusion_jax.evaluation.explain_report import write_explanation
+from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+from fmfusion_jax.io.benchmark_format import (
+    export_ground_truth_as_predictions,
+    read_benchmark_predictions,
+    write_benchmark_predictions,
+)
+from fmfusion_jax.io.ground_truth import load_benchmark_gt_txt, load_scannet_ground_truth
+from fmfusion_jax.likelihood.reach import detector_reach
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +70,6 @@ def _evaluate(
     explain_dir: Path | None = None,
     detections: Path | None = None,
 ) -> int:
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
 
     scenes, names, meshes = [], [], []
     for pred_path, source in pairs:
@@ -95,7 +103,6 @@ def _evaluate(
 
 def _reach(scene_dir: Path, detections: Path, found: dict[int, bool] | None, out_dir: Path | None) -> None:
     """The detector's reach (`likelihood.reach`) printed, and written beside the error analysis."""
-    from fmfusion_jax.likelihood.reach import detector_reach
 
     reach = detector_reach(scene_dir, detections, progress=True)
     text = reach.markdown(found)
@@ -113,8 +120,6 @@ def _reach(scene_dir: Path, detections: Path, found: dict[int, bool] | None, out
 def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) -> dict[int, bool]:
     """The error analysis of each scene (`evaluation.explain`): files in `explain_dir` (one scene) or
     `explain_dir/<scene>/`, and its counts printed. Returns whether each object (benchmark id) was found."""
-    from fmfusion_jax.evaluation.explain import explain_scene
-    from fmfusion_jax.evaluation.explain_report import write_explanation
 
     print("error analysis (objects by status | predictions by kind; docs/error-analysis.md):")
     found: dict[int, bool] = {}
@@ -134,7 +139,6 @@ def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) ->
 
 
 def _export_ground_truth(sources: list[_GroundTruthSource], out_dir: Path, labels_tsv: Path | None) -> int:
-    from fmfusion_jax.io.benchmark_format import export_ground_truth_as_predictions, write_benchmark_predictions
 
     for source in sources:
         preds = export_ground_truth_as_predictions(_load_ground_truth_ids(source, labels_tsv))
@@ -150,7 +154,6 @@ def _export_ground_truth(sources: list[_GroundTruthSource], out_dir: Path, label
 
 def _load_ground_truth_with_mesh(source: _GroundTruthSource, labels_tsv: Path | None):
     """`(gt_ids, (vertices, faces))` of a scene folder; `(gt_ids, None)` of a benchmark gt .txt."""
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 
     if source.kind == "txt":
         return _load_ground_truth_ids(source, labels_tsv), None
@@ -159,7 +162,6 @@ def _load_ground_truth_with_mesh(source: _GroundTruthSource, labels_tsv: Path | 
 
 
 def _load_ground_truth_ids(source: _GroundTruthSource, labels_tsv: Path | None):
-    from fmfusion_jax.io.ground_truth import load_benchmark_gt_txt, load_scannet_ground_truth
 
     if source.kind == "txt":
         return load_benchmark_gt_txt(source.path)

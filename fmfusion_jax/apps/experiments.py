@@ -238,7 +238,7 @@ def run_experiment(
       real_detections: detection folder of the real scenes (`{scene}` in it is each scene's name) read by every
         method instead of simulated detections; the generated rooms keep theirs.
     """
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.runner import prepare_output_dir  # lazy: JAX (`fmfusion --help` imports this module)
 
     chosen = resolve_methods(methods)
     sources = scene_sources(real_scenes, generated)

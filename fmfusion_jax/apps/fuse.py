@@ -6,7 +6,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.interrupt import StopRequest
+from fmfusion_jax.io.scene import open_dataset_scene
+from fmfusion_jax.runner import check_output_folder, prepare_output_dir, run_and_export
+from fmfusion_jax.sources import open_detection_source
+from fmfusion_jax.viz.live import RerunView
 
 
 def run_scene(
@@ -28,11 +34,6 @@ def run_scene(
     restart: bool,
     verbose: Any,
 ) -> int:
-    from fmfusion_jax.config import load_config
-    from fmfusion_jax.interrupt import StopRequest
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.runner import check_output_folder, prepare_output_dir, run_and_export
-    from fmfusion_jax.sources import open_detection_source
 
     if not scene_dir.is_dir():
         raise UserError(f"scene folder {scene_dir} does not exist")
@@ -45,8 +46,6 @@ def run_scene(
     source = open_detection_source(scene, detections=detections, models=models, providers=providers, config=config)
     observer = None
     if viewer or viewer_save:
-        from fmfusion_jax.viz.live import RerunView
-
         observer = RerunView(save=viewer_save, spawn=viewer_save is None)
     with StopRequest(
         "stopping after the frame being fused, then writing a checkpoint and the map so far (outputs "

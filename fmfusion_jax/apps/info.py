@@ -6,6 +6,13 @@ import collections
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
+from fmfusion_jax.errors import DataError
+from fmfusion_jax.io.detections import list_detection_frames, read_frame_labels
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.labels import load_label_sets
+
 #: Depth images read for the depth statistics and the bounds (the rest of the scene is never decoded).
 SAMPLED_FRAMES = 30
 
@@ -18,7 +25,6 @@ def run_info(
     depth_max: float,
     detections: Path | None,
 ) -> int:
-    from fmfusion_jax.io.scene import open_scene
 
     scene = open_scene(scene_dir, layout=layout, stride=stride, depth_max=depth_max)
     for key, value in describe_scene(scene):
@@ -86,11 +92,6 @@ def describe_scene(scene) -> list[tuple[str, str]]:
 
 def describe_detections(folder: Path, scene_frames: Sequence[str]) -> list[tuple[str, str]]:
     """(heading, text) lines summarizing a detection folder (reads the JSON files, not the masks)."""
-    import numpy as np
-
-    from fmfusion_jax.errors import DataError
-    from fmfusion_jax.io.detections import list_detection_frames, read_frame_labels
-    from fmfusion_jax.labels import load_label_sets
 
     detection_frames = list_detection_frames(folder)
     in_scene = set(scene_frames)

@@ -5,7 +5,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+import trimesh
+
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.labels import load_label_sets
+from fmfusion_jax.scene_graph import build_scene_graph, query
+from fmfusion_jax.viz import overview
 
 
 def run_query(
@@ -16,7 +22,6 @@ def run_query(
     json_path: Path | None,
     picture: Path | None,
 ) -> int:
-    from fmfusion_jax.scene_graph import build_scene_graph, query
 
     path = map / "instances.json" if map.is_dir() else map
     try:
@@ -61,10 +66,6 @@ HIGHLIGHT = (220, 30, 30)
 
 def draw_matches(picture: Path, out_dir: Path, text: str, matched: list[int], records: list[dict]) -> None:
     """A top-down picture of the map (mesh and instances in grey) with the matched instances in red."""
-    import numpy as np
-
-    from fmfusion_jax.labels import load_label_sets
-    from fmfusion_jax.viz import overview
 
     cloud_path = out_dir / "labelled_points.npz"
     if not cloud_path.is_file():
@@ -75,8 +76,6 @@ def draw_matches(picture: Path, out_dir: Path, text: str, matched: list[int], re
     layers = []
     mesh_path = out_dir / "mesh.ply"
     if mesh_path.is_file():
-        import trimesh
-
         mesh = trimesh.load(mesh_path, process=False)
         if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces):
             vertices = np.asarray(mesh.vertices, np.float32)

@@ -5,7 +5,13 @@ from __future__ import annotations
 import collections
 from pathlib import Path
 
+import yaml
+
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.simulation.noise import NoiseModel
+from fmfusion_jax.simulation.simulate import simulate_scene
 
 
 def run_simulate(
@@ -27,10 +33,6 @@ def run_simulate(
     quiet: bool,
     no_progress: bool,
 ) -> int:
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.simulation.noise import NoiseModel
-    from fmfusion_jax.simulation.simulate import simulate_scene
 
     for name, value in (("stride", stride), ("every", every), ("render_stride", render_stride)):
         if value < 1:
@@ -71,7 +73,6 @@ def run_simulate(
 
 def parse_overrides(items: list[str]) -> dict:
     """``["a=1", "b=true"]`` -> ``{"a": 1, "b": True}`` (values parsed as YAML)."""
-    import yaml
 
     overrides = {}
     for item in items:

@@ -6,6 +6,8 @@ import time
 from pathlib import Path
 
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.simulation.procedural import generate_scene
+from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
 
 
 def run_synth(
@@ -33,9 +35,6 @@ def run_synth(
     out = out_dir
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not overwrite)):
         raise UserError(f"{out}: exists and is not an empty folder (pass --overwrite, or choose another OUT_DIR)")
-
-    from fmfusion_jax.simulation.procedural import generate_scene
-    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
 
     started = time.perf_counter()
     try:

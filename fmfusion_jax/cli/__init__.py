@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fmfusion",
         description="Instance-aware semantic mapping from RGB-D video with open-set foundation-model detections.",
     )
-    from fmfusion_jax import __version__
+    from fmfusion_jax import __version__  # lazy: the package's __init__ loads JAX (the Mapper)
 
     parser.add_argument("--version", action="version", version=f"fmfusion {__version__}")
     options.add_verbose(parser)

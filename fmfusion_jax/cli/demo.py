@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import argparse
 
+from fmfusion_jax.apps.demo import DEFAULT_OUT, run_demo
 from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.simulation.demo_setup import DEFAULT_FRAMES, DEFAULT_HEIGHT, DEFAULT_OBJECTS, DEFAULT_WIDTH
 
 
 def register(subparsers) -> None:
-    from fmfusion_jax.apps.demo import DEFAULT_OUT
-    from fmfusion_jax.simulation.demo_setup import DEFAULT_FRAMES, DEFAULT_HEIGHT, DEFAULT_OBJECTS, DEFAULT_WIDTH
-
     parser = subparsers.add_parser(
         "demo",
         help="the whole job on a generated room: no data needed",
@@ -42,8 +41,6 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.apps.demo import run_demo
-
     if args.frames < 2 or args.objects < 1 or args.stacked < 0:
         raise UserError(
             f"--frames must be >= 2, --objects >= 1 and --stacked >= 0 (got {args.frames}, {args.objects}, {args.stacked})"

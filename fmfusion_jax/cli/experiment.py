@@ -6,22 +6,24 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fmfusion_jax.apps import robustness
+from fmfusion_jax.apps.experiments import (
+    DEFAULT_GENERATED,
+    DEFAULT_GENERATED_FRAMES,
+    DEFAULT_GENERATED_OBJECTS,
+    DEFAULT_OUT,
+    QUICK_GENERATED,
+    QUICK_REAL_FRAMES,
+    default_real_scenes,
+    generated_specs,
+    run_experiment,
+)
 from fmfusion_jax.cli import options
+from fmfusion_jax.comparison.methods import DEFAULT_METHODS, METHODS, resolve_methods
 from fmfusion_jax.errors import UserError
 
 
 def register(subparsers) -> None:
-    from fmfusion_jax.apps import robustness
-    from fmfusion_jax.apps.experiments import (
-        DEFAULT_GENERATED,
-        DEFAULT_GENERATED_FRAMES,
-        DEFAULT_GENERATED_OBJECTS,
-        DEFAULT_OUT,
-        QUICK_GENERATED,
-        QUICK_REAL_FRAMES,
-    )
-    from fmfusion_jax.comparison.methods import DEFAULT_METHODS, METHODS
-
     methods = "; ".join(f"{m.name}: {m.title}" for m in METHODS.values())
     parser = subparsers.add_parser(
         "experiment",
@@ -136,20 +138,6 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.apps import robustness
-    from fmfusion_jax.apps.experiments import (
-        DEFAULT_GENERATED,
-        DEFAULT_GENERATED_FRAMES,
-        DEFAULT_GENERATED_OBJECTS,
-        DEFAULT_OUT,
-        QUICK_GENERATED,
-        QUICK_REAL_FRAMES,
-        default_real_scenes,
-        generated_specs,
-        run_experiment,
-    )
-    from fmfusion_jax.comparison.methods import resolve_methods
-
     if args.detections is not None and args.robustness:
         raise UserError("--detections: the robustness evaluation simulates its detections (the noise zoo)")
     if args.robustness:

@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fmfusion_jax.apps.likelihood import DEFAULT_CACHE, GeneratedSize
 from fmfusion_jax.cli import HelpFormatter, options
 
 
 def _add_generated_arguments(parser: argparse.ArgumentParser) -> None:
-    from fmfusion_jax.apps.likelihood import DEFAULT_CACHE, GeneratedSize
-
     size = GeneratedSize()
     group = parser.add_argument_group("generated scenes (made once, cached)")
     group.add_argument(
@@ -145,7 +144,7 @@ def register(subparsers) -> None:
 
 
 def run_summarize(args: argparse.Namespace) -> int:
-    from fmfusion_jax.apps.likelihood import run_summarize as summarize
+    from fmfusion_jax.apps.likelihood import run_summarize as summarize  # lazy: the command's work loads only when it runs
 
     return summarize(
         args.scenes,
@@ -164,7 +163,7 @@ def run_summarize(args: argparse.Namespace) -> int:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    from fmfusion_jax.apps.likelihood import run_calibrate as calibrate
+    from fmfusion_jax.apps.likelihood import run_calibrate as calibrate  # lazy: the command's work loads only when it runs
 
     return calibrate(
         args.train,

@@ -15,6 +15,12 @@ from typing import TYPE_CHECKING
 from fmfusion_jax.comparison.scenes import SceneSource
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+from fmfusion_jax.io import map_outputs
+from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.labels import load_label_sets
+from fmfusion_jax.simulation.demo_setup import demo_config
 
 if TYPE_CHECKING:
     from fmfusion_jax.baselines.kimera import KimeraResult
@@ -145,11 +151,7 @@ def run_method(
       gt: the scene's `SceneGroundTruth`.
       out_dir: the run's folder (replaced).
     """
-    from fmfusion_jax.io import map_outputs
-    from fmfusion_jax.io.benchmark_format import write_benchmark_predictions
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.labels import load_label_sets
-    from fmfusion_jax.runner import score_instances
+    from fmfusion_jax.runner import score_instances  # lazy: JAX (`fmfusion --help` imports this module)
 
     label_sets = load_label_sets()
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
@@ -160,7 +162,7 @@ def run_method(
     result: KimeraResult | FusionResult
     floor = None  # the map's floor, for the transfer (FM-Fusion's maps; the baseline keeps the reference transfer)
     if method.baseline == "kimera":
-        from fmfusion_jax.baselines.kimera import run_kimera
+        from fmfusion_jax.baselines.kimera import run_kimera  # lazy: JAX (`fmfusion --help` imports this module)
 
         result = run_kimera(scene, source, config, progress=progress, label_sets=label_sets)
         instances = result.instances
@@ -172,8 +174,11 @@ def run_method(
             "timings_ms": result.geometry.timings.summary(),
         }
     else:
-        from fmfusion_jax.pipeline import extract_map_instances
-        from fmfusion_jax.runner import capacity_used, fuse_scene
+        from fmfusion_jax.pipeline import extract_map_instances  # lazy: JAX (`fmfusion --help` imports this module)
+        from fmfusion_jax.runner import (  # lazy: JAX (`fmfusion --help` imports this module)
+            capacity_used,
+            fuse_scene,
+        )
 
         result = fuse_scene(scene, source, config, progress=progress, time_stages=True)
         instances = extract_map_instances(result, label_sets)
@@ -245,7 +250,6 @@ def score_methods(methods: Sequence[Method], scene_names: Sequence[str], gt_ids:
       gt_ids: scene -> `(V,)` benchmark ids of its mesh vertices.
       runs: scene -> method -> `RunOutcome`.
     """
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 
     names = tuple(scene_names)
     pooled = {
@@ -259,8 +263,6 @@ def check_config(kind: str, sources: Sequence[SceneSource], overrides: list[str]
     if kind == "real":
         SceneSource("check", "real").config(overrides, max_frames)
     else:
-        from fmfusion_jax.simulation.demo_setup import demo_config
-
         spec = next(s.spec for s in sources if s.kind == "generated")
         assert spec is not None  # a generated scene has its spec
         demo_config(spec.num_frames, spec.width, spec.height, overrides)

@@ -12,7 +12,12 @@ from typing import TYPE_CHECKING, Any
 
 from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, PreparedScene
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.scene import open_dataset_scene
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
+from fmfusion_jax.simulation.noise import NoiseModel
+from fmfusion_jax.simulation.procedural import generate_scene
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, PreparedScene, prepare_generated, prepare_real
 
 if TYPE_CHECKING:
     from fmfusion_jax.io.ground_truth import SceneGroundTruth
@@ -51,8 +56,6 @@ class SceneSource:
         if self.kind == "real":
             extra = [f"dataset.max_frames={max_frames}"] if max_frames else []
             return load_config(REAL_SCENE_CONFIG, extra + list(overrides))
-        from fmfusion_jax.simulation.demo_setup import demo_config
-        from fmfusion_jax.simulation.procedural import generate_scene
 
         spec = self.spec
         assert spec is not None  # a generated scene has its spec
@@ -61,8 +64,6 @@ class SceneSource:
 
     def noise(self, seed: int):
         """The default noise model of this scene's detections (pixel counts scaled to generated images)."""
-        from fmfusion_jax.simulation.demo_setup import demo_noise
-        from fmfusion_jax.simulation.noise import NoiseModel
 
         if self.kind == "real":
             return NoiseModel.preset("default").replace(seed=int(seed))
@@ -143,9 +144,6 @@ def prepare_source(
     """Makes (or finds in `cache_dir`) the scene and its simulated detections of each variant, on the
     detection frames of `base_config`, then opens the scene and reads its ground truth. `given`: a folder of
     (real) detections every variant reads instead."""
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.simulation.scene_sets import prepare_generated, prepare_real
 
     start = time.perf_counter()
     every = detection_frame_stride(base_config) * base_config.dataset.frame_stride

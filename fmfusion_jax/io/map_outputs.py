@@ -15,6 +15,7 @@ import trimesh
 
 from fmfusion_jax.instances import STRUCTURE_CLASSES, MapInstance
 from fmfusion_jax.io.benchmark_format import InstancePredictions
+from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks
 from fmfusion_jax.labels import LabelSets
 
 
@@ -233,7 +234,6 @@ def benchmark_predictions(
     `neighbours`: see `evaluation.vertex_transfer.points_to_vertex_masks`. `floor_vertices` `(V,)` bool: vertices
     on the map's floor (`evaluation.vertex_transfer.floor_vertices`), which no object claims.
     """
-    from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 
     structure = [inst for inst in instances if label_sets.class_names[inst.class_index] in STRUCTURE_CLASSES]
     keep = [inst for inst in instances if label_sets.class_names[inst.class_index] not in STRUCTURE_CLASSES]

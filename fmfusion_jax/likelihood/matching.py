@@ -16,8 +16,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from fmfusion_jax.instances import MapInstance
+from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.likelihood.summarize import mask_iou
+from fmfusion_jax.simulation.render import instance_classes
 
 MATCH_IOU = 0.5
 
@@ -85,8 +87,6 @@ def match_instances(
       gt: the scene's `io.ground_truth.SceneGroundTruth`.
       radius: the transfer radius (config `export.transfer_radius`).
     """
-    from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
-    from fmfusion_jax.simulation.render import instance_classes
 
     label_sets = label_sets or load_label_sets()
     classes = instance_classes(gt, label_sets)

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 from fmfusion_jax.config import PipelineConfig, load_config
 from fmfusion_jax.simulation.noise import NoiseModel
+from fmfusion_jax.simulation.procedural import DEFAULT_ROOM
 
 #: Defaults of the demo (the values `configs/demo.yaml` is written for).
 DEFAULT_FRAMES = 120
@@ -48,8 +49,6 @@ def demo_config(
         "export.min_points": max(20, round(config.export.min_points * min(area_scale, 1.0))),
     }
     if room_size is not None:
-        from fmfusion_jax.simulation.procedural import DEFAULT_ROOM
-
         surface_scale = max(1.0, _surface_area(room_size) / _surface_area(DEFAULT_ROOM))
         scaled["tsdf.block_capacity"] = 1024 * -(-round(config.tsdf.block_capacity * surface_scale) // 1024)
     return load_config("demo", [f"{key}={value}" for key, value in scaled.items()] + list(overrides))

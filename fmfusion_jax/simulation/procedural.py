@@ -25,6 +25,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.simulation import raycast
 from fmfusion_jax.simulation.furniture import CEILING_CLASS, CEILING_NYU40, OBJECT_KINDS, _fabric, _jitter, _wood
 from fmfusion_jax.simulation.layout import _draw_kinds, _NoRoom, _path_axes, _place_objects, _place_on_tops, _Placed
@@ -279,7 +280,6 @@ def generate_scene(
 
 
 def _assemble(seed: int, size, placed: list[_Placed], rng) -> ProceduralScene:
-    from fmfusion_jax.labels import load_label_sets
 
     label_sets = load_label_sets()
     nyu40 = label_sets.class_to_nyu40()
@@ -378,7 +378,6 @@ def add_object(
     """A copy of `scene` with one more instance made of `boxes`, each `(center (3,), size (3,), yaw)` in world
     metres/radians. `kind` is one of the closed classes (`OBJECT_KINDS`, or ``"wall"``/``"floor"``); the new
     instance id is one more than the largest. Overlaps are not checked."""
-    from fmfusion_jax.labels import load_label_sets
 
     label_sets = load_label_sets()
     nyu40 = label_sets.class_to_nyu40()

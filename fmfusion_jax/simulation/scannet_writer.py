@@ -29,9 +29,12 @@ import logging
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
+from tqdm import tqdm
 
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.simulation import raycast
 from fmfusion_jax.simulation.furniture import CEILING_CLASS, CEILING_NYU40, RAW_LABELS
 from fmfusion_jax.simulation.procedural import ProceduralScene
@@ -219,15 +222,10 @@ def _clear_previous(out: Path) -> None:
 def _progress(total: int, enabled: bool, name: str):
     if not enabled:
         return None
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover - tqdm is optional
-        return None
     return tqdm(total=total, desc=f"rendering {name}", unit="frame")
 
 
 def _write_frame(out: Path, stem: str, frame: RenderedFrame, pose: np.ndarray, jpeg_quality: int) -> None:
-    import cv2
 
     _imwrite(
         out / "color" / f"{stem}.jpg", cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
@@ -239,7 +237,6 @@ def _write_frame(out: Path, stem: str, frame: RenderedFrame, pose: np.ndarray, j
 
 
 def _imwrite(path: Path, image: np.ndarray, params) -> None:
-    import cv2
 
     ok, data = cv2.imencode(path.suffix, image, params)
     if not ok:  # pragma: no cover
@@ -281,7 +278,6 @@ def _write_metadata(path: Path, intrinsics, num_frames: int) -> None:
 
 def write_labels_tsv(path: str | Path, scene: ProceduralScene | None = None) -> None:
     """Writes the raw label -> nyu40 tsv for every raw label the generator knows (`count`: instances in `scene`)."""
-    from fmfusion_jax.labels import load_label_sets
 
     label_sets = load_label_sets()
     nyu40 = label_sets.class_to_nyu40()

@@ -7,6 +7,7 @@ import dataclasses
 from collections.abc import Iterable, Mapping
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.simulation.noise import (
@@ -138,7 +139,6 @@ def place_phantoms(
       instance_ids: `(V,)` instance id of each vertex, 0 = none.
       instance_classes: closed-class index of each target instance (`render.instance_classes`).
     """
-    from scipy.spatial import cKDTree
 
     count, radius = int(round(noise.persistent_phantoms)), float(noise.persistent_radius_m)
     if count < 1 or radius <= 0 or noise.persistent_detect_prob <= 0:

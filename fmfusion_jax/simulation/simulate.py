@@ -42,8 +42,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from tqdm import tqdm
 
+from detectors.prompt import PromptAugmenter
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import write_frame_detections
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.simulation.noise import (
     NoiseModel,
@@ -56,6 +59,7 @@ from fmfusion_jax.simulation.noise import (
     random_blob,
     straight_cut_angle,
 )
+from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
 from fmfusion_jax.simulation.sim_false_positives import (
     SURFACE_CLASSES,
     _background_regions,
@@ -540,9 +544,6 @@ def simulate_scene(
       max_distance: m, ground-truth rendering tolerance between the depth and the mesh.
       progress: show a tqdm progress bar.
     """
-    from detectors.prompt import PromptAugmenter
-    from fmfusion_jax.io.detections import write_frame_detections
-    from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
 
     if every < 1:
         raise UserError(f"every must be >= 1, got {every}")
@@ -569,8 +570,6 @@ def simulate_scene(
         expected = max_frames if expected is None else min(expected, max_frames)
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=expected, unit="frame", desc=f"simulate {scene.name}", dynamic_ncols=True)
     try:
         for index, name, depth, T_world_camera, intrinsics in _depth_frames(scene, every):

@@ -19,15 +19,18 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from fmfusion_jax.apps.bench.scenes import BenchScene
+import numpy as np
+
+from fmfusion_jax.apps.bench import harness, worker
+from fmfusion_jax.apps.bench.scenes import BenchScene, prepare_real_scene
+from fmfusion_jax.compile_cache import enable_compile_cache
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.runner import mapper_for_scene
+from fmfusion_jax.xla_options import enable_gpu_command_buffers
 
 
 def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say=print) -> list[dict]:
     """`passes` as-run passes over the first `frames` frames of `scene` (None: all); one dict per pass."""
-    import numpy as np
-
-    from fmfusion_jax.apps.bench import harness, worker
-    from fmfusion_jax.runner import mapper_for_scene
 
     config, opened, folder = harness.open_bench_scene(scene, frames)
     sample = opened.sample_depth(max_frames=60)
@@ -54,8 +57,6 @@ def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from fmfusion_jax.compile_cache import enable_compile_cache
-    from fmfusion_jax.xla_options import enable_gpu_command_buffers
 
     parser = argparse.ArgumentParser(prog="python -m fmfusion_jax.apps.bench.as_run", description=__doc__.splitlines()[0])
     parser.add_argument("--scene", type=Path, required=True, help="real ScanNet-layout scene with ground truth")
@@ -67,8 +68,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--passes must be at least 1")
     enable_gpu_command_buffers()  # as the `fmfusion` commands: before JAX starts a backend
     enable_compile_cache()
-    from fmfusion_jax.apps.bench.scenes import prepare_real_scene
-    from fmfusion_jax.errors import UserError
 
     try:
         as_run_passes(prepare_real_scene(args.scene, args.cache, args.frames, progress=False), args.passes, args.frames)

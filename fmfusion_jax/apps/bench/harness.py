@@ -3,10 +3,20 @@ detections, its map config, the device and the memory figures, whether the Open3
 
 from __future__ import annotations
 
+import importlib
 import os
 import resource
 
+import jax
+from tqdm import tqdm
+
 from fmfusion_jax.apps.bench.scenes import BenchScene
+from fmfusion_jax.config import load_config
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.mapper import bounded_map_config
+from fmfusion_jax.pipeline import scheduled_detections
+from fmfusion_jax.runner import scene_extent
 
 #: Module of the Open3D peer pipelines (an optional dependency: `open3d-cpu`).
 PEER_MODULE = "fmfusion_jax.apps.bench.open3d_peer"
@@ -26,7 +36,6 @@ def cpu_count() -> int:
 
 def peer_unavailable_reason() -> str | None:
     """Why the Open3D peer cannot run here, or None."""
-    import importlib
 
     try:
         peer = importlib.import_module(PEER_MODULE)
@@ -37,9 +46,6 @@ def peer_unavailable_reason() -> str | None:
 
 def open_bench_scene(scene: BenchScene, frames: int | None):
     """(config, opened scene, detection folder) for the first `frames` frames of the scene."""
-    from fmfusion_jax.config import load_config
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.scene import open_scene
 
     config = load_config(str(scene.config_path))
     dataset = config.dataset
@@ -58,9 +64,6 @@ def open_bench_scene(scene: BenchScene, frames: int | None):
 
 def frames_with_detections(opened, folder, config, progress: bool, desc: str):
     """Yields `(frame, detections or None)` on the fusion's schedule, with a progress bar on stderr."""
-    from tqdm import tqdm
-
-    from fmfusion_jax.pipeline import scheduled_detections
 
     frames = tqdm(
         opened.frames(), total=len(opened), desc=desc, unit="frame", disable=not progress, dynamic_ncols=True, leave=False
@@ -69,7 +72,6 @@ def frames_with_detections(opened, folder, config, progress: bool, desc: str):
 
 
 def device_description() -> dict:
-    import jax
 
     device = jax.devices()[0]
     return {
@@ -83,7 +85,6 @@ def device_description() -> dict:
 
 def device_memory_mb() -> float | None:
     """Peak bytes the accelerator allocator reports (GPU), MiB; None where the backend reports none (CPU)."""
-    import jax
 
     try:
         stats = jax.devices()[0].memory_stats() or {}
@@ -96,8 +97,6 @@ def device_memory_mb() -> float | None:
 def scene_map_config(config, opened):
     """The map `fmfusion run` starts with for the opened scene (`runner.scene_extent`, `mapper.bounded_map_config`).
     The sweep's builders keep it (they do not grow)."""
-    from fmfusion_jax.mapper import bounded_map_config
-    from fmfusion_jax.runner import scene_extent
 
     bounds, expected = scene_extent(opened, config)
     return bounded_map_config(config, bounds, opened.intrinsics.height, opened.intrinsics.width, expected)

@@ -18,8 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from fmfusion_jax.apps.bench import report
+from fmfusion_jax.apps.bench.harness import peer_unavailable_reason
 from fmfusion_jax.apps.bench.scenes import DEFAULT_SCENE, BenchScene, prepare_generated_scene, prepare_real_scene
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.runner import prepare_output_dir
 
 DEFAULT_OUT = Path("outputs/bench")
 #: The sizes of `--quick`: a smoke test in well under a minute.
@@ -63,8 +65,6 @@ def run_bench(
     say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True),
 ) -> dict:
     """Runs the benchmark; writes `bench.md` and `bench.json` into `options.out`; returns the summary."""
-    from fmfusion_jax.apps.bench.harness import peer_unavailable_reason
-    from fmfusion_jax.runner import prepare_output_dir
 
     out = prepare_output_dir(options.out)
     cache = options.cache or out / "cache"

@@ -24,15 +24,30 @@ once uncapped (not timed), which compiles every jitted function once for the who
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import os
 import sys
 import time
 from collections.abc import Sequence
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from fmfusion_jax.apps.bench.harness import (
+    PEER_MODULE,
+    device_description,
+    frames_with_detections,
+    open_bench_scene,
+    peak_rss_mb,
+    peer_unavailable_reason,
+    scene_map_config,
+)
 from fmfusion_jax.apps.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.stages import FrameTimer
 from fmfusion_jax.engine.detections import select_detections
+from fmfusion_jax.labels import load_label_sets, load_likelihood
+from fmfusion_jax.pipeline import MapBuilder
 from fmfusion_jax.types import FrameDetections
 
 
@@ -63,7 +78,6 @@ def _rotated(items: Sequence, shift: int) -> list:
 
 def _free_bytes() -> float:
     """Memory the maps can take: the accelerator's free bytes where it reports them, else the host's."""
-    import jax
 
     try:
         stats = jax.devices()[0].memory_stats() or {}
@@ -95,18 +109,6 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     """Our engine (the fused step, as `fmfusion run` drives it) once per cap in `sweep` on the first
     `frames` frames. Per cap: `frames`/`compiled` as the ours worker's, detections given and fused and
     live instances per frame."""
-    import jax.numpy as jnp
-
-    from fmfusion_jax.apps.bench.harness import (
-        device_description,
-        frames_with_detections,
-        open_bench_scene,
-        peak_rss_mb,
-        scene_map_config,
-    )
-    from fmfusion_jax.apps.bench.stages import FrameTimer
-    from fmfusion_jax.labels import load_label_sets, load_likelihood
-    from fmfusion_jax.pipeline import MapBuilder
 
     config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
@@ -165,16 +167,6 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
 def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep: Sequence[int]) -> dict:
     """The Open3D per-instance peer once per cap in `sweep` on the first `frames` frames (all caps
     together: its pipelines are small)."""
-    import importlib
-
-    from fmfusion_jax.apps.bench.harness import (
-        PEER_MODULE,
-        frames_with_detections,
-        open_bench_scene,
-        peak_rss_mb,
-        peer_unavailable_reason,
-    )
-    from fmfusion_jax.labels import load_label_sets, load_likelihood
 
     reason = peer_unavailable_reason()
     if reason:

@@ -19,12 +19,20 @@ arrays on the device, which `MapBuilder` does before each step).
 
 from __future__ import annotations
 
+import concurrent.futures
+import hashlib
+import importlib
+import itertools
 import json
 import os
 import sys
 import time
 from pathlib import Path
 
+import jax
+import numpy as np
+
+from fmfusion_jax.apps.bench import profile as tracing
 from fmfusion_jax.apps.bench.harness import (
     PEER_MODULE,
     device_description,
@@ -34,7 +42,14 @@ from fmfusion_jax.apps.bench.harness import (
     peak_rss_mb,
     peer_unavailable_reason,
 )
+from fmfusion_jax.apps.bench.report import AS_RUN_CHUNK
 from fmfusion_jax.apps.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+from fmfusion_jax.apps.bench.sweep import RUNNERS as SWEEP_RUNNERS
+from fmfusion_jax.compile_cache import enable_compile_cache
+from fmfusion_jax.labels import load_label_sets, load_likelihood
+from fmfusion_jax.mapper import Mapper
+from fmfusion_jax.runner import SceneFusion, mapper_for_scene, read_ahead
 
 
 def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dict | None = None) -> dict:
@@ -44,10 +59,6 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
 
     The map is `fmfusion run`'s (`runner.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
     doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
-    from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
-    from fmfusion_jax.compile_cache import enable_compile_cache
-    from fmfusion_jax.mapper import Mapper
-    from fmfusion_jax.runner import mapper_for_scene
 
     cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)
     cache_entries = _entries(cache)
@@ -145,14 +156,6 @@ def _as_run_pass(
     With `profile` (`{"frames": N, "trace": path}`, `--profile`), the last N frames are traced with `jax.profiler`
     and left out; `profile` gains the trace's summary (`bench.profile.summarize_trace`).
     """
-    import concurrent.futures
-    import itertools
-
-    import jax
-
-    from fmfusion_jax.apps.bench import profile as tracing
-    from fmfusion_jax.apps.bench.report import AS_RUN_CHUNK
-    from fmfusion_jax.runner import SceneFusion, read_ahead
 
     frames: list[dict] = []
     left_out: list[dict] = []
@@ -212,10 +215,6 @@ def _mismatch_cause(device: dict) -> str:
 
 def state_digest(state) -> str:
     """SHA-256 of every array of a map state (bit-exact comparison of two maps without keeping both)."""
-    import hashlib
-
-    import jax
-    import numpy as np
 
     digest = hashlib.sha256()
     for leaf in jax.tree.leaves(state):
@@ -230,13 +229,11 @@ def _compile_ms(timer) -> dict[str, float]:
 
 def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """The Open3D per-instance reference pipeline: `frames` is its stage name -> ms per frame."""
-    import importlib
 
     reason = peer_unavailable_reason()
     if reason:
         return {"pipeline": "peer", "unavailable": reason}
     peer = importlib.import_module(PEER_MODULE)
-    from fmfusion_jax.labels import load_label_sets, load_likelihood
 
     config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
@@ -261,7 +258,6 @@ def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
 
 def run_vbg(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """Open3D's VoxelBlockGrid TSDF integration alone: `frames` is `{"tsdf": ms}` per frame."""
-    import importlib
 
     reason = peer_unavailable_reason()
     if reason:
@@ -300,8 +296,6 @@ def main(argv: list[str]) -> int:
     scene = BenchScene.from_json(spec["scene"])
     args = (scene, spec.get("frames"), bool(spec.get("progress", True)))
     if spec["pipeline"].endswith("-sweep"):
-        from fmfusion_jax.apps.bench.sweep import RUNNERS as SWEEP_RUNNERS
-
         result = SWEEP_RUNNERS[spec["pipeline"]](*args, [int(k) for k in spec["sweep"]])
     else:
         traced = {"profile": spec["profile"]} if spec.get("profile") else {}  # `--profile`: ours on the main scene

@@ -32,6 +32,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from fmfusion_jax.apps.robustness.report import (
@@ -64,8 +65,10 @@ from fmfusion_jax.comparison.scenes import (
 )
 from fmfusion_jax.comparison.tables import stderr_report
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.scene import open_dataset_scene
 from fmfusion_jax.simulation.demo_setup import scale_noise_to_image
-from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, prepare_generated, prepare_real
 from fmfusion_jax.simulation.zoo import MIXED, ZooEntry, noise_zoo
 
 if TYPE_CHECKING:
@@ -153,9 +156,6 @@ class OpenedScene:
 def open_source(source: SceneSource, cache_dir: Path, config, progress: bool) -> OpenedScene:
     """Makes (or finds) a generated scene, opens the scene with the config's dataset settings, reads its
     ground truth and caches its decoded frames when they fit."""
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.simulation.scene_sets import generated_scene
 
     if source.kind == "real":
         assert source.path is not None  # a real scene has its folder
@@ -183,7 +183,6 @@ def open_source(source: SceneSource, cache_dir: Path, config, progress: bool) ->
 
 def entry_detections(opened: OpenedScene, entry: ZooEntry, variant: str, cache_dir: Path, progress: bool) -> Path:
     """The (cached) detections of `entry` on the scene, simulated on every frame of the scene folder."""
-    from fmfusion_jax.simulation.scene_sets import prepare_generated, prepare_real
 
     source = opened.source
     noise = entry_noise(source, entry, variant)
@@ -259,7 +258,7 @@ def run_robustness(
       real_max_frames: use only the first frames of real scenes (smoke tests).
       progress: one line per run with the running total and an ETA (`report`, default stderr).
     """
-    from fmfusion_jax.runner import prepare_output_dir
+    from fmfusion_jax.runner import prepare_output_dir  # lazy: JAX (`fmfusion --help` imports this module)
 
     if mixed < 0 or noise_seed < 0:
         raise UserError(f"--mixed and --noise-seed must be >= 0 (got {mixed}, {noise_seed})")
@@ -396,7 +395,6 @@ def _as_fraction(value: float) -> float | None:
 
 def write_reports(out_dir: Path, markdown: str, record: dict, chart: np.ndarray) -> None:
     """robustness.md, robustness.json and robustness.png into `out_dir`."""
-    import cv2
 
     (out_dir / "robustness.md").write_text(markdown)
     (out_dir / "robustness.json").write_text(json.dumps(record, indent=1, default=float))

@@ -10,12 +10,15 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from fmfusion_jax.comparison.methods import (
     Method,
 )
 from fmfusion_jax.comparison.tables import markdown_table
+from fmfusion_jax.evaluation.explain import explain_scene
+from fmfusion_jax.simulation.noise import NoiseModel
 from fmfusion_jax.simulation.zoo import FAMILIES, MIXED, ZooEntry
 
 if TYPE_CHECKING:
@@ -156,7 +159,6 @@ def precision_counts(gt_ids: np.ndarray, predictions) -> dict[str, int]:
       gt_ids: `(V,)` benchmark ids of the scene's mesh vertices.
       predictions: the run's `InstancePredictions` over the same vertices.
     """
-    from fmfusion_jax.evaluation.explain import explain_scene
 
     explanation = explain_scene(gt_ids, predictions)
     return {
@@ -287,7 +289,6 @@ def verdict_lines(record: dict) -> list[str]:
 def noise_table(entries: Sequence[ZooEntry]) -> str:
     """The parameters of each entry that differ from the `default` preset (generated scenes' pixel counts
     are scaled to their images: see each scene's record in robustness.json)."""
-    from fmfusion_jax.simulation.noise import NoiseModel
 
     # Every parameter, the later ones too (`to_dict` leaves those out at their defaults).
     default = dataclasses.asdict(NoiseModel.preset("default", seed=entries[0].noise.seed)) if entries else {}
@@ -388,7 +389,6 @@ def bar_chart(
     """`(H, W, 3)` uint8 BGR grouped bar chart: one group per name of `groups`, one bar per series (values
     fractions in [0, 1], shown in %; None: no bar), with a 0-100 % axis and a legend; a vertical line
     before group `separator_before` (the summaries)."""
-    import cv2
 
     font, names = cv2.FONT_HERSHEY_SIMPLEX, list(series)
     bar_w, gap, left, right, top, bottom = 14, 16, 50, 20, 50, 80
