@@ -226,7 +226,7 @@ def test_vertex_iou():
 def test_histogram_identity_on_a_fused_map_and_matching(tmp_path):
     """In additive mode the engine's distribution of every final instance (merges included) is
     `class_distribution(h @ L)` of its open-label histogram, for the likelihood the map was fused with."""
-    from fmfusion_jax.apps.likelihood import with_likelihood
+    from fmfusion_jax.apps.likelihood.workflow import with_likelihood
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
     from fmfusion_jax.io.scene import open_scene

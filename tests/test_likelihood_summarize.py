@@ -208,7 +208,7 @@ def test_heatmap_png_size(tmp_path):
 
 
 def test_cli_seeds_and_errors(tmp_path, capsys):
-    from fmfusion_jax.apps.likelihood import parse_seeds
+    from fmfusion_jax.apps.likelihood.commands import parse_seeds
     from fmfusion_jax.cli import main
 
     assert parse_seeds("1-3,7") == [1, 2, 3, 7] and parse_seeds("none") == []

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fmfusion_jax.apps.likelihood import DEFAULT_CACHE, GeneratedSize
+from fmfusion_jax.apps.likelihood.workflow import DEFAULT_CACHE, GeneratedSize
 from fmfusion_jax.cli import HelpFormatter, options
 
 
@@ -144,7 +144,9 @@ def register(subparsers) -> None:
 
 
 def run_summarize(args: argparse.Namespace) -> int:
-    from fmfusion_jax.apps.likelihood import run_summarize as summarize  # lazy: the command's work loads only when it runs
+    from fmfusion_jax.apps.likelihood.commands import (
+        run_summarize as summarize,  # lazy: the command's work loads only when it runs
+    )
 
     return summarize(
         args.scenes,
@@ -163,7 +165,9 @@ def run_summarize(args: argparse.Namespace) -> int:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    from fmfusion_jax.apps.likelihood import run_calibrate as calibrate  # lazy: the command's work loads only when it runs
+    from fmfusion_jax.apps.likelihood.commands import (
+        run_calibrate as calibrate,  # lazy: the command's work loads only when it runs
+    )
 
     return calibrate(
         args.train,
