@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fmfusion_jax.apps import robustness
+from fmfusion_jax.apps import experiments, robustness
 from fmfusion_jax.apps.experiments import (
     DEFAULT_GENERATED,
     DEFAULT_GENERATED_FRAMES,
@@ -16,7 +16,6 @@ from fmfusion_jax.apps.experiments import (
     QUICK_REAL_FRAMES,
     default_real_scenes,
     generated_specs,
-    run_experiment,
 )
 from fmfusion_jax.cli import options
 from fmfusion_jax.comparison.methods import DEFAULT_METHODS, METHODS, resolve_methods
@@ -182,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         )
         print(robust.text)
         return 0
-    result = run_experiment(
+    result = experiments.run_experiment(
         args.out or DEFAULT_OUT,
         real_scenes=real,
         generated=specs,
