@@ -55,7 +55,7 @@ def enable_compile_cache(path: str | Path | None = None) -> Path | None:
     for name, value in settings.items():
         os.environ[name.upper()] = value
     if "jax" in sys.modules:
-        import jax
+        import jax  # lazy: JAX (`fmfusion --help` imports this module)
 
         jax.config.update("jax_compilation_cache_dir", str(folder))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # every step: entries are small

@@ -23,6 +23,7 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
+import networkx as nx
 import numpy as np
 
 from fmfusion_jax.instances import STRUCTURE_CLASSES
@@ -154,7 +155,6 @@ def build_scene_graph(records: Sequence[dict], settings: GraphSettings = GraphSe
 
 def write_graphml(path, graph: dict[str, Any]) -> None:
     """The scene graph as GraphML (networkx), for graph tools (Gephi, yEd, networkx itself)."""
-    import networkx as nx
 
     g = nx.MultiDiGraph()
     for node in graph["nodes"]:

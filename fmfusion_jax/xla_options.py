@@ -58,7 +58,8 @@ def _backend_started() -> bool:
     if "jax" not in sys.modules:
         return False
     try:
-        from jax._src import xla_bridge  # private: JAX has no public way to ask this
+        # private: JAX has no public way to ask this; lazy: JAX (`fmfusion --help` imports this module)
+        from jax._src import xla_bridge
 
         return bool(xla_bridge.backends_are_initialized())
     except (ImportError, AttributeError):

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 from oracles.reference import BoxRoom, orbit_poses, scannet_like_intrinsics
 
-from fmfusion_jax.bench import report
-from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
-from fmfusion_jax.bench.sweep import cap_detections, groups_that_fit
-from fmfusion_jax.bench.worker import peer_unavailable_reason
+from fmfusion_jax.apps.bench import figures, report, targets
+from fmfusion_jax.apps.bench.harness import peer_unavailable_reason
+from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+from fmfusion_jax.apps.bench.sweep import cap_detections, groups_that_fit
 from fmfusion_jax.cli import main
 from fmfusion_jax.config import load_config
 from fmfusion_jax.engine import step
@@ -102,23 +102,23 @@ def test_the_targets_judge_the_whole_frame_as_run_when_that_pass_ran():
     peer = {"frames": [{"tsdf": 100.0, "merge": 300.0}] * 4}
     for result, whole_ms in ((ours, 23.0), (as_run, 20.0)):
         table = report.stage_table(result, peer)
-        row = report.whole_frame_row(table)
+        row = figures.whole_frame_row(table)
         assert row is not None and row["ours_all"] == whole_ms and row["ratio"] == pytest.approx(400.0 / whole_ms)
-    assert report.whole_frame_row(report.stage_table(as_run, peer))["label"] == report.AS_RUN_LABEL
-    assert report.whole_frame_row(None) is None
+    assert figures.whole_frame_row(report.stage_table(as_run, peer))["label"] == figures.AS_RUN_LABEL
+    assert figures.whole_frame_row(None) is None
 
 
 def test_frame_sums_leave_out_warm_up_and_compiling_frames():
     frames = [{"fusion": 900.0}, {"fusion": 10.0, "refine": 5.0}, {"fusion": 12.0}, {"fusion": 11.0, "refine": 7.0}]
     compiled = [{"fusion": 3000.0}, {}, {"refine": 2000.0}, {}]
-    assert report.frame_sums(frames, compiled, ("fusion",)) == [10.0, 12.0, 11.0]  # frame 2 compiled refine only
-    assert report.frame_sums(frames, compiled, None) == [15.0, 18.0]
-    assert report.frame_sums(frames, None, ("refine",), stop=3) == [5.0]
+    assert figures.frame_sums(frames, compiled, ("fusion",)) == [10.0, 12.0, 11.0]  # frame 2 compiled refine only
+    assert figures.frame_sums(frames, compiled, None) == [15.0, 18.0]
+    assert figures.frame_sums(frames, None, ("refine",), stop=3) == [5.0]
 
 
 def test_compile_cache_state_says_whether_the_steps_were_compiled_in_the_measured_process():
     """Peak memory depends on it: a process that compiles its steps peaks higher than one that loads them."""
-    state = lambda **cache: report.compile_cache_state({"compile_cache": cache})  # noqa: E731
+    state = lambda **cache: targets.compile_cache_state({"compile_cache": cache})  # noqa: E731
     assert state(dir=None).startswith("compile cache off")
     assert state(dir="c", entries_before=0, entries_after=12).startswith("compile cache cold")
     assert state(dir="c", entries_before=248, entries_after=248).startswith("compile cache warm (248 entries")
@@ -187,9 +187,9 @@ def test_sweep_fit_over_the_caps():
     assert costs["fits"]["ours_fusion"]["per_object_ms"] == pytest.approx(0.5)
     assert costs["fits"]["ours_whole"]["base_ms"] == pytest.approx(11.0)
     assert math.isnan(costs["fits"]["peer_whole"]["per_object_ms"]) and costs["peer_note"] == "--no-peer"
-    target = report._per_object_target(costs)
+    target = targets._per_object_target(costs)
     assert target["met"] is True and "+0.50 ms per detection" in target["figure"]
-    assert report._per_object_target(None)["met"] is None
+    assert targets._per_object_target(None)["met"] is None
 
 
 @pytest.fixture(scope="module")
@@ -288,7 +288,7 @@ def test_quick_bench_without_the_peer(bench_dirs, monkeypatch):
 
 
 def test_sweep_options(monkeypatch, tmp_path):
-    import fmfusion_jax.bench.run as bench_run
+    import fmfusion_jax.apps.bench.run as bench_run
 
     given = []
     monkeypatch.setattr(bench_run, "run_bench", lambda options, command: given.append((options, command)) or {"markdown": ""})
@@ -336,7 +336,7 @@ def test_the_memory_target_is_judged_on_the_cpu_and_reported_with_the_device_pea
     }
     main = {"scene": {"kind": "real", "frames": 300, "name": "scene0000_00"}, "ours": ours, "peer": None}
     memory_row = lambda platform: next(  # noqa: E731
-        row for row in report.targets({"device": {"platform": platform}}, main) if row["target"].startswith("peak RSS")
+        row for row in targets.targets({"device": {"platform": platform}}, main) if row["target"].startswith("peak RSS")
     )
     on_cpu, on_gpu = memory_row("cpu"), memory_row("gpu")
     assert on_cpu["met"] is False and "3.12x the target" in on_cpu["figure"]
@@ -351,20 +351,20 @@ def test_the_gpu_target_says_by_how_much_it_is_missed_and_what_bounds_the_frame(
     ours = {"frames": frames, "compiled": [{}] * 6, "geometry_fusion_every": 11}
     main = {"scene": {"kind": "generated", "frames": 6, "name": "room"}, "ours": ours, "peer": None}
     summary = {"stages": report.stage_table(ours, None), "device": {"platform": "gpu", "device_kind": "H100"}}
-    row = report.targets(summary, main)[-1]
+    row = targets.targets(summary, main)[-1]
     assert row["target"].startswith("GPU") and row["met"] is False
-    whole = report.whole_frame_row(summary["stages"])["ours_all"]
+    whole = figures.whole_frame_row(summary["stages"])["ours_all"]
     assert f"{whole / 3:.2f}x the target" in row["figure"]
     assert "bound by: fusion step 2.00 ms, merge 1.50 ms" in row["figure"] and "the host's work 1.80 ms" in row["figure"]
     assert "the reader thread's 1.30 ms beside them" in row["figure"]  # `fmfusion run` prepares frames in another thread
     summary["device"]["platform"] = "cpu"
-    assert report.targets(summary, main)[-1] == {"target": row["target"], "figure": "n/a (no GPU in this run)", "met": None}
+    assert targets.targets(summary, main)[-1] == {"target": row["target"], "figure": "n/a (no GPU in this run)", "met": None}
 
 
 def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_path):
     """Nested events (a call and the calls it makes) add to the busy time once, a thread's waits on locks and
     queues not at all (an idle reader thread); time and calls per frame."""
-    from fmfusion_jax.bench.profile import profile_lines, summarize_trace
+    from fmfusion_jax.apps.bench.profile import profile_lines, summarize_trace
 
     meta = [
         {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/host:CPU"}},
@@ -403,10 +403,10 @@ def test_the_profile_summary_counts_each_threads_busy_time_once_per_frame(tmp_pa
 
 
 def test_the_as_run_passes_alone_report_each_pass(tmp_path, capsys):
-    """`python -m fmfusion_jax.bench.as_run`: the bench's as-run pass, repeated, one line per pass; bad input is a
+    """`python -m fmfusion_jax.apps.bench.as_run`: the bench's as-run pass, repeated, one line per pass; bad input is a
     message and exit status 2, not a traceback."""
-    from fmfusion_jax.bench import as_run
-    from fmfusion_jax.bench.scenes import prepare_generated_scene
+    from fmfusion_jax.apps.bench import as_run
+    from fmfusion_jax.apps.bench.scenes import prepare_generated_scene
 
     scene = prepare_generated_scene(tmp_path / "cache", 2, 6, 160, 120, 0, False, ())
     rows = as_run.as_run_passes(scene, passes=2)

@@ -23,8 +23,8 @@ from fmfusion_jax.evaluation.scannet_benchmark import (
     evaluate_scenes,
     precision_recall_curve,
 )
-from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 from fmfusion_jax.io.benchmark_format import InstancePredictions, export_ground_truth_as_predictions
+from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks
 
 WALL, CABINET, BED, CHAIR = 1, 3, 4, 5
 V = 1000

@@ -1,4 +1,4 @@
-"""`fmfusion experiment` (`fmfusion_jax.experiments`) on a tiny generated room: every method runs, both tables
+"""`fmfusion experiment` (`fmfusion_jax.apps.experiments`) on a tiny generated room: every method runs, both tables
 are written, every number is an AP; bad methods and scenes are clear errors."""
 
 from __future__ import annotations
@@ -8,15 +8,9 @@ import math
 
 import pytest
 
+from fmfusion_jax.apps.experiments import CLASS_ABBREVIATIONS, run_experiment, table_one
+from fmfusion_jax.comparison.methods import DEFAULT_METHODS, METHODS, resolve_methods
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.experiments import (
-    CLASS_ABBREVIATIONS,
-    DEFAULT_METHODS,
-    METHODS,
-    resolve_methods,
-    run_experiment,
-    table_one,
-)
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 
 TINY = GeneratedSceneSpec(seed=3, num_objects=4, num_frames=10, width=160, height=120)
@@ -96,7 +90,7 @@ def test_cli_errors_name_the_problem(tmp_path, capsys):
 
 
 def test_quick_runs_tiny_generated_rooms_only(monkeypatch, tmp_path):
-    import fmfusion_jax.experiments as experiments
+    import fmfusion_jax.apps.experiments as experiments
     from fmfusion_jax.cli import main
 
     seen = {}

@@ -12,7 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fmfusion_jax.evaluation.explain import GT_STATUSES, PREDICTION_KINDS, SHARE_NAMES, explain_scene, write_explanation
+from fmfusion_jax.evaluation.explain import GT_STATUSES, PREDICTION_KINDS, SHARE_NAMES, explain_scene
+from fmfusion_jax.evaluation.explain_report import write_explanation
 from fmfusion_jax.evaluation.scannet_benchmark import OVERLAPS, match_scene, scene_class_detections
 from fmfusion_jax.io.benchmark_format import InstancePredictions, write_benchmark_predictions
 from fmfusion_jax.labels import BENCHMARK_NYU40_IDS
@@ -398,7 +399,7 @@ def test_run_scoring_writes_explain_beside_report(generated_scene, tmp_path):
 @pytest.mark.slow
 def test_demo_run_writes_explain_beside_report(tmp_path):
     """A whole run (`run_demo`: generate, simulate, fuse, write) puts explain.* beside report.json."""
-    from fmfusion_jax.demo import run_demo
+    from fmfusion_jax.apps.demo import run_demo
 
     # the room of test_demo.py's TINY demo: its steps are compiled already when the whole suite runs
     demo = run_demo(tmp_path / "out", seed=3, num_objects=4, num_frames=12, width=160, height=120, progress=False)

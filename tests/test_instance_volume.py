@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 from oracles import reference as ref
 
 from fmfusion_jax.engine import _geometry as geo
+from fmfusion_jax.engine import cell_edits, tsdf
 from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine import occupied_cells as oc
-from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import init_voxel_blocks, local_voxel_index
 
@@ -408,7 +408,7 @@ def test_remap_merges_and_deletes():
     new_id[1] = 0  # merge 1 into 0
     new_id[4] = 2  # merge 4 into 2
     new_id[7] = -1  # delete 7
-    out = oc.remap_instances(blocks, jnp.asarray(new_id, jnp.int32), CONFIG)
+    out = cell_edits.remap_instances(blocks, jnp.asarray(new_id, jnp.int32), CONFIG)
     check_slot_invariants(out)
     got = ref.blocks_to_dense(out, CONFIG)
     # expected, voxel by voxel
@@ -431,7 +431,7 @@ def test_remap_merges_and_deletes():
 def test_fuse_instance_geometry_keeps_surface_voxels_only():
     grid = random_instance_field(9)
     blocks = ref.dense_to_blocks(grid, CONFIG)
-    out = oc.fuse_instance_geometry(blocks, CONFIG, 2.0, 0.05)
+    out = cell_edits.fuse_instance_geometry(blocks, CONFIG, 2.0, 0.05)
     got = ref.blocks_to_dense(out, CONFIG)
     keep = (grid.weight >= 2.0) & (np.abs(grid.tsdf) * CONFIG.sdf_trunc <= 0.05)
     np.testing.assert_array_equal(got.instance_id, np.where(keep[..., None], grid.instance_id, -1))
@@ -498,7 +498,7 @@ def reference_remap(grid, new_id):
 
 _census = jax.jit(oc.census, static_argnames=("config", "overlap", "list_cells"))  # overlap: a mode name
 _census_flag = jax.jit(oc.census, static_argnames=("config", "list_cells"))  # overlap: a traced bool
-_remap_cells = jax.jit(oc.remap_cells, static_argnames=("config",))
+_remap_cells = jax.jit(cell_edits.remap_cells, static_argnames=("config",))
 
 
 def run_census(blocks, config, overlap=None, keep=None, list_cells=False):
@@ -607,11 +607,11 @@ def test_cell_tags_flag_every_cell_holding_a_wanted_id():
     result = run_census(blocks, dataclasses.replace(CONFIG, cell_list_capacity=2**18), list_cells=True)
     n = int(result.occupied)
     cells, tags = np.asarray(result.cells[:n]), result.tags[:n]
-    rows = np.asarray(oc._cell_rows(blocks.instance_id))[cells]
+    rows = np.asarray(oc.cell_rows(blocks.instance_id))[cells]
     assert (rows >= 0).any(axis=1).all() and len(np.unique(cells)) == n
     for wanted_ids in ([0], [3, 7], [NUM_INSTANCES - 1]):
         wanted = np.isin(np.arange(NUM_INSTANCES), wanted_ids)
-        flagged = np.asarray(oc._tag_holds(tags, jnp.asarray(wanted)))
+        flagged = np.asarray(oc.tag_holds(tags, jnp.asarray(wanted)))
         holds = np.isin(rows, wanted_ids).any(axis=1)
         assert flagged[holds].all()  # never misses a cell
         distinct = np.array([len(set(r[r >= 0])) for r in rows])

@@ -148,8 +148,8 @@ def small_room(tmp_path_factory):
 
 
 def _run(small_room):
-    from fmfusion_jax.demo import demo_config
     from fmfusion_jax.io.detections import DetectionFolder
+    from fmfusion_jax.simulation.demo_setup import demo_config
 
     scene, _, detections = small_room
     folder = DetectionFolder(detections, image_shape=(120, 160))

@@ -226,13 +226,13 @@ def test_vertex_iou():
 def test_histogram_identity_on_a_fused_map_and_matching(tmp_path):
     """In additive mode the engine's distribution of every final instance (merges included) is
     `class_distribution(h @ L)` of its open-label histogram, for the likelihood the map was fused with."""
-    from fmfusion_jax.demo import demo_config, demo_noise
+    from fmfusion_jax.apps.likelihood.workflow import with_likelihood
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
     from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.likelihood.workflow import with_likelihood
     from fmfusion_jax.mapping.export import extract_map_instances
     from fmfusion_jax.run.scene_fusion import fuse_scene
+    from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, prepare_generated
 
     rng = np.random.default_rng(5)

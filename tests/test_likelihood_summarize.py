@@ -208,8 +208,8 @@ def test_heatmap_png_size(tmp_path):
 
 
 def test_cli_seeds_and_errors(tmp_path, capsys):
+    from fmfusion_jax.apps.likelihood.commands import parse_seeds
     from fmfusion_jax.cli import main
-    from fmfusion_jax.cli.likelihood import parse_seeds
 
     assert parse_seeds("1-3,7") == [1, 2, 3, 7] and parse_seeds("none") == []
     assert main(["likelihood", "summarize", "--out", str(tmp_path / "o")]) == 2

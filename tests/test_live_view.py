@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from fmfusion_jax import cli
-from fmfusion_jax.demo import demo_config, demo_noise
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
 

@@ -16,7 +16,6 @@ from fusion_helpers import frame_block_keys
 
 import fmfusion_jax
 from fmfusion_jax.config import load_config
-from fmfusion_jax.demo import demo_config, demo_noise
 from fmfusion_jax.engine import growth
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
@@ -27,6 +26,7 @@ from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import as_config
 from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.run.scene_fusion import fuse_scene
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 from fmfusion_jax.types import FrameDetections
 
@@ -164,7 +164,7 @@ def test_a_bounded_map_grows_its_instance_table_to_the_same_map(room, monkeypatc
 def test_the_timed_stages_of_a_frame_add_up_to_the_whole_integrate_call(room):
     """What `fmfusion bench` calls the whole frame is all of `Mapper.integrate`: the steps, the builder's host work
     (packing, sending, statistics) and the Mapper's own (checks, schedule, growth check), each timed once."""
-    from fmfusion_jax.bench.stages import FrameTimer
+    from fmfusion_jax.apps.bench.stages import FrameTimer
 
     scene_dir, detections, config = room
     folder = DetectionFolder(detections)

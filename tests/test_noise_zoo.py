@@ -10,22 +10,23 @@ import json
 import numpy as np
 import pytest
 
+from fmfusion_jax.apps.simulate import parse_overrides
 from fmfusion_jax.cli import simulate as cli_simulate
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.simulation import noise as noise_module
-from fmfusion_jax.simulation.noise import NoiseModel, bleed_kernel, mask_box
-from fmfusion_jax.simulation.simulate import (
-    BLOB_LABELS,
+from fmfusion_jax.simulation.noise import FAMILIES, FAMILY_DOSES, NoiseModel, bleed_kernel, family_noise, mask_box
+from fmfusion_jax.simulation.sim_false_positives import BLOB_LABELS
+from fmfusion_jax.simulation.sim_labels import (
     CONFUSER_CLASSES,
     EXTRA_CONFUSIONS,
     _LabelModel,
     consistent_mislabels,
     perturb_likelihood,
-    simulate_frame,
     wrong_labels,
 )
-from fmfusion_jax.simulation.zoo import FAMILIES, FAMILY_DOSES, MIXED, family_noise, noise_zoo
+from fmfusion_jax.simulation.simulate import simulate_frame
+from fmfusion_jax.simulation.zoo import MIXED, noise_zoo
 
 LABELS = load_label_sets()
 LIKELIHOOD = load_likelihood("statistical")
@@ -169,7 +170,7 @@ def test_cli_accepts_family_presets_and_their_parameters():
     args = build_parser().parse_args(
         ["simulate", "scene", "--out", "sim", "--noise-preset", "border", "--set", "bleed_px=8", "--set", "erode_prob=0.1"]
     )
-    noise = NoiseModel.preset(args.noise_preset, **cli_simulate.parse_overrides(args.set))
+    noise = NoiseModel.preset(args.noise_preset, **parse_overrides(args.set))
     assert (noise.bleed_px, noise.erode_prob, noise.bleed_prob) == (8, 0.1, FAMILY_DOSES["border"]["bleed_prob"])
 
 

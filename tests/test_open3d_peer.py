@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from oracles.reference import BoxRoom, look_at, scannet_like_intrinsics
 
-from fmfusion_jax.bench import open3d_peer
-from fmfusion_jax.bench.open3d_peer import STAGES, Open3DInstancePipeline, VoxelBlockGridTSDF
+from fmfusion_jax.apps.bench import open3d_peer
+from fmfusion_jax.apps.bench.open3d_peer import STAGES, Open3DInstancePipeline, VoxelBlockGridTSDF
 from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import load_label_sets, load_likelihood

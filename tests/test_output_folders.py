@@ -161,8 +161,8 @@ def test_a_second_run_on_the_same_output_folder_is_refused(tmp_path):
     import subprocess
     import sys
 
-    from fmfusion_jax.demo import demo_noise
     from fmfusion_jax.run.folder import OutputLock
+    from fmfusion_jax.simulation.demo_setup import demo_noise
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
     spec = GeneratedSceneSpec(seed=2, num_objects=2, num_frames=4, width=96, height=72)

@@ -260,7 +260,7 @@ def sequential_merge(state, map_config, fusion, final: bool):
     """The refinement as first written, step by step from the public kernels: recount; remove (rename,
     recount); count the overlaps; merge (rename, recount). `refine` and `finalize` must decide and
     produce exactly the same."""
-    from fmfusion_jax.engine import label_fusion, maintenance, merge
+    from fmfusion_jax.engine import cell_edits, label_fusion, maintenance, merge
     from fmfusion_jax.engine import occupied_cells as oc
 
     def recount(s):
@@ -271,12 +271,13 @@ def sequential_merge(state, map_config, fusion, final: bool):
         table = s.instances
         folded = {name: merge.fold_pair_counts(getattr(table, name), new_id, table.valid) for name in ("covered", "separated")}
         s = s._replace(
-            blocks=oc.remap_instances(s.blocks, new_id, map_config), instances=table._replace(**rows._asdict(), **folded)
+            blocks=cell_edits.remap_instances(s.blocks, new_id, map_config), instances=table._replace(**rows._asdict(), **folded)
         )
         return recount(s)
 
     if final:
-        state = recount(state._replace(blocks=oc.fuse_instance_geometry(state.blocks, map_config, fusion.geometry_min_weight)))
+        fused = cell_edits.fuse_instance_geometry(state.blocks, map_config, fusion.geometry_min_weight)
+        state = recount(state._replace(blocks=fused))
     else:
         state = recount(state)
         rows = maintenance.TableRows.of(state.instances)

@@ -18,12 +18,9 @@ from hypothesis import strategies as st
 import fmfusion_jax.cli as cli
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.simulation import raycast
+from fmfusion_jax.simulation.furniture import CEILING_NYU40, OBJECT_KINDS, RAW_LABELS
 from fmfusion_jax.simulation.procedural import (
-    CEILING_NYU40,
-    OBJECT_KINDS,
-    RAW_LABELS,
     add_object,
-    build_mesh,
     camera_trajectory,
     default_room_size,
     empty_room,
@@ -31,6 +28,8 @@ from fmfusion_jax.simulation.procedural import (
     look_pose,
 )
 from fmfusion_jax.simulation.scannet_writer import scene_intrinsics, write_scannet_scene
+from fmfusion_jax.simulation.scene_mesh import build_mesh
+from fmfusion_jax.simulation.scene_views import render_frame
 
 SMALL = raycast.SCANNET_INTRINSICS.scaled(160, 120)
 
@@ -180,7 +179,7 @@ def test_depth_of_a_known_box_is_the_analytic_distance():
     scene = add_object(room, "cabinet", [((3.0, 4.0, 1.0), (1.0, 0.5, 2.0), 0.0)])
     # Camera at (3, 1, 1) looking along +y (yaw 90 deg), level: the cabinet's front face is the plane y = 3.75.
     pose = look_pose((3.0, 1.0, 1.0), math.pi / 2, 0.0)
-    frame = raycast.render_frame(scene, pose, SMALL, depth_noise=False, color_noise=False)
+    frame = render_frame(scene, pose, SMALL, depth_noise=False, color_noise=False)
     cx, cy = int(round(SMALL.cx)), int(round(SMALL.cy))
     assert frame.depth_exact[cy, cx] == pytest.approx(2.75, abs=1e-5)
     cabinet = frame.instance == 7
@@ -202,7 +201,7 @@ def test_rendered_depth_matches_independent_rays(yaw, box_yaw, pitch):
     scene = add_object(empty_room((6.0, 6.0, 3.0)), "table", [((3.0, 3.0, 0.5), (1.2, 0.7, 1.0), box_yaw)])
     pose = look_pose((1.0 + 4 * (math.cos(yaw) < 0), 1.0 + 4 * (math.sin(yaw) < 0), 1.4), yaw, pitch)
     intrinsics = raycast.SCANNET_INTRINSICS.scaled(32, 24)
-    frame = raycast.render_frame(scene, pose, intrinsics, depth_noise=False, color_noise=False, max_range=100.0)
+    frame = render_frame(scene, pose, intrinsics, depth_noise=False, color_noise=False, max_range=100.0)
     xs, ys = raycast.camera_rays(intrinsics)
     directions = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], 1.0), -1).reshape(-1, 3) @ pose[:3, :3].T
     t, box = raycast.raycast_rays(scene.box_arrays(), np.broadcast_to(pose[:3, 3], directions.shape), directions)
@@ -216,7 +215,7 @@ def test_instance_image_is_consistent_with_depth():
     scene = generate_scene(2, num_objects=12)
     poses = scene.trajectory(6)
     for k, pose in enumerate(poses):
-        noisy = raycast.render_frame(scene, pose, SMALL, rng=np.random.default_rng(k))
+        noisy = render_frame(scene, pose, SMALL, rng=np.random.default_rng(k))
         assert np.all(noisy.depth[noisy.instance > 0] > 0)
         assert noisy.color.dtype == np.uint8 and noisy.color.shape == (120, 160, 3)
         valid = noisy.depth > 0
@@ -224,7 +223,7 @@ def test_instance_image_is_consistent_with_depth():
         # The noise is Kinect-like: a few mm to cm, growing with depth.
         error = np.abs(noisy.depth - noisy.depth_exact)[valid]
         assert 0.0005 < np.median(error) < 0.02
-        exact = raycast.render_frame(scene, pose, SMALL, depth_noise=False)
+        exact = render_frame(scene, pose, SMALL, depth_noise=False)
         assert np.all(exact.instance > 0) and np.all(exact.depth > 0)  # a closed room, all within 6 m
         np.testing.assert_array_equal(exact.depth, exact.depth_exact)
 
@@ -295,7 +294,7 @@ def test_written_folder_round_trips(written):
         np.testing.assert_allclose(pose, poses[k], atol=1e-7)
         depth_png = cv2.imread(str(out / "depth" / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
         assert depth_png.dtype == np.uint16 and depth_png.shape == (120, 160)
-        exact = raycast.render_frame(scene, poses[k], intrinsics, depth_noise=False, color_noise=False)
+        exact = render_frame(scene, poses[k], intrinsics, depth_noise=False, color_noise=False)
         np.testing.assert_allclose(depth_png / 1000.0, exact.depth_exact, atol=0.0005 + 1e-6)
         color = cv2.imread(str(out / "color" / f"{stem}.jpg"))
         assert color.shape == (120, 160, 3)

@@ -1,4 +1,4 @@
-"""`fmfusion experiment --robustness` (`fmfusion_jax.robustness`): the summaries on hand-made scores, the
+"""`fmfusion experiment --robustness` (`fmfusion_jax.apps.robustness`): the summaries on hand-made scores, the
 reports, the detections' cache name, the command line, and one tiny end-to-end evaluation."""
 
 from __future__ import annotations
@@ -10,21 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from fmfusion_jax import robustness
-from fmfusion_jax.experiments import METHODS, PREVIOUS_MAP_OVERRIDES, SceneSource
-from fmfusion_jax.robustness import (
-    best_methods,
-    detections_tag,
-    entry_noise,
-    family_rows,
-    robustness_markdown,
-    run_robustness,
-    scale_noise_to_image,
-    summarize,
-    verdict,
-    verdict_lines,
-    write_reports,
-)
+from fmfusion_jax.apps import robustness
+from fmfusion_jax.apps.robustness import detections_tag, entry_noise, run_robustness, write_reports
+from fmfusion_jax.apps.robustness.report import best_methods, family_rows, robustness_markdown, summarize, verdict, verdict_lines
+from fmfusion_jax.comparison.methods import METHODS, PREVIOUS_MAP_OVERRIDES
+from fmfusion_jax.comparison.scenes import SceneSource
+from fmfusion_jax.simulation.demo_setup import scale_noise_to_image
 from fmfusion_jax.simulation.noise import NoiseModel
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
 from fmfusion_jax.simulation.zoo import ZooEntry, noise_zoo
@@ -156,7 +147,7 @@ def test_cache_name_changes_with_any_noise_parameter():
 
 
 def test_generated_scenes_scale_pixel_counts_as_the_demo_does():
-    from fmfusion_jax.demo import demo_noise
+    from fmfusion_jax.simulation.demo_setup import demo_noise
 
     for width, height in ((640, 480), (320, 240), (160, 120)):
         assert scale_noise_to_image(NoiseModel.preset("default", seed=3), width, height) == demo_noise(3, width, height)
@@ -232,7 +223,7 @@ def test_cli_defaults_and_quick(monkeypatch, tmp_path):
 
 
 def test_previous_is_a_method_but_not_a_default_of_the_plain_experiment():
-    from fmfusion_jax.experiments import DEFAULT_METHODS, PREVIOUS_MAP_OVERRIDES
+    from fmfusion_jax.comparison.methods import DEFAULT_METHODS, PREVIOUS_MAP_OVERRIDES
 
     assert METHODS["previous"].overrides == PREVIOUS_MAP_OVERRIDES and "previous" not in DEFAULT_METHODS
 
@@ -287,8 +278,8 @@ def test_tiny_evaluation_end_to_end(tmp_path):
 
 
 def test_precision_counts_pool_and_summarize_on_a_tiny_case():
+    from fmfusion_jax.apps.robustness.report import pooled_precision, precision_counts, precision_table, summarize_precision
     from fmfusion_jax.io.benchmark_format import InstancePredictions
-    from fmfusion_jax.robustness import pooled_precision, precision_counts, precision_table, summarize_precision
 
     chair, table = 5, 7  # nyu40
     gt = np.zeros(1000, np.int64)

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import pytest
 
-from fmfusion_jax.demo import demo_config, demo_noise
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
@@ -22,6 +21,7 @@ from fmfusion_jax.run.checkpoint import Checkpoint
 from fmfusion_jax.run.command import run_and_export
 from fmfusion_jax.run.folder import partial_dir
 from fmfusion_jax.run.scene_fusion import SceneFusion
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
 SPEC = GeneratedSceneSpec(seed=3, num_objects=4, num_frames=14, width=160, height=120)

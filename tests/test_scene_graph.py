@@ -137,13 +137,13 @@ def _graph_against_generator(seed: int, tmp_path) -> tuple[dict, dict, list[dict
     graph's `on` and `near` edges and the generator's, as ground-truth instance ids, over the objects the map
     holds (a relation of an object the map lost is the detector's miss, not the graph's); and the map's
     `instances.json` records with the generator's instance each one lies in."""
-    from fmfusion_jax.demo import demo_config
     from fmfusion_jax.io.detections import DetectionFolder
     from fmfusion_jax.io.map_outputs import instances_json
     from fmfusion_jax.io.scene import open_scene
     from fmfusion_jax.labels import load_label_sets
     from fmfusion_jax.mapping.export import extract_map_instances
     from fmfusion_jax.run.scene_fusion import fuse_scene
+    from fmfusion_jax.simulation.demo_setup import demo_config
     from fmfusion_jax.simulation.noise import NoiseModel
     from fmfusion_jax.simulation.procedural import box_distance, generate_scene
     from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections

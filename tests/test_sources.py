@@ -9,15 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmfusion_jax.cli.detect import RECORD_FILE, _frames_done
+from fmfusion_jax.apps.detect import RECORD_FILE, _frames_done
 from fmfusion_jax.config import load_config
-from fmfusion_jax.demo import demo_config, demo_noise
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder, label_path
 from fmfusion_jax.io.scene import open_scene
 from fmfusion_jax.mapping.inputs import as_config
 from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.mapping.schedule import scheduled_positions
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 from fmfusion_jax.sources import ModelSource, open_detection_source
 
@@ -171,7 +171,7 @@ def test_models_run_in_a_detection_thread_on_due_frames_in_order_and_make_the_sa
 
 
 def test_batch_detects_each_scene_with_the_models_before_its_run(tmp_path):
-    from fmfusion_jax.batch import SIMULATED_DIR, Batch, run_scene
+    from fmfusion_jax.apps.batch import SIMULATED_DIR, Batch, run_scene
 
     scene = tmp_path / "scene0001_00"
     scene.mkdir()

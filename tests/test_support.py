@@ -140,7 +140,7 @@ def test_filter_floor_pixels_matches_the_oracle(seed, n, max_share):
 def test_floor_vertices_are_the_up_facing_ones_near_the_floor():
     import trimesh
 
-    from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
+    from fmfusion_jax.io.vertex_transfer import floor_vertices
 
     u, v = np.meshgrid(np.linspace(-2, 2, 21), np.linspace(-2, 2, 21), indexing="ij")
     grid = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], 1)  # a floor at z = 0, 20 cm cells

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from fmfusion_jax import xla_options
-from fmfusion_jax.bench.report import _flags_worth_naming
+from fmfusion_jax.apps.bench.report import _flags_worth_naming
 from fmfusion_jax.xla_options import GPU_COMMAND_BUFFER_FLAG, enable_gpu_command_buffers
 
 

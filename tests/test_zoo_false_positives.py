@@ -14,16 +14,10 @@ from hypothesis import strategies as st
 
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import load_label_sets, load_likelihood
-from fmfusion_jax.simulation.noise import LATER_PARAMS, NoiseModel, split_into_pieces
-from fmfusion_jax.simulation.simulate import (
-    BACKGROUND_CLASSES,
-    Phantom,
-    phantom_mask,
-    place_phantoms,
-    simulate_frame,
-    simulate_scene,
-)
-from fmfusion_jax.simulation.zoo import FAMILY_DOSES, LATER_FAMILIES, MIXED, noise_zoo
+from fmfusion_jax.simulation.noise import FAMILY_DOSES, LATER_PARAMS, NoiseModel, split_into_pieces
+from fmfusion_jax.simulation.sim_false_positives import BACKGROUND_CLASSES, Phantom, phantom_mask, place_phantoms
+from fmfusion_jax.simulation.simulate import simulate_frame, simulate_scene
+from fmfusion_jax.simulation.zoo import LATER_FAMILIES, MIXED, noise_zoo
 from fmfusion_jax.types import CameraIntrinsics
 
 LABELS = load_label_sets()

@@ -49,11 +49,19 @@ from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from tqdm import tqdm
 
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.detections import batch_pixel_image, filter_detection_depth
+from fmfusion_jax.engine.state import voxel_offsets
 from fmfusion_jax.instances import MapInstance, postprocess_instances
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
+from fmfusion_jax.mapping.builder import MapBuilder
+from fmfusion_jax.mapping.engine_configs import build_map_config
+from fmfusion_jax.mapping.schedule import scheduled_detections
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 if TYPE_CHECKING:
@@ -275,7 +283,6 @@ class LabelCounts:
 def surface_voxel_keys(state, map_config: MapConfig, min_weight: float, band: float | None = None) -> np.ndarray:
     """int64[S] sorted keys of the voxels on the global TSDF surface: weight >= `min_weight` and
     `|sdf| <= band` metres (default one voxel). `state`: a `MapState` (its blocks are read on the host)."""
-    from fmfusion_jax.engine.state import voxel_offsets
 
     blocks = state.blocks
     n = int(blocks.num_blocks)
@@ -298,8 +305,6 @@ def cluster_all(keys: np.ndarray, labels: np.ndarray, dims: np.ndarray) -> tuple
     Returns:
       `(component int64[N], count)`: components numbered 0.. in the order of their first voxel.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
     keys, labels = np.asarray(keys, np.int64), np.asarray(labels)
     n = len(keys)
@@ -407,7 +412,6 @@ class KimeraMapper:
     """
 
     def __init__(self, config: PipelineConfig, map_config: MapConfig, label_sets: LabelSets | None = None):
-        from fmfusion_jax.mapping.builder import MapBuilder
 
         self.config = config
         self.map_config = map_config
@@ -429,7 +433,6 @@ class KimeraMapper:
             self.seconds["labels"] += time.perf_counter() - start
 
     def _add_labels(self, frame: RGBDFrame, detections: FrameDetections) -> None:
-        from fmfusion_jax.engine.detections import batch_pixel_image, filter_detection_depth
 
         config, map_config = self.config, self.map_config
         batch = self.geometry.adapter.detections(detections)
@@ -488,8 +491,6 @@ def run_kimera(
 ) -> KimeraResult:
     """The Kimera-style baseline over every frame of an opened `scene` (`io.scene.Scene`), with detections
     from `detection_source(frame)` on the detection frames (`mapping.schedule.DetectionSchedule`, as FM-Fusion)."""
-    from fmfusion_jax.mapping.engine_configs import build_map_config
-    from fmfusion_jax.mapping.schedule import scheduled_detections
 
     bounds_min, bounds_max = scene.bounds()
     label_sets = label_sets or load_label_sets()
@@ -498,8 +499,6 @@ def run_kimera(
     frames: Iterable[RGBDFrame] = scene.frames()
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=len(scene), desc=f"kimera {scene.name}", unit="frame", dynamic_ncols=True)
     try:
         for frame, detections in scheduled_detections(frames, detection_source, config):

@@ -13,6 +13,7 @@ import logging
 import os
 import sys
 
+from fmfusion_jax.cli import options
 from fmfusion_jax.compile_cache import enable_compile_cache
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.xla_options import enable_gpu_command_buffers
@@ -52,10 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fmfusion",
         description="Instance-aware semantic mapping from RGB-D video with open-set foundation-model detections.",
     )
-    from fmfusion_jax import __version__
+    from fmfusion_jax import __version__  # lazy: the package's __init__ loads JAX (the Mapper)
 
     parser.add_argument("--version", action="version", version=f"fmfusion {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+    options.add_verbose(parser)
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
         importlib.import_module(f"fmfusion_jax.cli.{name}").register(subparsers)
@@ -69,14 +70,7 @@ def _accept_verbose_after_subcommands(parser: argparse.ArgumentParser) -> None:
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for sub in set(action.choices.values()):
-                sub.add_argument(
-                    "-v",
-                    "--verbose",
-                    action="count",
-                    default=0,
-                    dest="verbose_after_command",
-                    help="more logging (-v info, -vv debug)",
-                )
+                options.add_verbose(sub, dest="verbose_after_command")
                 _accept_verbose_after_subcommands(sub)
 
 

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import sys
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.apps.bench.scenes import DEFAULT_SCENE
+from fmfusion_jax.cli import HelpFormatter, options
 
 #: The real scene used when --scene is not given (and present).
-DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
 
 
 def register(subparsers) -> None:
@@ -90,15 +89,10 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke test in well under a minute")
     parser.add_argument("--cache", type=Path, default=None, help="folder of the prepared scenes (default OUT/cache)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the generated rooms and simulated detections")
-    parser.add_argument("--out", type=Path, default=Path("outputs/bench"), help="output folder")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 (repeatable)",
+    options.add_seed(parser, help="seed of the generated rooms and simulated detections")
+    options.add_out(parser, default=Path("outputs/bench"), help="output folder")
+    options.add_overrides(
+        parser, help="override a config value of every scene, e.g. --set instances.contrary_vote_weight=0 (repeatable)"
     )
     parser.add_argument(
         "--profile",
@@ -108,60 +102,8 @@ def register(subparsers) -> None:
         help="trace the last N frames of our pass as run on the main scene with jax.profiler (left out of the figures): "
         "bench.md summarizes where each thread's time went, the trace opens in ui.perfetto.dev (default: 0, none)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    options.add_no_progress(parser, help="no progress bars")
     parser.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.bench.run import QUICK_SIZES, BenchOptions, run_bench
-    from fmfusion_jax.errors import UserError
-
-    for name in ("frames", "generated_frames", "peer_frames", "sweep_frames"):
-        value = getattr(args, name)
-        if value is not None and value < 0:
-            raise UserError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
-    if args.objects is not None and any(n < 1 for n in args.objects):
-        raise UserError(f"--objects must be positive, got {args.objects}")
-    if args.generated_frames == 0 or args.generated_frames == 1:
-        raise UserError("--generated-frames must be >= 2")
-    if args.sweep is not None and any(k < 1 for k in args.sweep):
-        raise UserError(f"--sweep caps must be >= 1, got {args.sweep}")
-    if args.sweep_frames == 1:
-        raise UserError("--sweep-frames must be >= 2 (frame 0 warms up)")
-    if args.profile < 0:
-        raise UserError(f"--profile must be >= 0, got {args.profile}")
-
-    defaults = dict(QUICK_SIZES) if args.quick else {}
-    given = {
-        "frames": args.frames,
-        "objects": None if args.objects is None else tuple(args.objects),
-        "generated_frames": args.generated_frames,
-        "peer_frames": args.peer_frames,
-        "sweep": None if args.sweep is None else tuple(dict.fromkeys(args.sweep)),
-        "sweep_frames": args.sweep_frames,
-    }
-    if args.size is not None:
-        given["width"], given["height"] = args.size
-    options = {**defaults, **{k: v for k, v in given.items() if v is not None}}
-    for name in ("frames", "peer_frames", "sweep_frames"):  # 0 = all
-        if options.get(name) == 0:
-            options[name] = None
-    scene = None if args.no_scene else _real_scene(args.scene, quick=args.quick)
-    bench = BenchOptions(
-        out=args.out,
-        cache=args.cache,
-        scene=scene,
-        peer=not args.no_peer,
-        seed=args.seed,
-        overrides=tuple(args.overrides),
-        progress=not args.no_progress,
-        profile_frames=args.profile,
-        **options,
-    )
-    summary = run_bench(bench, command=_command_line(args))
-    print(summary["markdown"])
-    print(f"written: {args.out / 'bench.md'}, {args.out / 'bench.json'}")
-    return 0
 
 
 def _command_line(args: argparse.Namespace) -> str:
@@ -194,19 +136,26 @@ def _command_line(args: argparse.Namespace) -> str:
     return shlex.join(words)
 
 
-def _real_scene(given: Path | None, quick: bool) -> Path | None:
-    """The real scene to run: the one given (must exist), else the shared sample when present (not with
-    --quick); None, saying so, when there is none."""
-    from fmfusion_jax.errors import UserError
+def run(args: argparse.Namespace) -> int:
+    from fmfusion_jax.apps.bench.run import run_bench_command  # lazy: the command's work loads only when it runs
 
-    if given is not None:
-        if not given.is_dir():
-            raise UserError(f"scene folder {given} does not exist")
-        return given
-    if quick:
-        print("fmfusion bench: --quick runs generated rooms only (give --scene to add the real scene)", file=sys.stderr)
-        return None
-    if DEFAULT_SCENE.is_dir():
-        return DEFAULT_SCENE
-    print(f"fmfusion bench: no real scene at {DEFAULT_SCENE} (give one with --scene); generated rooms only", file=sys.stderr)
-    return None
+    return run_bench_command(
+        objects=args.objects,
+        generated_frames=args.generated_frames,
+        sweep=args.sweep,
+        sweep_frames=args.sweep_frames,
+        profile=args.profile,
+        quick=args.quick,
+        frames=args.frames,
+        peer_frames=args.peer_frames,
+        size=args.size,
+        no_scene=args.no_scene,
+        scene=args.scene,
+        out=args.out,
+        cache=args.cache,
+        no_peer=args.no_peer,
+        seed=args.seed,
+        overrides=args.overrides,
+        no_progress=args.no_progress,
+        command=_command_line(args),
+    )

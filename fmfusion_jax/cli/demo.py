@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
+from fmfusion_jax.apps.demo import DEFAULT_OUT, run_demo
+from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.simulation.demo_setup import DEFAULT_FRAMES, DEFAULT_HEIGHT, DEFAULT_OBJECTS, DEFAULT_WIDTH
 
 
 def register(subparsers) -> None:
-    from fmfusion_jax.demo import DEFAULT_FRAMES, DEFAULT_HEIGHT, DEFAULT_OBJECTS, DEFAULT_OUT, DEFAULT_WIDTH
-
     parser = subparsers.add_parser(
         "demo",
         help="the whole job on a generated room: no data needed",
@@ -23,10 +22,8 @@ def register(subparsers) -> None:
         "About a minute on two CPU cores at the defaults.",
         formatter_class=HelpFormatter,
     )
-    parser.add_argument(
-        "--out", type=Path, default=DEFAULT_OUT, help="output folder (a previous demo's output there is replaced)"
-    )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the room, camera path, noise and detections")
+    options.add_out(parser, default=DEFAULT_OUT, help="output folder (a previous demo's output there is replaced)")
+    options.add_seed(parser, help="seed of the room, camera path, noise and detections")
     parser.add_argument("--objects", type=int, default=DEFAULT_OBJECTS, metavar="N", help="objects in the room")
     parser.add_argument(
         "--stacked",
@@ -38,21 +35,12 @@ def register(subparsers) -> None:
     parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES, metavar="N", help="frames on the loop")
     parser.add_argument("--width", type=int, default=DEFAULT_WIDTH, help="image width")
     parser.add_argument("--height", type=int, default=DEFAULT_HEIGHT, help="image height")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a value of configs/demo.yaml, e.g. --set detections.every=1 (repeatable)",
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    options.add_overrides(parser, help="override a value of configs/demo.yaml, e.g. --set detections.every=1 (repeatable)")
+    options.add_no_progress(parser, help="no progress bars")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.demo import run_demo
-
     if args.frames < 2 or args.objects < 1 or args.stacked < 0:
         raise UserError(
             f"--frames must be >= 2, --objects >= 1 and --stacked >= 0 (got {args.frames}, {args.objects}, {args.stacked})"

@@ -6,22 +6,23 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fmfusion_jax.apps import experiments, robustness
+from fmfusion_jax.apps.experiments import (
+    DEFAULT_GENERATED,
+    DEFAULT_GENERATED_FRAMES,
+    DEFAULT_GENERATED_OBJECTS,
+    DEFAULT_OUT,
+    QUICK_GENERATED,
+    QUICK_REAL_FRAMES,
+    default_real_scenes,
+    generated_specs,
+)
+from fmfusion_jax.cli import options
+from fmfusion_jax.comparison.methods import DEFAULT_METHODS, METHODS, resolve_methods
 from fmfusion_jax.errors import UserError
 
 
 def register(subparsers) -> None:
-    from fmfusion_jax import robustness
-    from fmfusion_jax.experiments import (
-        DEFAULT_GENERATED,
-        DEFAULT_GENERATED_FRAMES,
-        DEFAULT_GENERATED_OBJECTS,
-        DEFAULT_METHODS,
-        DEFAULT_OUT,
-        METHODS,
-        QUICK_GENERATED,
-        QUICK_REAL_FRAMES,
-    )
-
     methods = "; ".join(f"{m.name}: {m.title}" for m in METHODS.values())
     parser = subparsers.add_parser(
         "experiment",
@@ -85,14 +86,11 @@ def register(subparsers) -> None:
         help=f"methods to run, some of: {', '.join(METHODS)} (default: {' '.join(DEFAULT_METHODS)}; "
         f"with --robustness: {' '.join(robustness.DEFAULT_METHODS)})",
     )
-    parser.add_argument(
-        "--seed", type=int, default=None, help="seed of the simulated detections (default 0; with --robustness use --noise-seed)"
+    options.add_seed(
+        parser, default=None, help="seed of the simulated detections (default 0; with --robustness use --noise-seed)"
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help=f"output folder (default {DEFAULT_OUT}; with --robustness {robustness.DEFAULT_OUT})",
+    options.add_out(
+        parser, default=None, help=f"output folder (default {DEFAULT_OUT}; with --robustness {robustness.DEFAULT_OUT})"
     )
     parser.add_argument(
         "--robustness",
@@ -129,34 +127,16 @@ def register(subparsers) -> None:
         f"{QUICK_GENERATED['width']}x{QUICK_GENERATED['height']}, real scenes (only those named) "
         f"cut to {QUICK_REAL_FRAMES} frames; with --robustness also a zoo of one mixture",
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
+    options.add_overrides(
+        parser,
         help="override a config value for every method, e.g. --set detections.every=2 "
         "(repeatable; a method's own setting, such as ablation A's likelihood, wins)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars or per-run lines")
+    options.add_no_progress(parser, help="no progress bars or per-run lines")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax import robustness
-    from fmfusion_jax.experiments import (
-        DEFAULT_GENERATED,
-        DEFAULT_GENERATED_FRAMES,
-        DEFAULT_GENERATED_OBJECTS,
-        DEFAULT_OUT,
-        QUICK_GENERATED,
-        QUICK_REAL_FRAMES,
-        default_real_scenes,
-        generated_specs,
-        resolve_methods,
-        run_experiment,
-    )
-
     if args.detections is not None and args.robustness:
         raise UserError("--detections: the robustness evaluation simulates its detections (the noise zoo)")
     if args.robustness:
@@ -201,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         )
         print(robust.text)
         return 0
-    result = run_experiment(
+    result = experiments.run_experiment(
         args.out or DEFAULT_OUT,
         real_scenes=real,
         generated=specs,

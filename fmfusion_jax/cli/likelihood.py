@@ -3,31 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import sys
-import time
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
-from fmfusion_jax.errors import UserError
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``"1-6"`` -> [1..6]; ``"1,3,7-9"`` -> [1, 3, 7, 8, 9]; ``""`` or ``"none"`` -> []."""
-    if text.strip().lower() in ("", "none"):
-        return []
-    seeds: list[int] = []
-    try:
-        for part in text.split(","):
-            lo, sep, hi = part.strip().partition("-")
-            seeds += list(range(int(lo), int(hi) + 1)) if sep else [int(lo)]
-    except ValueError:
-        raise UserError(f"seeds {text!r}: expected e.g. 1-6 or 1,3,7-9") from None
-    return seeds
+from fmfusion_jax.apps.likelihood.workflow import DEFAULT_CACHE, GeneratedSize
+from fmfusion_jax.cli import HelpFormatter, options
 
 
 def _add_generated_arguments(parser: argparse.ArgumentParser) -> None:
-    from fmfusion_jax.likelihood.workflow import DEFAULT_CACHE, GeneratedSize
-
     size = GeneratedSize()
     group = parser.add_argument_group("generated scenes (made once, cached)")
     group.add_argument(
@@ -37,7 +19,7 @@ def _add_generated_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--frames", type=int, default=size.num_frames, help="frames per generated scene")
     group.add_argument("--width", type=int, default=size.width, help="image width of generated scenes")
     group.add_argument("--height", type=int, default=size.height, help="image height of generated scenes")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    options.add_no_progress(parser, help="no progress bars")
 
 
 def register(subparsers) -> None:
@@ -81,7 +63,7 @@ def register(subparsers) -> None:
     summarize.add_argument(
         "--generated", type=int, default=0, metavar="N", help="also N generated scenes (seeds 1..N) with simulated detections"
     )
-    summarize.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    options.add_out(summarize, required=True, help="output folder (created)")
     summarize.add_argument(
         "--min-pixels",
         type=int,
@@ -123,7 +105,7 @@ def register(subparsers) -> None:
         "../shared/data/scannet/scene0000_00 when present; give none to leave it out)",
     )
     calibrate.add_argument("--real-config", default="scannet-subsampled", help="config the real scenes are fused with")
-    calibrate.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    options.add_out(calibrate, required=True, help="output folder (created)")
     calibrate.add_argument(
         "--init", default="statistical", help="initial matrix: statistical, manual or a CSV path (the training runs use it)"
     )
@@ -161,123 +143,51 @@ def register(subparsers) -> None:
     calibrate.set_defaults(func=run_calibrate)
 
 
-def _size(args: argparse.Namespace):
-    from fmfusion_jax.likelihood.workflow import GeneratedSize
-
-    if args.objects < 1 or args.frames < 2 or args.width < 32 or args.height < 24:
-        raise UserError("generated scenes need at least 1 object, 2 frames and 32x24 pixels")
-    return GeneratedSize(args.objects, args.frames, args.width, args.height)
-
-
-def _say(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
-
-
 def run_summarize(args: argparse.Namespace) -> int:
-    from fmfusion_jax.likelihood import workflow
-    from fmfusion_jax.likelihood.summarize import estimate, write_summary
-    from fmfusion_jax.run.folder import prepare_output_dir
+    from fmfusion_jax.apps.likelihood.commands import (
+        run_summarize as summarize,  # lazy: the command's work loads only when it runs
+    )
 
-    if not args.scenes and args.generated < 1:
-        raise UserError("give SCENE folders and/or --generated N")
-    if args.detections is not None and len(args.detections) != len(args.scenes):
-        raise UserError(f"--detections needs one folder per SCENE ({len(args.scenes)} scenes, {len(args.detections)} folders)")
-    for scene in args.scenes:
-        if not scene.is_dir():
-            raise UserError(f"scene folder {scene} does not exist")
-    start = time.perf_counter()
-    prepare_output_dir(args.out)
-    progress = not args.no_progress
-    detections = args.detections or [None] * len(args.scenes)
-    cases = [workflow.real_case(scene, det, args.cache, progress=progress) for scene, det in zip(args.scenes, detections)]
-    if args.generated:
-        _say(f"preparing {args.generated} generated scenes in {args.cache} ...")
-        cases += workflow.generated_cases(range(1, args.generated + 1), args.cache, _size(args), progress)
-    counts = workflow.summarize_cases(cases, min_pixels=args.min_pixels, label_rule=args.label_rule, progress=progress)
-    if counts.instances == 0:
-        raise UserError("no ground-truth instance of a closed class was visible in any detection frame")
-    write_summary(
+    return summarize(
+        args.scenes,
+        args.detections,
+        args.generated,
         args.out,
-        counts,
-        sources=[f"{c.name}: {c.detections_dir}" for c in cases],
-        settings={"label_rule": args.label_rule, "min_pixels": args.min_pixels},
+        args.cache,
+        args.objects,
+        args.frames,
+        args.width,
+        args.height,
+        min_pixels=args.min_pixels,
+        label_rule=args.label_rule,
+        progress=not args.no_progress,
     )
-    _, _, likelihood = estimate(counts)
-    seen = counts.frames_observing > 0
-    observed = int(seen.sum())
-    sums = likelihood[:, seen].sum(axis=0)
-    print(
-        f"summarized {counts.frames} frames of {len(cases)} scenes: {counts.instances} visible instances, "
-        f"{counts.matched} matched to a detection ({100.0 * counts.matched / counts.instances:.0f}%), "
-        f"{observed} of {len(counts.frames_observing)} classes observed, in {time.perf_counter() - start:.1f} s"
-    )
-    print(
-        f"likelihood: {int((likelihood > 0).sum())} non-zero entries, column sums "
-        f"{sums.min():.2f} - {sums.max():.2f} over the observed classes"
-        if observed
-        else "likelihood: empty"
-    )
-    print(f"outputs in {args.out}: likelihood.csv/.png, tagging.csv/.png, detection.csv/.png, counts.json")
-    return 0
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    from fmfusion_jax.labels import load_likelihood
-    from fmfusion_jax.likelihood import workflow
-    from fmfusion_jax.run.folder import prepare_output_dir
+    from fmfusion_jax.apps.likelihood.commands import (
+        run_calibrate as calibrate,  # lazy: the command's work loads only when it runs
+    )
 
-    for name in ("steps", "max_steps"):
-        if getattr(args, name) is not None and getattr(args, name) < 1:
-            raise UserError(f"--{name.replace('_', '-')} must be >= 1")
-    if args.lr <= 0 or (args.l2 is not None and args.l2 < 0):
-        raise UserError("--lr must be > 0 and --l2 >= 0")
-    try:
-        l2_grid = tuple(float(v) for v in args.l2_grid.split(",") if v.strip())
-    except ValueError:
-        raise UserError(f"--l2-grid {args.l2_grid!r}: expected comma-separated numbers") from None
-    if not l2_grid or min(l2_grid) < 0:
-        raise UserError("--l2-grid needs at least one weight, all >= 0")
-    cross_validated = args.l2 is None or args.steps is None
-    if cross_validated and args.folds < 2:
-        raise UserError("--folds must be >= 2")
-    try:
-        load_likelihood(args.init)
-    except (OSError, ValueError) as error:
-        raise UserError(f"--init {args.init}: {error}") from None
-    train_seeds, test_seeds = parse_seeds(args.train), parse_seeds(args.test)
-    if not train_seeds:
-        raise UserError("--train needs at least one seed")
-    if cross_validated and len(train_seeds) < 2:
-        raise UserError("cross-validation needs at least 2 training seeds (or give both --l2 and --steps)")
-    if set(train_seeds) & set(test_seeds):
-        raise UserError(f"seeds {sorted(set(train_seeds) & set(test_seeds))} are both training and held-out scenes")
-    real = args.test_real
-    if real is None:
-        found = workflow.default_real_scene()
-        real = [found] if found is not None else []
-    start = time.perf_counter()
-    prepare_output_dir(args.out)
-    progress = not args.no_progress
-    size = _size(args)
-    _say(f"preparing {len(train_seeds) + len(test_seeds)} generated scenes in {args.cache} ...")
-    train = workflow.generated_cases(train_seeds, args.cache, size, progress)
-    test = workflow.generated_cases(test_seeds, args.cache, size, progress)
-    test += [workflow.real_case(scene, None, args.cache, args.real_config, progress) for scene in real]
-    settings = workflow.CalibrationSettings(
+    return calibrate(
+        args.train,
+        args.test,
+        args.test_real,
+        args.real_config,
+        args.out,
+        args.cache,
+        args.objects,
+        args.frames,
+        args.width,
+        args.height,
         init=args.init,
         parametrization=args.parametrization,
         steps=args.steps,
-        learning_rate=args.lr,
-        l2=args.l2,
-        folds=args.folds,
-        l2_grid=l2_grid,
         max_steps=args.max_steps,
+        lr=args.lr,
+        l2=args.l2,
+        l2_grid=args.l2_grid,
+        folds=args.folds,
         min_class_instances=args.min_class_instances,
+        progress=not args.no_progress,
     )
-    report = workflow.calibrate_and_compare(train, test, args.out, settings, progress=progress, say=_say)
-    print(workflow.report_markdown(report))
-    print(
-        f"done in {time.perf_counter() - start:.0f} s; outputs in {args.out}: report.md, report.json, "
-        "calibrated.csv/.png, difference.png, loss.csv, validation.csv, summarized/"
-    )
-    return 0

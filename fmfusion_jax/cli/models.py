@@ -31,7 +31,7 @@ def register(subparsers) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    from detectors.check import check_models_folder
+    from detectors.check import check_models_folder  # lazy: the command's work loads only when it runs
 
     result = check_models_folder(args.models, image=args.image, providers=args.providers)
     print(result.report())

@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from fmfusion_jax.cli import HelpFormatter
-from fmfusion_jax.errors import UserError
+from fmfusion_jax.cli import HelpFormatter, options
 from fmfusion_jax.run.outputs import outputs_help
 
 
@@ -32,9 +30,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--providers", default="cpu", choices=("cpu", "cuda", "auto"), help="onnxruntime execution providers for --models"
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
+    options.add_out(
+        parser,
         required=True,
         help="output folder (created; an earlier run's output folder is replaced, any other folder with files is "
         "refused unless --overwrite, and never one holding the scene, the detections or the models)",
@@ -42,17 +39,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--overwrite", action="store_true", help="replace --out even when it is not an earlier run's output folder"
     )
-    parser.add_argument(
-        "--config", default="scannet", help="config file, or a packaged one: scannet, scannet-subsampled, scenenn"
-    )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value, e.g. --set detections.every=1 (repeatable)",
-    )
+    options.add_config(parser, default="scannet", help="config file, or a packaged one: scannet, scannet-subsampled, scenenn")
+    options.add_overrides(parser, help="override a config value, e.g. --set detections.every=1 (repeatable)")
     parser.add_argument(
         "--on-error",
         choices=("skip", "stop"),
@@ -80,54 +68,28 @@ def register(subparsers) -> None:
         metavar="FILE.rrd",
         help="record the live view to a Rerun file instead of opening a window (headless)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    options.add_no_progress(parser, help="no progress bar")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.cli.interrupt import StopRequest
-    from fmfusion_jax.config import load_config
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.run.command import run_and_export
-    from fmfusion_jax.run.folder import check_output_folder, prepare_output_dir
-    from fmfusion_jax.sources import open_detection_source
+    from fmfusion_jax.apps.fuse import run_scene  # lazy: the command's work loads only when it runs
 
-    if not args.scene.is_dir():
-        raise UserError(f"scene folder {args.scene} does not exist")
-    if args.checkpoint_every < 0:
-        raise UserError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
-    config = load_config(args.config, args.overrides)
-    check_output_folder(args.out, (args.scene, args.detections, args.models), args.overwrite)
-    prepare_output_dir(args.out, create=False)  # a bad --out fails now, not after the fusion
-    scene = open_dataset_scene(args.scene, config.dataset)
-    source = open_detection_source(scene, detections=args.detections, models=args.models, providers=args.providers, config=config)
-    observer = None
-    if args.viewer or args.viewer_save:
-        from fmfusion_jax.viz.live import RerunView
-
-        observer = RerunView(save=args.viewer_save, spawn=args.viewer_save is None)
-    with StopRequest(
-        "stopping after the frame being fused, then writing a checkpoint and the map so far (outputs "
-        "already being written are finished); Ctrl-C again to exit at once"
-    ) as stop:
-        outcome = run_and_export(
-            scene,
-            source,
-            config,
-            args.out,
-            progress=not args.no_progress,
-            on_error=args.on_error,
-            checkpoint_every=args.checkpoint_every,
-            resume=args.resume,
-            restart=args.restart,
-            should_stop=stop,
-            time_stages=args.verbose > 0,
-            observer=observer,
-        )
-    print(outcome.summary)
-    if not outcome.complete:
-        print(
-            f"interrupted: the map so far is in {outcome.folder}; continue with the same command plus --resume", file=sys.stderr
-        )
-        return stop.exit_status
-    return 0
+    return run_scene(
+        scene_dir=args.scene,
+        checkpoint_every=args.checkpoint_every,
+        config_name=args.config,
+        overrides=args.overrides,
+        out=args.out,
+        detections=args.detections,
+        models=args.models,
+        overwrite=args.overwrite,
+        providers=args.providers,
+        viewer=args.viewer,
+        viewer_save=args.viewer_save,
+        no_progress=args.no_progress,
+        on_error=args.on_error,
+        resume=args.resume,
+        restart=args.restart,
+        verbose=args.verbose,
+    )

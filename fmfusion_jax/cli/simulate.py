@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import collections
 from pathlib import Path
+
+from fmfusion_jax.cli import options
 
 # Kept equal to fmfusion_jax.simulation.noise.PRESETS (a test checks) without importing it at start-up.
 PRESETS = (
@@ -36,14 +37,10 @@ def register(subparsers) -> None:
         "docs/simulated-detections.md for the noise model.",
     )
     parser.add_argument("scene", type=Path, help="ScanNet scene folder with its ground truth (mesh, segs, aggregation)")
-    parser.add_argument(
-        "--out",
-        type=Path,
-        required=True,
-        metavar="DIR",
-        help="output folder (new, empty, or a previous simulation's, which is replaced)",
+    options.add_out(
+        parser, required=True, metavar="DIR", help="output folder (new, empty, or a previous simulation's, which is replaced)"
     )
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    options.add_seed(parser, help="random seed (default 0)")
     parser.add_argument(
         "--noise-preset",
         default="default",
@@ -56,16 +53,15 @@ def register(subparsers) -> None:
         "taken for furniture, over-segmented textures), on top of default "
         "(default: default)",
     )
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
+    options.add_overrides(
+        parser,
         metavar="NAME=VALUE",
         help="override one noise parameter, e.g. --set missed_tag_prob=0.4 or, with "
         "--noise-preset border, --set bleed_px=8 (repeatable; value parsed as YAML)",
+        dest="set",
     )
     parser.add_argument("--no-prompt-augmentation", action="store_true", help="leave missed tags uncorrected (ablation B)")
-    parser.add_argument("--stride", type=int, default=1, help="read every N-th frame of the sequence (default 1)")
+    options.add_stride(parser, help="read every N-th frame of the sequence (default 1)")
     parser.add_argument(
         "--every",
         type=int,
@@ -73,7 +69,7 @@ def register(subparsers) -> None:
         help="simulate the frames whose index is a multiple of N: the detection frames of the "
         "fusion (default 1: all frames read)",
     )
-    parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N simulated frames")
+    options.add_max_frames(parser, help="stop after N simulated frames")
     parser.add_argument(
         "--mask-format",
         default="png",
@@ -92,70 +88,31 @@ def register(subparsers) -> None:
         default=0.05,
         help="m; depth farther than this from the ground-truth mesh stays unlabelled (default 0.05)",
     )
-    parser.add_argument("--layout", default="auto", choices=("auto", "scannet"), help="default: auto")
-    parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    options.add_layout(parser, choices=("auto", "scannet"), help="default: auto")
+    options.add_depth_max(parser)
+    options.add_no_progress(parser, help="no progress bar")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     parser.set_defaults(func=run)
 
 
-def parse_overrides(items: list[str]) -> dict:
-    """``["a=1", "b=true"]`` -> ``{"a": 1, "b": True}`` (values parsed as YAML)."""
-    import yaml
-
-    from fmfusion_jax.errors import UserError
-
-    overrides = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep or not name.strip():
-            raise UserError(f"--set {item!r}: expected NAME=VALUE")
-        try:
-            overrides[name.strip()] = yaml.safe_load(value)
-        except yaml.YAMLError as error:
-            raise UserError(f"--set {item!r}: value is not valid YAML ({error})") from None
-    return overrides
-
-
 def run(args: argparse.Namespace) -> int:
-    from fmfusion_jax.errors import UserError
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
-    from fmfusion_jax.simulation.noise import NoiseModel
-    from fmfusion_jax.simulation.simulate import simulate_scene
+    from fmfusion_jax.apps.simulate import run_simulate  # lazy: the command's work loads only when it runs
 
-    for name in ("stride", "every", "render_stride"):
-        if getattr(args, name) < 1:
-            raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise UserError(f"--max-frames must be >= 1, got {args.max_frames}")
-    overrides = parse_overrides(args.set)
-    overrides["seed"] = args.seed
-    if args.no_prompt_augmentation:
-        overrides["prompt_augmentation"] = False
-    noise = NoiseModel.preset(args.noise_preset, **overrides)
-
-    scene = open_scene(args.scene, layout=args.layout, stride=args.stride, depth_max=args.depth_max)
-    if scene.layout != "scannet":
-        raise UserError(f"{args.scene}: simulation needs ScanNet instance ground truth; this is a {scene.layout} scene")
-    gt = load_scannet_ground_truth(scene.path)
-    summary = simulate_scene(
-        scene,
-        gt,
-        args.out,
-        noise,
+    return run_simulate(
+        max_frames=args.max_frames,
+        noise_set=args.set,
+        seed=args.seed,
+        no_prompt_augmentation=args.no_prompt_augmentation,
+        noise_preset=args.noise_preset,
+        scene_dir=args.scene,
+        layout=args.layout,
+        stride=args.stride,
+        depth_max=args.depth_max,
+        out=args.out,
         render_stride=args.render_stride,
         every=args.every,
-        max_frames=args.max_frames,
         mask_format=args.mask_format,
         max_distance=args.max_distance,
-        progress=not (args.quiet or args.no_progress),
+        quiet=args.quiet,
+        no_progress=args.no_progress,
     )
-    if not args.quiet:
-        frames = len(summary.frame_names)
-        rate = frames / summary.seconds if summary.seconds > 0 else float("inf")
-        print(f"simulated {frames} frames of {scene.name} in {summary.seconds:.1f} s ({rate:.1f} frames/s) -> {summary.out_dir}")
-        print(f"detections per frame: median {summary.median_detections:g}, total {sum(summary.detections_per_frame)}")
-        top = collections.Counter(summary.label_counts).most_common(12)
-        print("main labels: " + ", ".join(f"{name} {count}" for name, count in top))
-    return 0

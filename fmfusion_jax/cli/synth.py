@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
-from fmfusion_jax.errors import UserError
+from fmfusion_jax.cli import options
 
 _EPILOG = """\
 OUT_DIR is the scene folder to create; its name is the scene name (e.g. OUT/synth0000_00). It receives
@@ -37,7 +36,7 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="scene folder to write (must be empty or new)")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    options.add_seed(parser, help="scene seed (default 0)")
     parser.add_argument(
         "--objects", type=int, default=15, metavar="N", help="objects besides walls/floor/ceiling, 1..900 (default 15)"
     )
@@ -54,52 +53,17 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def parse_dimensions(text: str, count: int, what: str) -> tuple[float, ...]:
-    """``"5x4x2.6"`` -> `(5.0, 4.0, 2.6)`; a `UserError` naming `what` when it is not `count` positive numbers."""
-    parts = text.lower().replace("*", "x").split("x")
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != count or not all(v > 0 for v in values):
-        example = "5x4x2.6" if count == 3 else "640x480"
-        raise UserError(f"{what} {text!r}: expected {count} positive numbers joined by 'x', e.g. {example}")
-    return values
-
-
 def run(args: argparse.Namespace) -> int:
-    if not 1 <= args.objects <= 900:
-        raise UserError(f"--objects {args.objects}: expected 1..900")
-    if args.frames < 1:
-        raise UserError(f"--frames {args.frames}: expected a positive number")
-    width, height = parse_dimensions(args.size, 2, "--size")
-    if width != int(width) or height != int(height) or not (16 <= width <= 4096 and 16 <= height <= 4096):
-        raise UserError(f"--size {args.size}: expected whole pixels within 16..4096, e.g. 640x480")
-    room = parse_dimensions(args.room, 3, "--room") if args.room else None
-    if room is not None and (min(room[:2]) < 2.0 or room[2] < 2.2 or max(room) > 100):
-        raise UserError(f"--room {args.room}: width and depth must be at least 2 m, height at least 2.2 m")
-    out = args.out_dir
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not args.overwrite)):
-        raise UserError(f"{out}: exists and is not an empty folder (pass --overwrite, or choose another OUT_DIR)")
+    from fmfusion_jax.apps.synth import run_synth  # lazy: the command's work loads only when it runs
 
-    from fmfusion_jax.simulation.procedural import generate_scene
-    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
-
-    started = time.perf_counter()
-    try:
-        scene = generate_scene(args.seed, room_size=room, num_objects=args.objects)
-    except ValueError as error:
-        raise UserError(str(error)) from None
-    print(f"scene   {scene.summary()}")
-    path = write_scannet_scene(
-        scene,
-        out,
-        num_frames=args.frames,
-        width=int(width),
-        height=int(height),
-        depth_noise=not args.no_noise,
-        progress=not args.no_progress,
+    return run_synth(
+        objects=args.objects,
+        frames=args.frames,
+        size=args.size,
+        room_text=args.room,
+        out_dir=args.out_dir,
         overwrite=args.overwrite,
+        seed=args.seed,
+        no_noise=args.no_noise,
+        no_progress=args.no_progress,
     )
-    print(f"wrote   {path}  ({args.frames} frames {int(width)}x{int(height)}, {time.perf_counter() - started:.1f} s)")
-    return 0

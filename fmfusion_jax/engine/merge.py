@@ -2,7 +2,7 @@
 
 Pipeline: `class_distribution` -> `semantic_similarity` -> `merge_pairs` (with the geometry's
 `instance_overlap_counts`) -> `merge_groups` -> `merge_instance_table`, whose `new_id` goes to the
-geometry's `remap_instances`.
+`cell_edits.remap_instances`.
 """
 
 from __future__ import annotations
@@ -184,7 +184,7 @@ class MergeResult(NamedTuple):
       rows: the table after the merge. Representative rows hold their group's combined record; rows
         merged away are invalid and cleared (zeros, `created_frame`/`last_seen_frame` -1); other rows
         are unchanged.
-      new_id: `(K,)` int32 for the geometry's `remap_instances`: the representative of each valid row
+      new_id: `(K,)` int32 for `cell_edits.remap_instances`: the representative of each valid row
         (itself when not merged), -1 for invalid rows.
     """
 

@@ -31,11 +31,11 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from fmfusion_jax.engine import _geometry, association, detections, label_fusion, maintenance, merge, occupied_cells, support
+from fmfusion_jax.engine.cell_edits import fuse_cells, remap_cells
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.instance_volume import integrate_instances_unjitted, pixel_cells, pixel_instance_slots, pixel_voxels
 from fmfusion_jax.engine.occupied_cells import census as occupied_census
-from fmfusion_jax.engine.occupied_cells import remap_cells
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
@@ -656,7 +656,7 @@ def fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> M
     else reads it.
     """
     kept = occupied_cells.KeptCensus.of(state.instances)
-    blocks, kept = occupied_cells.fuse_cells(state.blocks, config, fusion.geometry_min_weight, kept)
+    blocks, kept = fuse_cells(state.blocks, config, fusion.geometry_min_weight, kept)
     return state._replace(blocks=blocks, instances=state.instances._replace(**kept.fields()))
 
 

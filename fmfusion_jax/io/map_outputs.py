@@ -16,6 +16,7 @@ import trimesh
 
 from fmfusion_jax.instances import STRUCTURE_CLASSES, MapInstance
 from fmfusion_jax.io.benchmark_format import InstancePredictions
+from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks
 from fmfusion_jax.labels import LabelSets
 
 
@@ -242,10 +243,9 @@ def benchmark_predictions(
     `structure_claims_vertices` they first take part in the transfer (each vertex goes to its nearest
     instance point), so the floor vertices around an object's base go to the floor rather than to the
     object's lowest points; a point held by an object and by the wall or floor stays the object's.
-    `neighbours`: see `evaluation.vertex_transfer.points_to_vertex_masks`. `floor_vertices` `(V,)` bool: vertices
-    on the map's floor (`evaluation.vertex_transfer.floor_vertices`), which no object claims.
+    `neighbours`: see `io.vertex_transfer.points_to_vertex_masks`. `floor_vertices` `(V,)` bool: vertices
+    on the map's floor (`io.vertex_transfer.floor_vertices`), which no object claims.
     """
-    from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
 
     structure = [inst for inst in instances if label_sets.class_names[inst.class_index] in STRUCTURE_CLASSES]
     keep = [inst for inst in instances if label_sets.class_names[inst.class_index] not in STRUCTURE_CLASSES]

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import re
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -627,3 +628,9 @@ def _read_numbers(path: Path) -> np.ndarray:
         return np.array([float(x) for x in text.split()], np.float64)
     except ValueError as error:
         raise DataError(f"{path}: not a list of numbers ({error})") from None
+
+
+def sample_scene_dir() -> Path:
+    """Where the sample ScanNet scene is expected: `$FMFUSION_SCANNET_DIR/scene0000_00`, else
+    ../shared/data/scannet/scene0000_00 from the working folder (whether or not it is there)."""
+    return Path(os.environ.get("FMFUSION_SCANNET_DIR", "../shared/data/scannet")) / "scene0000_00"

@@ -2,7 +2,7 @@
 
 The rule (documented, simpler than the benchmark's per-class matching, and covering all 20 classes,
 wall and floor included): each instance's points are transferred to the ground-truth mesh vertices as for
-the benchmark export (`evaluation.vertex_transfer.points_to_vertex_masks`, nearest instance within the
+the benchmark export (`io.vertex_transfer.points_to_vertex_masks`, nearest instance within the
 transfer radius, so the vertex masks are disjoint); an instance is matched to the ground-truth instance
 of a closed class with which its vertex IoU is largest, when that IoU is at least 0.5. Disjoint masks
 make an IoU above 0.5 unique on both sides, so the matching is one to one.
@@ -16,8 +16,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from fmfusion_jax.instances import MapInstance
+from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.likelihood.summarize import mask_iou
+from fmfusion_jax.simulation.render import instance_classes
 
 MATCH_IOU = 0.5
 
@@ -85,8 +87,6 @@ def match_instances(
       gt: the scene's `io.ground_truth.SceneGroundTruth`.
       radius: the transfer radius (config `export.transfer_radius`).
     """
-    from fmfusion_jax.evaluation.vertex_transfer import points_to_vertex_masks
-    from fmfusion_jax.simulation.render import instance_classes
 
     label_sets = label_sets or load_label_sets()
     classes = instance_classes(gt, label_sets)

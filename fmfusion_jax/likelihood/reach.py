@@ -18,10 +18,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from fmfusion_jax.evaluation.scannet_benchmark import MIN_REGION_SIZE
 from fmfusion_jax.labels import BENCHMARK_NYU40_IDS, LabelSets, load_label_sets, load_likelihood
-from fmfusion_jax.likelihood.summarize import MATCH_IOU, mask_iou
+from fmfusion_jax.likelihood.summarize import MATCH_IOU, default_min_pixels, mask_iou, open_with_detections
+from fmfusion_jax.simulation.render import GroundTruthRenderer
 
 
 @dataclasses.dataclass
@@ -109,8 +111,6 @@ def detector_reach(
 ) -> DetectorReach:
     """Every scored ground-truth object of `scene_dir` against the detections in `detections_dir` (module
     docstring). `likelihood`: the matrix whose rows say which class a label stands for (manual: the name table)."""
-    from fmfusion_jax.likelihood.summarize import default_min_pixels, open_with_detections
-    from fmfusion_jax.simulation.render import GroundTruthRenderer
 
     label_sets = load_label_sets()
     stands_for = label_classes(label_sets, load_likelihood(likelihood))
@@ -131,8 +131,6 @@ def detector_reach(
     instance_ids = np.array(sorted(objects), np.int64)
     iterator: Any = frames
     if progress:
-        from tqdm import tqdm
-
         iterator = tqdm(frames, desc=f"detector reach {scene.name}", unit="frame", dynamic_ncols=True)
     for i in iterator:
         detections = folder.get(scene.frame_names[i])

@@ -39,8 +39,15 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.heatmap import write_heatmap
+from fmfusion_jax.io.scene import open_scene
 from fmfusion_jax.labels import LabelSets, load_label_sets, write_likelihood_csv
+from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
 from fmfusion_jax.types import FrameDetections
 
 log = logging.getLogger(__name__)
@@ -264,10 +271,6 @@ def frame_record(
 def open_with_detections(scene_dir: str | Path, detections_dir: str | Path, depth_max: float = 4.0):
     """`(scene, DetectionFolder, positions of the frames with a detection file, SceneGroundTruth)` of a scene with
     ground truth and its detections; no frame with detections is a UserError."""
-    from fmfusion_jax.errors import UserError
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_scene
 
     scene = open_scene(scene_dir, depth_max=depth_max)
     folder = DetectionFolder(detections_dir, image_shape=(scene.intrinsics.height, scene.intrinsics.width))
@@ -295,7 +298,6 @@ def summarize_scene(
       min_pixels: least visible pixels of an observed instance (default: `default_min_pixels`).
       depth_max: depth truncation of the rendering (metres), as the simulator and the fusion read depth.
     """
-    from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
 
     label_sets = label_sets or load_label_sets()
     scene, folder, frames, gt = open_with_detections(scene_dir, detections_dir, depth_max)
@@ -307,8 +309,6 @@ def summarize_scene(
     total = LikelihoodCounts.zeros(label_sets.num_open, label_sets.num_classes)
     iterator: Iterable[int] = frames
     if progress:
-        from tqdm import tqdm
-
         iterator = tqdm(frames, desc=f"summarize {scene.name}", unit="frame", dynamic_ncols=True)
     for i in iterator:
         gt_image = renderer.render(scene.read_depth(i), poses[i], scene.intrinsics)
@@ -337,7 +337,6 @@ def write_summary(
     Files: likelihood.csv (the 38 x 20 matrix, the format of configs/labels/likelihood_statistical.csv),
     tagging.csv, detection.csv, likelihood.png, tagging.png, detection.png, counts.json.
     """
-    from fmfusion_jax.io.heatmap import write_heatmap
 
     label_sets = label_sets or load_label_sets()
     out_dir = Path(out_dir)

@@ -139,7 +139,7 @@ class MapBuilder:
         been made with the same `map_config`. Its buffers are donated to the first step.
 
         Hooks: `timer` times each step (default: a `StageTimer`); `fuse_detections` is the detection-frame
-        step, with the signature of `step.fuse_detections` (`fmfusion_jax.bench` passes its stage-by-stage
+        step, with the signature of `step.fuse_detections` (`fmfusion_jax.apps.bench` passes its stage-by-stage
         twin). `one_call_per_frame`: see `one_call_per_frame` (None: off the CPU)."""
         self.config = config
         self.map_config = map_config

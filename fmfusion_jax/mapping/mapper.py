@@ -84,7 +84,7 @@ class Mapper:
       label_sets, likelihood: the label sets and the `(O, C)` likelihood (default: the config's).
       time_stages: time every engine step (waits for the device after each, so reading the next frame no
         longer overlaps the device's work); the medians are in `finalize().timings`.
-      timer, fuse_detections: hooks of the `MapBuilder` inside (`fmfusion_jax.bench` passes its per-frame
+      timer, fuse_detections: hooks of the `MapBuilder` inside (`fmfusion_jax.apps.bench` passes its per-frame
         timer and the stage-by-stage twin of the detection step); `timer` overrides `time_stages`.
     """
 

@@ -22,13 +22,14 @@ from typing import TYPE_CHECKING, Any
 from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine import extraction
-from fmfusion_jax.evaluation.explain import explain_scene, write_explanation
+from fmfusion_jax.evaluation.explain import explain_scene
+from fmfusion_jax.evaluation.explain_report import write_explanation
 from fmfusion_jax.evaluation.scannet_benchmark import BenchmarkResult, evaluate_scenes
-from fmfusion_jax.evaluation.vertex_transfer import floor_vertices
 from fmfusion_jax.instances import MapInstance
 from fmfusion_jax.io import map_outputs
 from fmfusion_jax.io.benchmark_format import InstancePredictions, write_benchmark_predictions
 from fmfusion_jax.io.scene import Scene
+from fmfusion_jax.io.vertex_transfer import floor_vertices
 from fmfusion_jax.labels import LabelSets
 from fmfusion_jax.mapping.builder import FusionResult
 from fmfusion_jax.mapping.map_file import MAP_STATE_FILE, save_map

@@ -93,7 +93,7 @@ class NoiseModel:
       likelihood_perturbation: sigma of log-normal factors on every entry of the likelihood the labels
         are drawn from (one perturbed matrix per seed: one "detector"), plus `0.05 * sigma` of mass moved
         onto a few labels each column lacks; columns re-normalized.
-      extra_confusion_prob: probability that a detection of a class of `simulate.EXTRA_CONFUSIONS` takes
+      extra_confusion_prob: probability that a detection of a class of `sim_labels.EXTRA_CONFUSIONS` takes
         one of the labels listed there (confusions the published matrix lacks) as its main label.
       consistent_mislabel_prob: probability, per seed and class, that the class is always named by one
         fixed wrong open-set label (one that the published matrix ascribes to another class) at a normal
@@ -148,7 +148,7 @@ class NoiseModel:
       persistent_detect_prob: probability that a phantom in view (at least `min_mask_pixels` of the
         seen surface inside its sphere, target objects excluded) is detected in a frame, normal score.
       background_rate: mean number (Poisson) per frame of background regions (wall, floor, pixels
-        without ground truth) detected as furniture (`simulate.BACKGROUND_CLASSES`), normal score:
+        without ground truth) detected as furniture (`sim_false_positives.BACKGROUND_CLASSES`), normal score:
         thin strips along the surface or large patches. Drawn afresh in every frame.
       background_strip_share: share of those regions that are thin strips; the rest are large patches.
       texture_prob: probability, per frame and visible region (any instance, wall and floor included) of
@@ -292,10 +292,8 @@ class NoiseModel:
     @staticmethod
     def preset(name: str, **changes: Any) -> "NoiseModel":
         """`clean` (ground truth, best labels), `default` (the documented defaults), `hard`, or a noise
-        family of `fmfusion_jax.simulation.zoo` (`FAMILY_PRESETS`) at severity 1."""
+        family (`FAMILY_PRESETS`, `FAMILY_DOSES`) at severity 1."""
         if name in FAMILY_PRESETS:
-            from fmfusion_jax.simulation.zoo import family_noise  # zoo imports this module
-
             seed = changes.pop("seed", 0)
             return family_noise(name, 1.0, seed, **changes)
         if name == "default":
@@ -574,3 +572,75 @@ def split_into_pieces(mask: np.ndarray, count: int, rng: np.random.Generator) ->
             piece[v[keep], u[keep]] = True
             pieces.append(piece)
     return pieces
+
+
+#: The noise families, in report order.
+FAMILIES = ("default", *FAMILY_PRESETS)
+
+
+#: The parameters of each family at severity 1, on top of `default`: a clear, realistic dose of its failure mode.
+FAMILY_DOSES: dict[str, dict[str, float]] = {
+    "default": {},
+    "label_model": {
+        "likelihood_perturbation": 0.7,
+        "extra_confusion_prob": 0.25,
+        "consistent_mislabel_prob": 0.3,
+        "label_persistence": 0.5,
+    },
+    "partial": {
+        "partial_large_prob": 0.5,
+        "partial_prob": 0.35,
+        "split_prob": 0.15,
+        "partial_straight_share": 0.4,
+        "partial_occluder_share": 0.3,
+    },
+    "merged": {"merge_neighbor_prob": 0.3, "merge_prob": 0.2},
+    "border": {
+        "bleed_prob": 0.5,
+        "bleed_px": 8.0,
+        "erode_prob": 0.2,
+        "erode_px": 3.0,
+        "border_offset_px": 2.5,
+        "border_jitter_px": 3.0,
+    },
+    "confusers": {"confuser_prob": 0.5, "blob_rate": 0.8, "small_object_miss_prob": 0.5, "score_miscalibration": 0.6},
+    "persistent": {"persistent_phantoms": 4.0, "persistent_radius_m": 0.3, "persistent_detect_prob": 0.8},
+    "background": {"background_rate": 1.0, "background_strip_share": 0.5},
+    "texture": {"texture_prob": 0.25},
+}
+
+
+def fit_probabilities(params: dict[str, Any]) -> dict[str, Any]:
+    """Probabilities clipped to [0, 1]; exclusive ones (`EXCLUSIVE_GROUPS`) scaled down to sum to 1 at most."""
+    out = {k: min(max(v, 0.0), 1.0) if k in PROBABILITIES else v for k, v in params.items()}
+    base = NoiseModel()
+    for group in EXCLUSIVE_GROUPS:
+        if not any(name in out for name in group):
+            continue
+        total = sum(out.get(name, getattr(base, name)) for name in group)
+        if total > 1.0:
+            for name in group:
+                out[name] = out.get(name, getattr(base, name)) / total
+    return out
+
+
+def family_changes(family: str, severity: float) -> dict[str, Any]:
+    """Noise parameters (on top of `default`) that make `family` the dominant failure mode.
+
+    Each parameter goes linearly from its `default` value (severity 0) to its dose (severity 1) and on.
+    """
+    if family not in FAMILY_DOSES:
+        raise UserError(f"unknown noise family {family!r}; choose one of {', '.join(FAMILIES)}")
+    s, base = float(severity), NoiseModel()
+    return fit_probabilities(
+        {name: getattr(base, name) + s * (dose - getattr(base, name)) for name, dose in FAMILY_DOSES[family].items()}
+    )
+
+
+def family_noise(family: str, severity: float = 1.0, seed: int = 0, **changes: Any) -> NoiseModel:
+    """The noise model of one family at `severity` (1 = the documented preset; 0 = `default`)."""
+    if severity < 0:
+        raise UserError(f"severity must be >= 0, got {severity}")
+    params = family_changes(family, severity)
+    params.update(changes)
+    return NoiseModel.preset("default", seed=seed, **params)

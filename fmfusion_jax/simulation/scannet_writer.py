@@ -29,11 +29,17 @@ import logging
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
+from tqdm import tqdm
 
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.simulation import raycast
-from fmfusion_jax.simulation.procedural import CEILING_CLASS, CEILING_NYU40, RAW_LABELS, ProceduralScene, build_mesh
+from fmfusion_jax.simulation.furniture import CEILING_CLASS, CEILING_NYU40, RAW_LABELS
+from fmfusion_jax.simulation.procedural import ProceduralScene
+from fmfusion_jax.simulation.scene_mesh import build_mesh
+from fmfusion_jax.simulation.scene_views import RenderedFrame, render_frame
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +101,7 @@ def write_scannet_scene(
       depth_noise: Kinect-like depth noise, mm quantization, holes and grazing-angle dropouts (else exact depth).
       progress: show a tqdm progress bar.
       overwrite: allow a non-empty `out_dir` (frame files from an earlier run are deleted first).
-      mesh_spacing, max_vertices: mesh resolution (see `procedural.build_mesh`).
+      mesh_spacing, max_vertices: mesh resolution (see `scene_mesh.build_mesh`).
       jpeg_quality: of the colour images.
 
     Returns:
@@ -130,7 +136,7 @@ def write_scannet_scene(
     pending: list[concurrent.futures.Future] = []
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as writer:
         for k, pose in enumerate(poses):
-            frame = raycast.render_frame(
+            frame = render_frame(
                 scene,
                 pose,
                 intrinsics,
@@ -216,15 +222,10 @@ def _clear_previous(out: Path) -> None:
 def _progress(total: int, enabled: bool, name: str):
     if not enabled:
         return None
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover - tqdm is optional
-        return None
     return tqdm(total=total, desc=f"rendering {name}", unit="frame")
 
 
-def _write_frame(out: Path, stem: str, frame: raycast.RenderedFrame, pose: np.ndarray, jpeg_quality: int) -> None:
-    import cv2
+def _write_frame(out: Path, stem: str, frame: RenderedFrame, pose: np.ndarray, jpeg_quality: int) -> None:
 
     _imwrite(
         out / "color" / f"{stem}.jpg", cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
@@ -236,7 +237,6 @@ def _write_frame(out: Path, stem: str, frame: raycast.RenderedFrame, pose: np.nd
 
 
 def _imwrite(path: Path, image: np.ndarray, params) -> None:
-    import cv2
 
     ok, data = cv2.imencode(path.suffix, image, params)
     if not ok:  # pragma: no cover
@@ -278,7 +278,6 @@ def _write_metadata(path: Path, intrinsics, num_frames: int) -> None:
 
 def write_labels_tsv(path: str | Path, scene: ProceduralScene | None = None) -> None:
     """Writes the raw label -> nyu40 tsv for every raw label the generator knows (`count`: instances in `scene`)."""
-    from fmfusion_jax.labels import load_label_sets
 
     label_sets = load_label_sets()
     nyu40 = label_sets.class_to_nyu40()

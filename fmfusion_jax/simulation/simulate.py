@@ -42,12 +42,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from tqdm import tqdm
 
+from detectors.prompt import PromptAugmenter
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import write_frame_detections
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.simulation.noise import (
     NoiseModel,
-    background_region,
     bleed_mask,
     cut_mask,
     erode_mask,
@@ -55,9 +57,20 @@ from fmfusion_jax.simulation.noise import (
     occlude_mask,
     perturb_border,
     random_blob,
-    split_into_pieces,
     straight_cut_angle,
 )
+from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
+from fmfusion_jax.simulation.sim_false_positives import (
+    SURFACE_CLASSES,
+    _background_regions,
+    _blobs,
+    _confuser_objects,
+    _phantom_detections,
+    _texture_pieces,
+    phantom_mask,
+    place_phantoms,
+)
+from fmfusion_jax.simulation.sim_labels import GENERIC_TAGS, _LabelModel, _Object, _prompt_filter, _round_labels
 from fmfusion_jax.types import FrameDetections
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -65,31 +78,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-#: Tags the image tagger produces that are not labels of interest (they end up in `raw_tags` only).
-GENERIC_TAGS = (
-    "room",
-    "indoor",
-    "home",
-    "interior",
-    "furniture",
-    "lamp",
-    "pillow",
-    "box",
-    "book",
-    "computer",
-    "monitor",
-    "white",
-    "wood",
-    "living room",
-    "bedroom",
-    "office",
-    "kitchen",
-    "bag",
-    "plant",
-    "light",
-    "ceiling",
-    "shoe",
-)
 
 #: Least length (pixel pairs 3 px apart) of the shared border of two objects that may merge.
 MERGE_MIN_BORDER = 10
@@ -97,76 +85,13 @@ MERGE_MIN_BORDER = 10
 MERGE_MIN_AREA_RATIO = 0.15
 #: Classes never merged with a neighbour: a box prompt on an object does not pull in the wall or floor.
 MERGE_EXCLUDED_CLASSES = ("wall", "floor")
-#: Least p(label | class) of a prompt label that a relabelled detection takes as a related label.
-RELATED_LABEL_MIN_PROB = 0.01
-#: Probability that a relabelled detection with no related label in the prompt takes an unrelated one.
-RELABEL_UNRELATED_SHARE = 0.2
-#: Least p(label | class) of a label that can come as a detection's second or third label.
-EXTRA_LABEL_MIN_PROB = 0.03
 #: Share of false detections placed on a background (non-target) object when one is visible.
 FALSE_POSITIVE_ON_OBJECT = 0.5
 
-#: Confusions real detectors make that the published statistical matrix lacks (p(label | class) < 0.03):
-#: class -> open-set labels it is taken for under `extra_confusion_prob`. Mostly look-alike pairs: a table
-#: and a kitchen counter, a cabinet and a door, a window and a picture, a sink and a toilet.
-EXTRA_CONFUSIONS: dict[str, tuple[str, ...]] = {
-    "cabinet": ("door", "fridge", "side table"),
-    "bed": ("couch",),
-    "chair": ("side table", "table"),
-    "sofa": ("bed",),
-    "table": ("kitchen counter", "dresser"),
-    "door": ("wall", "window"),
-    "window": ("picture", "door"),
-    "picture": ("window",),
-    "counter": ("cabinet", "kitchen table"),
-    "desk": ("counter top", "side table"),
-    "curtain": ("wall", "door"),
-    "refrigerator": ("door",),
-    "shower curtain": ("glass door", "window"),
-    "toilet": ("sink", "bin"),
-    "sink": ("toilet bowl", "tub"),
-    "bathtub": ("sink",),
-    "otherfurniture": ("side table",),
-}
-#: Weight added to the `EXTRA_CONFUSIONS` labels of a class when drawing its consistent mislabel, and the
-#: floor weight of every other wrong label: plausible look-alikes are preferred, any wrong label can occur.
-MISLABEL_LOOKALIKE_WEIGHT = 0.05
-MISLABEL_FLOOR_WEIGHT = 0.002
-#: Share of the unit column mass that `likelihood_perturbation` = 1 moves onto labels a column lacks, and
-#: how many such labels per column receive it.
-PERTURBATION_NEW_MASS = 0.05
-PERTURBATION_NEW_LABELS = 3
-#: Classes a confuser (a non-target object: a box, a lamp, a bag) is taken for.
-CONFUSER_CLASSES = ("cabinet", "chair", "table", "bookshelf", "picture", "desk", "otherfurniture")
-#: Labels a false blob on a wall or the floor comes with: what GroundingDINO hallucinates on flat surfaces.
-BLOB_LABELS = {"wall": ("picture", "window", "door", "shelf", "cabinet", "curtain"), "floor": ("carpet", "table", "bin", "chair")}
 #: A neighbour absorbed under `merge_neighbor_prob` is at most this many times the object's size.
 NEIGHBOR_MAX_AREA_RATIO = 3.0
 #: Upper end of the uniform score that `score_miscalibration` mixes in.
 MISCALIBRATED_SCORE_MAX = 0.8
-#: Classes a phantom (`persistent_phantoms`) is taken for: what detectors see in an empty spot of a room.
-PHANTOM_CLASSES = ("cabinet", "chair", "table", "bookshelf", "picture", "desk", "sofa", "otherfurniture")
-#: Classes a background region (`background_rate`) is taken for: furniture that lines walls and floors.
-BACKGROUND_CLASSES = ("cabinet", "bookshelf", "refrigerator", "table", "counter", "desk", "door")
-#: Background classes: the surfaces phantoms and background regions lie on (with pixels of no instance).
-SURFACE_CLASSES = ("wall", "floor")
-#: `texture_prob`: most pieces per region, share of them detected, and share labelled from the region's
-#: class column (the rest take a random prompt label); a piece's score is at most this above the box threshold.
-TEXTURE_MAX_PIECES = 24
-TEXTURE_KEEP_SHARE = 0.7
-TEXTURE_CLASS_LABEL_SHARE = 0.5
-TEXTURE_SCORE_SPAN = 0.08
-# Tags of the seed-only streams (one detector, one set of mislabels, one set of confusers per seed).
-_PERTURBATION_STREAM, _MISLABEL_STREAM, _CONFUSER_STREAM, _PHANTOM_STREAM = 6101, 6113, 6121, 6131
-
-
-@dataclasses.dataclass
-class _Object:
-    instances: tuple[int, ...]  # ground-truth instances making up the object (2 when merged)
-    key: int  # the largest one (or the absorbing one): its class and persistent label are used
-    class_index: int
-    area: int
-    fixed_labels: dict[str, float] | None = None  # a confuser's labels (the same object in every view)
 
 
 def _instance_areas(image: np.ndarray) -> dict[int, int]:
@@ -197,171 +122,6 @@ def adjacent_pairs(image: np.ndarray, gap: int = 3) -> dict[tuple[int, int], int
         return {}
     unique, counts = np.unique(pairs, axis=0, return_counts=True)
     return {(int(a), int(b)): int(c) for (a, b), c in zip(unique, counts)}
-
-
-def perturb_likelihood(columns: np.ndarray, sigma: float, seed: int) -> np.ndarray:
-    """A misspecified detector's label distributions: `columns` (each summing to 1) with every entry
-    scaled by a log-normal factor exp(N(0, sigma)) and `PERTURBATION_NEW_MASS * sigma` of mass put on a few
-    labels the column lacks, re-normalized. Depends on `seed` only: one detector per seed."""
-    rng = np.random.default_rng([int(seed), _PERTURBATION_STREAM])
-    factors = np.exp(sigma * rng.standard_normal(columns.shape))
-    out = columns * factors
-    out /= out.sum(axis=0, keepdims=True)
-    for j in range(out.shape[1]):
-        lacking = np.flatnonzero(columns[:, j] == 0)
-        chosen = rng.choice(lacking, size=min(PERTURBATION_NEW_LABELS, lacking.size), replace=False)
-        if chosen.size:
-            out[chosen, j] += PERTURBATION_NEW_MASS * sigma / chosen.size
-    return out / out.sum(axis=0, keepdims=True)
-
-
-def wrong_labels(columns: np.ndarray) -> np.ndarray:
-    """`(num_open, num_classes)` bool: label `l` is wrong for class `c` when the published matrix ascribes
-    it to another class (its row's largest entry is elsewhere), so fusing it pulls towards that class."""
-    return columns.argmax(axis=1)[:, None] != np.arange(columns.shape[1])[None, :]
-
-
-def consistent_mislabels(columns: np.ndarray, prob: float, seed: int, lookalikes: Mapping[int, list[int]]) -> dict[int, int]:
-    """Class -> the one wrong open label it is always named by, for the classes (per seed) drawn with `prob`.
-
-    Wrong labels are weighted by their published probability, look-alikes (`EXTRA_CONFUSIONS`) get
-    `MISLABEL_LOOKALIKE_WEIGHT` more and any wrong label at least `MISLABEL_FLOOR_WEIGHT`. Each class draws
-    its label whatever `prob` is, so raising `prob` only adds classes.
-    """
-    wrong = wrong_labels(columns)
-    out = {}
-    for c in range(columns.shape[1]):
-        rng = np.random.default_rng([int(seed), _MISLABEL_STREAM, c])
-        weights = columns[:, c] + MISLABEL_FLOOR_WEIGHT
-        weights[lookalikes.get(c, [])] += MISLABEL_LOOKALIKE_WEIGHT
-        weights = np.where(wrong[:, c], weights, 0.0)
-        hit = rng.random() < prob
-        label = int(rng.choice(columns.shape[0], p=weights / weights.sum()))
-        if hit:
-            out[c] = label
-    return out
-
-
-class _LabelModel:
-    """Draws a detection's open-set labels and scores for a true closed class."""
-
-    def __init__(self, noise: NoiseModel, label_sets: LabelSets, likelihood: np.ndarray):
-        likelihood = np.asarray(likelihood, np.float64)
-        if likelihood.shape != (label_sets.num_open, label_sets.num_classes):
-            raise ValueError(f"likelihood shape {likelihood.shape}, expected ({label_sets.num_open}, {label_sets.num_classes})")
-        sums = likelihood.sum(axis=0, keepdims=True)
-        if np.any(sums <= 0):
-            raise ValueError("every likelihood column needs a positive entry")
-        self.published = likelihood / sums  # p(open label | class), each column sums to 1
-        # The detector's own distributions: the published ones unless the label model is misspecified.
-        self.columns = (
-            perturb_likelihood(self.published, noise.likelihood_perturbation, noise.seed)
-            if noise.likelihood_perturbation > 0
-            else self.published
-        )
-        self.best = self.columns.argmax(axis=0)  # most likely open label of each class
-        self.noise = noise
-        self.names = label_sets.open_labels
-        index = {name: i for i, name in enumerate(self.names)}
-        self.lookalikes = {
-            label_sets.class_names.index(c): [index[name] for name in names if name in index]
-            for c, names in EXTRA_CONFUSIONS.items()
-            if c in label_sets.class_names
-        }
-        self.mislabels = (
-            consistent_mislabels(self.published, noise.consistent_mislabel_prob, noise.seed, self.lookalikes)
-            if noise.consistent_mislabel_prob > 0
-            else {}
-        )
-
-    def persistent_label(self, class_index: int, instance: int) -> int:
-        """The object's own label draw: fixed for a seed and instance, the same in every frame."""
-        rng = np.random.default_rng([int(self.noise.seed), 7919, int(instance) & 0x7FFFFFFF, class_index])
-        return int(rng.choice(len(self.names), p=self.columns[:, class_index]))
-
-    def draw(self, rng: np.random.Generator, class_index: int, instance: int) -> dict[str, float]:
-        noise, column = self.noise, self.columns[:, class_index]
-        confused, persistent = rng.random(), rng.random()
-        fresh = int(rng.choice(len(self.names), p=column))
-        if confused >= noise.label_confusion:
-            main = int(self.best[class_index])
-        elif persistent < noise.label_persistence:
-            main = self.persistent_label(class_index, instance)
-        else:
-            main = fresh
-        main = self.mislabels.get(class_index, main)
-        score = float(np.clip(noise.score_mean + noise.score_std * rng.standard_normal(), noise.box_threshold, 0.95))
-        labels = {self.names[main]: score}
-        extra = 0
-        while extra < noise.max_labels - 1 and rng.random() < noise.extra_label_prob:
-            extra += 1
-        weights = np.where(column >= EXTRA_LABEL_MIN_PROB, column, 0.0)
-        weights[main] = 0.0
-        extra = min(extra, int(np.count_nonzero(weights)))
-        if extra:
-            for k in rng.choice(len(self.names), size=extra, replace=False, p=weights / weights.sum()):
-                secondary = score * rng.uniform(0.5, 0.95)
-                if secondary >= noise.text_threshold:
-                    labels[self.names[int(k)]] = secondary
-        return labels
-
-    def confuse(self, rng: np.random.Generator, class_index: int, labels: dict[str, float]) -> dict[str, float]:
-        """With `extra_confusion_prob`, the main label replaced by a look-alike the published matrix lacks.
-
-        Classes under a consistent mislabel keep it (that mislabel is the point: it never varies).
-        """
-        partners = self.lookalikes.get(class_index, [])
-        fires = rng.random() < self.noise.extra_confusion_prob
-        if not fires or not partners or class_index in self.mislabels:
-            return labels
-        partner = self.names[partners[int(rng.integers(len(partners)))]]
-        main, score = next(iter(labels.items()))
-        return {partner: score, **{k: v for k, v in labels.items() if k not in (main, partner)}}
-
-    def score(self, rng: np.random.Generator) -> float:
-        """A normal main-label score, as a detection of a real object gets."""
-        return float(
-            np.clip(self.noise.score_mean + self.noise.score_std * rng.standard_normal(), self.noise.box_threshold, 0.95)
-        )
-
-    def confuser(self, instance: int, class_names: list[str]) -> tuple[bool, int, str]:
-        """Whether non-target object `instance` is a confuser (per seed and object), the class it is taken
-        for, and its fixed label (drawn from that class's published column)."""
-        rng = np.random.default_rng([int(self.noise.seed), _CONFUSER_STREAM, int(instance) & 0x7FFFFFFF])
-        hit = rng.random() < self.noise.confuser_prob
-        candidates = [class_names.index(c) for c in CONFUSER_CLASSES if c in class_names]
-        class_index = candidates[int(rng.integers(len(candidates)))]
-        label = int(rng.choice(len(self.names), p=self.published[:, class_index]))
-        return hit, class_index, self.names[label]
-
-    def relabel(self, rng: np.random.Generator, class_index: int, prompt: list[str]) -> dict[str, float] | None:
-        """A false label measurement: the detector assigns the object to a label of the prompt.
-
-        A prompt label the class is sometimes detected as (p >= `RELATED_LABEL_MIN_PROB`) is chosen in
-        proportion to its likelihood; with none in the prompt, an unrelated label only with probability
-        `RELABEL_UNRELATED_SHARE`. None: the object is not detected.
-        """
-        if not prompt:
-            return None
-        index = {name: i for i, name in enumerate(self.names)}
-        weights = np.array([self.columns[index[p], class_index] if p in index else 0.0 for p in prompt])
-        weights[weights < RELATED_LABEL_MIN_PROB] = 0.0
-        if weights.sum() > 0:
-            choice = prompt[int(rng.choice(len(prompt), p=weights / weights.sum()))]
-        elif rng.random() < RELABEL_UNRELATED_SHARE:
-            choice = prompt[int(rng.integers(len(prompt)))]
-        else:
-            return None
-        return {choice: float(rng.uniform(self.noise.box_threshold, self.noise.box_threshold + 0.1))}
-
-
-def _prompt_filter(labels: dict[str, float], prompt: set[str]) -> dict[str, float]:
-    return {name: score for name, score in labels.items() if name in prompt}
-
-
-def _round_labels(labels: Mapping[str, float]) -> dict[str, float]:
-    ordered = sorted(labels.items(), key=lambda item: (-item[1], item[0]))
-    return {name: round(float(score), 4) for name, score in ordered}
 
 
 def _absorb_neighbours(
@@ -412,246 +172,6 @@ def _absorb_neighbours(
         if merged is not None:
             obj = dataclasses.replace(obj, instances=(obj.instances[0], merged), area=obj.area + areas[merged])
         out.append(obj)
-    return out
-
-
-def _confuser_objects(
-    model: _LabelModel,
-    areas: Mapping[int, int],
-    instance_classes: Mapping[int, int],
-    objects: list[_Object],
-    noise: NoiseModel,
-    class_names: list[str],
-    rng: np.random.Generator,
-) -> list[_Object]:
-    """The visible non-target objects that are confusers (per seed and object), as objects of the class
-    they are taken for, each with its fixed label at a normal score."""
-    taken = {m for o in objects for m in o.instances}
-    out = []
-    for i in sorted(areas):
-        if i in instance_classes or i in taken or areas[i] < noise.min_mask_pixels:
-            continue
-        hit, class_index, label = model.confuser(i, class_names)
-        if hit:
-            out.append(_Object((i,), i, class_index, areas[i], {label: model.score(rng)}))
-    return out
-
-
-def _blobs(
-    image: np.ndarray, instance_classes: Mapping[int, int], class_names: list[str], model: _LabelModel, rng: np.random.Generator
-) -> list[tuple[np.ndarray, dict[str, float]]]:
-    """`blob_rate`: false blobs on a wall or the floor, each with a label such a surface is mistaken for
-    (`BLOB_LABELS`) at a normal score, clipped to the surface they lie on."""
-    count = int(rng.poisson(model.noise.blob_rate))
-    known = set(model.names)
-    surfaces = {
-        i: class_names[c] for i, c in instance_classes.items() if 0 <= c < len(class_names) and class_names[c] in BLOB_LABELS
-    }
-    if not count or not surfaces:
-        return []
-    pixels = np.flatnonzero(np.isin(image, list(surfaces)).ravel())
-    if pixels.size == 0:
-        return []
-    height, width = image.shape
-    max_radius = min(70.0, 0.15 * min(height, width))
-    out = []
-    for _ in range(count):
-        pixel = int(pixels[rng.integers(pixels.size)])
-        instance = int(image.flat[pixel])
-        names = [name for name in BLOB_LABELS[surfaces[instance]] if name in known]
-        label = names[int(rng.integers(len(names)))]
-        blob = random_blob(image.shape, (pixel % width, pixel // width), rng, min(15.0, max_radius / 2), max_radius)
-        out.append((blob & (image == instance), {label: model.score(rng)}))
-    return out
-
-
-@dataclasses.dataclass(frozen=True)
-class Phantom:
-    """A persistent false positive (`persistent_phantoms`): a place of the world that the detector takes for
-    an object whenever it is in view.
-
-    Attributes:
-      center: `(3,)` float64 world point on the wall, floor or unannotated surface, metres.
-      radius: metres; the phantom is the seen surface inside this sphere.
-      class_index: the closed class it is taken for.
-      label: its one open-set label (drawn from that class's published column).
-    """
-
-    center: np.ndarray
-    radius: float
-    class_index: int
-    label: str
-
-
-def place_phantoms(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    instance_ids: np.ndarray,
-    instance_classes: Mapping[int, int],
-    noise: NoiseModel,
-    label_sets: LabelSets | None = None,
-    likelihood: np.ndarray | None = None,
-    tries: int = 50,
-) -> list[Phantom]:
-    """The phantoms of a scene for `noise` (its seed): `round(persistent_phantoms)` points drawn uniformly
-    over the area of the mesh's background faces (wall, floor, unannotated, non-target), away from the
-    target objects where possible (no target vertex within the radius, up to `tries` draws).
-
-    Phantom `k` draws from its own stream `[seed, _PHANTOM_STREAM, k]`, so raising the count only adds
-    phantoms.
-
-    Args:
-      vertices: `(V, 3)` mesh vertices, world frame, metres.
-      faces: `(F, 3)` triangles.
-      instance_ids: `(V,)` instance id of each vertex, 0 = none.
-      instance_classes: closed-class index of each target instance (`render.instance_classes`).
-    """
-    from scipy.spatial import cKDTree
-
-    count, radius = int(round(noise.persistent_phantoms)), float(noise.persistent_radius_m)
-    if count < 1 or radius <= 0 or noise.persistent_detect_prob <= 0:
-        return []
-    label_sets = label_sets or load_label_sets()
-    likelihood = np.asarray(load_likelihood("statistical") if likelihood is None else likelihood, np.float64)
-    class_names = list(label_sets.class_names)
-    surface = {class_names.index(n) for n in SURFACE_CLASSES if n in class_names}
-    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64).reshape(-1, 3)
-    targets = [i for i, c in instance_classes.items() if c not in surface]
-    is_target = np.isin(np.asarray(instance_ids), targets)
-    background = faces[~is_target[faces].any(axis=1)]
-    if background.shape[0] == 0:
-        return []
-    corners = vertices[background]  # (F', 3, 3)
-    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    if areas.sum() <= 0:
-        return []
-    tree = cKDTree(vertices[is_target]) if is_target.any() else None
-    kinds = [class_names.index(c) for c in PHANTOM_CLASSES if c in class_names]
-    published = likelihood / likelihood.sum(axis=0, keepdims=True)
-    out = []
-    for k in range(count):
-        rng = np.random.default_rng([int(noise.seed), _PHANTOM_STREAM, k])
-        for _ in range(tries):
-            a, b = rng.random(2)
-            if a + b > 1.0:  # uniform on the triangle
-                a, b = 1.0 - a, 1.0 - b
-            tri = corners[int(rng.choice(areas.size, p=areas / areas.sum()))]
-            center = tri[0] + a * (tri[1] - tri[0]) + b * (tri[2] - tri[0])
-            if tree is None or not np.isfinite(tree.query(center, distance_upper_bound=radius)[0]):
-                break
-        class_index = kinds[int(rng.integers(len(kinds)))]
-        label = label_sets.open_labels[int(rng.choice(published.shape[0], p=published[:, class_index]))]
-        out.append(Phantom(center, radius, class_index, label))
-    return out
-
-
-def phantom_mask(phantom: Phantom, depth: np.ndarray, T_world_camera: np.ndarray, intrinsics) -> np.ndarray:
-    """`(H, W)` bool: the pixels whose seen surface (the frame's depth, back-projected) lies inside the
-    phantom's sphere. What is in front of it hides it, so the mask is the phantom's visible part.
-
-    Args:
-      depth: `(H, W)` metres, 0 = invalid.
-      T_world_camera: `(4, 4)` camera-to-world pose.
-      intrinsics: `CameraIntrinsics` of the depth camera (scaled to `H x W` when it differs).
-    """
-    depth = np.asarray(depth, np.float32)
-    height, width = depth.shape
-    if (intrinsics.width, intrinsics.height) != (width, height):
-        intrinsics = intrinsics.scaled(width, height)
-    T = np.asarray(T_world_camera, np.float64)
-    x, y, z = T[:3, :3].T @ (phantom.center - T[:3, 3])
-    r = phantom.radius
-    mask = np.zeros((height, width), bool)
-    if z + r <= 0:
-        return mask  # behind the camera
-    if z - r > 0.05:
-        # The sphere lies in the box [x +- r] x [y +- r] x [z +- r]: its image lies within the corners'.
-        us = [intrinsics.cx + intrinsics.fx * (x + dx) / (z + dz) for dx in (-r, r) for dz in (-r, r)]
-        vs = [intrinsics.cy + intrinsics.fy * (y + dy) / (z + dz) for dy in (-r, r) for dz in (-r, r)]
-        u0, u1 = max(int(np.floor(min(us))), 0), min(int(np.ceil(max(us))) + 1, width)
-        v0, v1 = max(int(np.floor(min(vs))), 0), min(int(np.ceil(max(vs))) + 1, height)
-    else:
-        u0, u1, v0, v1 = 0, width, 0, height
-    if u0 >= u1 or v0 >= v1:
-        return mask
-    crop = depth[v0:v1, u0:u1].astype(np.float64)
-    vv, uu = np.mgrid[v0:v1, u0:u1]
-    px = (uu - intrinsics.cx) * crop / intrinsics.fx
-    py = (vv - intrinsics.cy) * crop / intrinsics.fy
-    mask[v0:v1, u0:u1] = (crop > 0) & ((px - x) ** 2 + (py - y) ** 2 + (crop - z) ** 2 < r * r)
-    return mask
-
-
-def _phantom_detections(
-    phantoms: Iterable[tuple[np.ndarray, str]], not_target: np.ndarray, model: _LabelModel, rng: np.random.Generator
-) -> list[tuple[np.ndarray, dict[str, float]]]:
-    """`persistent_phantoms`: each phantom in view (its projected mask, less the target objects' pixels, at
-    least `min_mask_pixels`) detected with `persistent_detect_prob`, its fixed label at a normal score."""
-    noise, out = model.noise, []
-    for mask, label in phantoms:
-        mask = np.asarray(mask, bool) & not_target
-        detected, score = rng.random() < noise.persistent_detect_prob, model.score(rng)
-        if detected and mask.sum() >= noise.min_mask_pixels:
-            out.append((mask, {label: score}))
-    return out
-
-
-def _background_regions(
-    image: np.ndarray, background: np.ndarray, class_names: list[str], model: _LabelModel, rng: np.random.Generator
-) -> list[tuple[np.ndarray, dict[str, float]]]:
-    """`background_rate`: regions of the background (`background` pixels: wall, floor, no ground truth) taken
-    for furniture (`BACKGROUND_CLASSES`), each a strip (`background_strip_share`) or a large patch centred
-    on a background pixel and clipped to the background, labelled from the class's published column."""
-    count = int(rng.poisson(model.noise.background_rate))
-    pixels = np.flatnonzero(background.ravel())
-    kinds = [class_names.index(c) for c in BACKGROUND_CLASSES if c in class_names]
-    if not count or pixels.size == 0 or not kinds:
-        return []
-    width = image.shape[1]
-    out = []
-    for _ in range(count):
-        pixel = int(pixels[rng.integers(pixels.size)])
-        strip = rng.random() < model.noise.background_strip_share
-        region = background_region(image.shape, (pixel % width, pixel // width), rng, strip) & background
-        class_index = kinds[int(rng.integers(len(kinds)))]
-        label = model.names[int(rng.choice(len(model.names), p=model.published[:, class_index]))]
-        out.append((region, {label: model.score(rng)}))
-    return out
-
-
-def _texture_pieces(
-    image: np.ndarray,
-    areas: Mapping[int, int],
-    instance_classes: Mapping[int, int],
-    model: _LabelModel,
-    prompt: list[str],
-    rng: np.random.Generator,
-) -> list[tuple[np.ndarray, dict[str, float]]]:
-    """`texture_prob`: visible regions (any instance of at least 4 pieces' size) over-segmented into small
-    pieces of about `texture_piece_share` of the image (`TEXTURE_KEEP_SHARE` of them detected), each with a
-    prompt label drawn from the region's class column (`TEXTURE_CLASS_LABEL_SHARE`, targets only) or a
-    random prompt label, at a low score."""
-    noise = model.noise
-    piece = noise.texture_piece_share * image.size
-    index = {name: i for i, name in enumerate(model.names)}
-    out = []
-    for i in sorted(areas):
-        if rng.random() >= noise.texture_prob or areas[i] < 4 * piece or not prompt:
-            continue
-        count = int(np.clip(round(areas[i] / piece), 2, TEXTURE_MAX_PIECES))
-        for part in split_into_pieces(image == i, count, rng):
-            keep, own, pick = rng.random(), rng.random(), rng.random()
-            score = float(rng.uniform(noise.box_threshold, noise.box_threshold + TEXTURE_SCORE_SPAN))
-            if keep >= TEXTURE_KEEP_SHARE:
-                continue
-            # One uniform draw picks the label either way, so the draws per piece do not depend on the prompt.
-            weights = np.ones(len(prompt))
-            if i in instance_classes and own < TEXTURE_CLASS_LABEL_SHARE:
-                column = np.array([model.columns[index[p], instance_classes[i]] if p in index else 0.0 for p in prompt])
-                weights = column if column.sum() > 0 else weights
-            cumulative = np.cumsum(weights / weights.sum())
-            label = prompt[min(int(np.searchsorted(cumulative, pick, side="right")), len(prompt) - 1)]
-            out.append((part, {label: score}))
     return out
 
 
@@ -1024,9 +544,6 @@ def simulate_scene(
       max_distance: m, ground-truth rendering tolerance between the depth and the mesh.
       progress: show a tqdm progress bar.
     """
-    from detectors.prompt import PromptAugmenter
-    from fmfusion_jax.io.detections import write_frame_detections
-    from fmfusion_jax.simulation.render import GroundTruthRenderer, instance_classes
 
     if every < 1:
         raise UserError(f"every must be >= 1, got {every}")
@@ -1053,8 +570,6 @@ def simulate_scene(
         expected = max_frames if expected is None else min(expected, max_frames)
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=expected, unit="frame", desc=f"simulate {scene.name}", dynamic_ncols=True)
     try:
         for index, name, depth, T_world_camera, intrinsics in _depth_frames(scene, every):

@@ -37,41 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from fmfusion_jax.errors import UserError
-from fmfusion_jax.simulation.noise import EXCLUSIVE_GROUPS, FAMILY_PRESETS, PROBABILITIES, NoiseModel
+from fmfusion_jax.simulation.noise import FAMILIES, FAMILY_DOSES, NoiseModel, family_changes, family_noise, fit_probabilities
 
-#: The noise families, in report order.
-FAMILIES = ("default", *FAMILY_PRESETS)
-#: The parameters of each family at severity 1, on top of `default`: a clear, realistic dose of its failure mode.
-FAMILY_DOSES: dict[str, dict[str, float]] = {
-    "default": {},
-    "label_model": {
-        "likelihood_perturbation": 0.7,
-        "extra_confusion_prob": 0.25,
-        "consistent_mislabel_prob": 0.3,
-        "label_persistence": 0.5,
-    },
-    "partial": {
-        "partial_large_prob": 0.5,
-        "partial_prob": 0.35,
-        "split_prob": 0.15,
-        "partial_straight_share": 0.4,
-        "partial_occluder_share": 0.3,
-    },
-    "merged": {"merge_neighbor_prob": 0.3, "merge_prob": 0.2},
-    "border": {
-        "bleed_prob": 0.5,
-        "bleed_px": 8.0,
-        "erode_prob": 0.2,
-        "erode_px": 3.0,
-        "border_offset_px": 2.5,
-        "border_jitter_px": 3.0,
-    },
-    "confusers": {"confuser_prob": 0.5, "blob_rate": 0.8, "small_object_miss_prob": 0.5, "score_miscalibration": 0.6},
-    "persistent": {"persistent_phantoms": 4.0, "persistent_radius_m": 0.3, "persistent_detect_prob": 0.8},
-    "background": {"background_rate": 1.0, "background_strip_share": 0.5},
-    "texture": {"texture_prob": 0.25},
-}
 #: Families added after the first zoo: mixtures draw them from a separate stream (see `noise_zoo`).
 LATER_FAMILIES = ("persistent", "background", "texture")
 #: The family name of a random combination of the families.
@@ -91,40 +58,6 @@ class ZooEntry:
     name: str
     family: str
     noise: NoiseModel
-
-
-def _fit(params: dict[str, Any]) -> dict[str, Any]:
-    """Probabilities clipped to [0, 1]; exclusive ones (`EXCLUSIVE_GROUPS`) scaled down to sum to 1 at most."""
-    out = {k: min(max(v, 0.0), 1.0) if k in PROBABILITIES else v for k, v in params.items()}
-    base = NoiseModel()
-    for group in EXCLUSIVE_GROUPS:
-        if not any(name in out for name in group):
-            continue
-        total = sum(out.get(name, getattr(base, name)) for name in group)
-        if total > 1.0:
-            for name in group:
-                out[name] = out.get(name, getattr(base, name)) / total
-    return out
-
-
-def _family_changes(family: str, severity: float) -> dict[str, Any]:
-    """Noise parameters (on top of `default`) that make `family` the dominant failure mode.
-
-    Each parameter goes linearly from its `default` value (severity 0) to its dose (severity 1) and on.
-    """
-    if family not in FAMILY_DOSES:
-        raise UserError(f"unknown noise family {family!r}; choose one of {', '.join(FAMILIES)}")
-    s, base = float(severity), NoiseModel()
-    return _fit({name: getattr(base, name) + s * (dose - getattr(base, name)) for name, dose in FAMILY_DOSES[family].items()})
-
-
-def family_noise(family: str, severity: float = 1.0, seed: int = 0, **changes: Any) -> NoiseModel:
-    """The noise model of one family at `severity` (1 = the documented preset; 0 = `default`)."""
-    if severity < 0:
-        raise UserError(f"severity must be >= 0, got {severity}")
-    params = _family_changes(family, severity)
-    params.update(changes)
-    return NoiseModel.preset("default", seed=seed, **params)
 
 
 def noise_zoo(mixed: int = 4, seed: int = 0, severity: float = 1.0) -> list[ZooEntry]:
@@ -150,15 +83,15 @@ def noise_zoo(mixed: int = 4, seed: int = 0, severity: float = 1.0) -> list[ZooE
                 chosen.append(extra)
         params: dict[str, Any] = {}
         for family in sorted(chosen, key=candidates.index):
-            for key, value in _family_changes(family, severity * rng.uniform(0.5, 1.5)).items():
+            for key, value in family_changes(family, severity * rng.uniform(0.5, 1.5)).items():
                 params[key] = max(params.get(key, value), value)
         later = np.random.default_rng([seed, 4243, i])
         for family in LATER_FAMILIES:
             drawn, scale = later.random() < 0.5, later.uniform(0.5, 1.5)
             if drawn:
-                for key, value in _family_changes(family, severity * scale).items():
+                for key, value in family_changes(family, severity * scale).items():
                     params[key] = max(params.get(key, value), value)
-        entries.append(ZooEntry(f"{MIXED}-{i}", MIXED, NoiseModel.preset("default", seed=seed, **_fit(params))))
+        entries.append(ZooEntry(f"{MIXED}-{i}", MIXED, NoiseModel.preset("default", seed=seed, **fit_probabilities(params))))
     return entries
 
 

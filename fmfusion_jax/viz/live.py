@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.map_outputs import oriented_box
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 
@@ -71,7 +72,6 @@ class RerunView:
 
     def log_map(self, mapper: Any) -> None:
         """The map as it stands: the mesh and the instances' boxes."""
-        from fmfusion_jax.io.map_outputs import oriented_box
 
         rr, rec = self.rr, self.recording
         mesh = mapper.extract_mesh()

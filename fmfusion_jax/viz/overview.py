@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from fmfusion_jax.instances import MapInstance
 from fmfusion_jax.labels import LabelSets
@@ -74,7 +75,6 @@ def mesh_spacing(vertices: np.ndarray, faces: np.ndarray | None, default: float 
 def point_spacing(points: np.ndarray, default: float, max_tree_points: int = 200_000) -> float:
     """Median distance from a point to its nearest neighbour (on a sample; at least `default`, e.g. the
     voxel size): instance points taken from few pixels are sparse and are drawn with bigger splats."""
-    from scipy.spatial import cKDTree
 
     points = np.asarray(points, np.float64).reshape(-1, 3)
     if len(points) < 2:

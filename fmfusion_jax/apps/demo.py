@@ -23,8 +23,22 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
+from fmfusion_jax.config import detection_frame_stride
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.scene import open_dataset_scene
+from fmfusion_jax.simulation.demo_setup import (
+    DEFAULT_FRAMES,
+    DEFAULT_HEIGHT,
+    DEFAULT_OBJECTS,
+    DEFAULT_WIDTH,
+    demo_config,
+    demo_noise,
+)
+from fmfusion_jax.simulation.procedural import generate_scene
+from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
+from fmfusion_jax.simulation.simulate import simulate_scene
 
 if TYPE_CHECKING:  # pragma: no cover
     from fmfusion_jax.mapping.builder import FusionResult
@@ -32,10 +46,6 @@ if TYPE_CHECKING:  # pragma: no cover
 log = logging.getLogger(__name__)
 
 DEFAULT_OUT = Path("outputs/demo")
-#: Defaults of the demo (the values `configs/demo.yaml` is written for).
-DEFAULT_FRAMES = 120
-DEFAULT_WIDTH, DEFAULT_HEIGHT = 640, 480
-DEFAULT_OBJECTS = 12
 #: Marker file of a demo output folder: a folder holding it may be emptied and written again.
 MARKER = "demo.json"
 DETECTIONS_DIR = "detections"
@@ -57,59 +67,6 @@ class DemoResult:
     text: str  # what `fmfusion demo` prints
     seconds: dict[str, float]  # wall time of each stage
     fusion: FusionResult  # the fused map
-
-
-def _surface_area(room_size: Sequence[float]) -> float:
-    w, d, h = room_size
-    return 2 * w * d + 2 * (w + d) * h
-
-
-def demo_config(
-    num_frames: int = DEFAULT_FRAMES,
-    width: int = DEFAULT_WIDTH,
-    height: int = DEFAULT_HEIGHT,
-    overrides: Sequence[str] = (),
-    room_size: Sequence[float] | None = None,
-) -> PipelineConfig:
-    """`configs/demo.yaml` for a demo of `num_frames` frames of `width x height`, then `overrides`.
-
-    demo.yaml holds the values for 120 frames of 640x480. Over a longer loop consecutive frames are
-    closer, so the detection stride (detections.every; refinement is counted in detection frames) grows in
-    proportion to the frame count; pixel counts (detections.min_mask_pixels, association.min_projected_pixels) follow
-    the image area, and so does export.min_points below 640x480 (instance voxels come from sampled
-    pixels). With `room_size` (W, D, H metres), the block pool grows with the room's surface beyond the
-    default room's. `--set` overrides win over this scaling.
-    """
-    config = load_config("demo")
-    frames_scale = num_frames / DEFAULT_FRAMES
-    area_scale = (width * height) / (DEFAULT_WIDTH * DEFAULT_HEIGHT)
-    scaled = {
-        "detections.every": max(1, round(config.detections.every * frames_scale)),
-        "detections.min_mask_pixels": max(20, round(config.detections.min_mask_pixels * area_scale)),
-        "association.min_projected_pixels": max(20, round(config.association.min_projected_pixels * area_scale)),
-        # instance voxels come from sampled pixels: fewer pixels, sparser instances
-        "export.min_points": max(20, round(config.export.min_points * min(area_scale, 1.0))),
-    }
-    if room_size is not None:
-        from fmfusion_jax.simulation.procedural import DEFAULT_ROOM
-
-        surface_scale = max(1.0, _surface_area(room_size) / _surface_area(DEFAULT_ROOM))
-        scaled["tsdf.block_capacity"] = 1024 * -(-round(config.tsdf.block_capacity * surface_scale) // 1024)
-    return load_config("demo", [f"{key}={value}" for key, value in scaled.items()] + list(overrides))
-
-
-def demo_noise(seed: int, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT):
-    """The default noise model of `fmfusion simulate`, seeded, with its pixel counts scaled to the image area
-    (they are meant for 640x480)."""
-    from fmfusion_jax.simulation.noise import NoiseModel
-
-    noise = NoiseModel.preset("default")
-    area_scale = (width * height) / (DEFAULT_WIDTH * DEFAULT_HEIGHT)
-    return noise.replace(
-        seed=int(seed),
-        min_mask_pixels=max(10, round(noise.min_mask_pixels * area_scale)),
-        small_object_pixels=max(20, round(noise.small_object_pixels * area_scale)),
-    )
 
 
 def _prepare(out_dir: Path) -> None:
@@ -166,15 +123,8 @@ def run_demo(
     demo_config(num_frames, width, height, overrides)  # bad overrides fail before anything is written
     out_dir = Path(out_dir)
     _prepare(out_dir)
-
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.run.command import summarize_run, write_outputs
-    from fmfusion_jax.run.scene_fusion import fuse_scene
-    from fmfusion_jax.simulation.procedural import generate_scene
-    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
-    from fmfusion_jax.simulation.simulate import simulate_scene
+    from fmfusion_jax.run.command import summarize_run, write_outputs  # lazy: JAX (`fmfusion --help` imports this module)
+    from fmfusion_jax.run.scene_fusion import fuse_scene  # lazy: JAX (`fmfusion --help` imports this module)
 
     seconds: dict[str, float] = {}
     start = clock = time.perf_counter()

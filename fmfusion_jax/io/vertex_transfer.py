@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
 
 
 def points_to_vertex_masks(
@@ -31,7 +33,6 @@ def points_to_vertex_masks(
     Returns:
       `(P, V)` bool.
     """
-    from scipy.spatial import cKDTree
 
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     masks = np.zeros((len(instance_points), len(vertices)), bool)
@@ -69,7 +70,6 @@ def floor_vertices(
 
     The map's floor (`engine.support`) is what the fusion kept out of the objects' masks; in the transfer the
     same floor keeps an object's lowest points from claiming the floor vertices around its base."""
-    import trimesh
 
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)

@@ -13,6 +13,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, cast
 
+from fmfusion_jax.config import load_config
+from fmfusion_jax.io.scene import open_dataset_scene
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
+from fmfusion_jax.simulation.noise import NoiseModel
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
+
+#: The real scene `fmfusion bench` runs when none is given (when present).
+DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
+
 #: Config the real scene is fused with (its frames are ~18 original frames apart: detections on every frame).
 REAL_SCENE_CONFIG = "scannet-subsampled"
 
@@ -47,10 +56,6 @@ def prepare_real_scene(
 ) -> BenchScene:
     """The real scene's first `max_frames` frames (None: all), with detections simulated on every frame of
     the scene into `cache_dir/<scene>/detections` (once: any frame count reuses them)."""
-    from fmfusion_jax.config import load_config
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.simulation.noise import NoiseModel
-    from fmfusion_jax.simulation.scene_sets import simulated_detections
 
     config = load_config(REAL_SCENE_CONFIG, [*([f"dataset.max_frames={max_frames}"] if max_frames else []), *overrides])
     dataset = config.dataset
@@ -77,13 +82,10 @@ def prepare_generated_scene(
     """A generated room with `objects` objects (its size grows with them, `procedural.default_room_size`),
     `frames` frames of `width x height` along a loop around it, and simulated detections on every frame.
 
-    Fused with the demo's config for these sizes (`demo.demo_config`), detections on every frame and geometry
+    Fused with the demo's config for these sizes (`demo_setup.demo_config`), detections on every frame and geometry
     fusion timed however short the run.
     Everything lives in `cache_dir/synth-o<objects>-f<frames>-<W>x<H>-s<seed>` and is reused when there.
     """
-    from fmfusion_jax.config import load_config
-    from fmfusion_jax.demo import demo_config, demo_noise
-    from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
     folder = cache_dir / f"synth-o{objects}-f{frames}-{width}x{height}-s{seed}"
     scene_dir = generated_scene(GeneratedSceneSpec(seed, objects, frames, width, height), folder, progress)

@@ -74,7 +74,9 @@ VISIBILITY_TOLERANCE = 0.05
 def class_distribution(evidence: np.ndarray, mode: str, prior_weight: float = 1.0) -> np.ndarray:
     """`(N, C)` class distributions of label evidence `(N, C)`, in NumPy: softmax of the log-evidence for
     `bayes`, the evidence plus a uniform prior of `prior_weight`, normalized, for `additive` (the engine's
-    `label_fusion` rules, so that the peer fuses labels as the paper does)."""
+    `label_fusion` rules, so that the peer fuses labels as the paper does). The peer's own NumPy label fusion,
+    part of its algorithm (merge similarity and export); the tests check the engine against their own oracle
+    (`tests/oracles`), never against this."""
     e = np.asarray(evidence, np.float64)
     c = e.shape[1]
     if mode == "bayes":

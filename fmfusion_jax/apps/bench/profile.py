@@ -16,6 +16,8 @@ import re
 import shutil
 from pathlib import Path
 
+import jax
+
 #: Threads listed in the report, busiest first, and events listed per thread.
 THREADS_SHOWN, EVENTS_SHOWN = 6, 5
 #: The Python tracer's names of a thread's waits on a lock, a condition or a queue (C calls are "$<unknown> NAME").
@@ -23,7 +25,6 @@ _WAIT_EVENT = re.compile(r"^\$(<unknown> (acquire|get)|threading\.py:\d+ wait)$"
 
 
 def start_trace(folder: Path) -> None:
-    import jax
 
     folder.mkdir(parents=True, exist_ok=True)
     jax.profiler.start_trace(str(folder), create_perfetto_trace=True)
@@ -31,7 +32,6 @@ def start_trace(folder: Path) -> None:
 
 def stop_trace(folder: Path, keep_as: Path) -> Path | None:
     """Stops the trace started in `folder` and moves its Perfetto JSON to `keep_as` (None if none was written)."""
-    import jax
 
     jax.profiler.stop_trace()
     written = sorted(folder.glob("plugins/profile/*/perfetto_trace.json.gz"))

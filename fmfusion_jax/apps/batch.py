@@ -24,6 +24,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -31,9 +32,16 @@ from typing import Any
 
 import numpy as np
 
+from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 from fmfusion_jax.io.atomic import write_atomic
-from fmfusion_jax.io.scene import detect_layout
+from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.scene import detect_layout, open_dataset_scene
+from fmfusion_jax.mapping.batch import MapperBatch
+from fmfusion_jax.run.command import write_outputs
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +160,6 @@ def _run_child(
     """One child process: its status (ok, failed, timeout, memory) and its error line. The child is stopped
     past `timeout_s` seconds or `memory_mib` MiB of resident memory (polled twice a second); `progress` hears
     the last frame count of its progress bar every `PROGRESS_EVERY_S` seconds."""
-    import tempfile
 
     with tempfile.TemporaryFile("w+") as stderr_file:
         process = subprocess.Popen(
@@ -325,10 +332,6 @@ class Batch:
 
 
 def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.mapping.batch import MapperBatch
-    from fmfusion_jax.run.command import write_outputs
 
     start = time.perf_counter()
     records: list[dict[str, Any]] = [{"scene": t.name, "path": t.scene, "out": t.out} for t in group]
@@ -373,9 +376,6 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
 def pooled_benchmark(records: Sequence[dict[str, Any]]):
     """`(result, scene names)`: the ScanNet benchmark pooled over the scenes that ran and have ground truth
     (result None when none has)."""
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
-    from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 
     pairs, names = [], []
     for record in records:
@@ -427,3 +427,83 @@ def write_reports(out: Path, records: Sequence[dict[str, Any]], pooled, scored: 
     text = "\n".join(lines) + "\n"
     write_atomic(out / "batch.md", text)
     return text
+
+
+def run_batch(
+    *,
+    workers: int,
+    scene_timeout: float | None,
+    scene_memory: float | None,
+    config: str | None,
+    overrides: list[str],
+    dataset: Path,
+    root: Path | None,
+    out: Path,
+    detections: str | None,
+    simulate: bool,
+    models: Path | None,
+    resume: bool,
+    no_progress: bool,
+    batch_size: int | None,
+    ray: str | None,
+    ray_cpus: float,
+    ray_gpus: float,
+) -> int:
+
+    if workers < 1:
+        raise UserError(f"--workers must be >= 1, got {workers}")
+    if scene_timeout is not None and scene_timeout <= 0:
+        raise UserError(f"--scene-timeout must be > 0, got {scene_timeout}")
+    if scene_memory is not None and scene_memory <= 0:
+        raise UserError(f"--scene-memory must be > 0 GiB, got {scene_memory}")
+    load_config(config or "scannet", overrides)  # a bad config fails now, not in every scene
+    scenes = list_scenes(dataset, root)
+    options = ["--config", str(Path(config).resolve()) if os.path.isfile(config) else config] if config else []
+    for item in overrides:
+        options += ["--set", item]
+    options.append("--restart")  # an interrupted scene of an earlier batch starts over
+    out.mkdir(parents=True, exist_ok=True)
+    batch = Batch(
+        scenes,
+        out,
+        detections=detections,
+        simulate=simulate,
+        models=models,
+        run_options=options,
+        timeout_s=scene_timeout,
+        memory_mib=None if scene_memory is None else 1024 * scene_memory,
+    )
+    if resume:
+        batch.load()
+    tasks = batch.pending(resume)
+    skipped = len(batch.tasks) - len(tasks)
+    total = len(tasks)
+    print(f"{len(batch.tasks)} scenes, {total} to run" + (f" ({skipped} done before)" if skipped else ""), file=sys.stderr)
+    done = 0
+
+    def report(record: dict) -> None:
+        nonlocal done
+        done += 1
+        if not no_progress:
+            score = f", AP50 {100 * record['mAP50']:.1f}" if record.get("mAP50") is not None else ""
+            what = record["status"] if record["status"] == "ok" else f"{record['status']}: {record.get('error')}"
+            print(f"[{done}/{total}] {record['scene']}: {what}{score} ({record.get('seconds', 0):.0f} s)", file=sys.stderr)
+
+    if batch_size:
+        if batch_size < 1 or ray:
+            raise UserError("--batch K needs K >= 1 and no --ray")
+        batch.run_vmapped(tasks, batch_size, load_config(config or "scannet", overrides), report)
+    elif ray:
+        batch.run_ray(tasks, ray, report, cpus_per_scene=ray_cpus, gpus_per_scene=ray_gpus)
+    else:
+        batch.run_local(
+            tasks,
+            workers,
+            report,
+            None if no_progress else lambda scene, text: print(f"  {scene}: {text}", file=sys.stderr),
+        )
+    records = [batch.records[t.name] for t in batch.tasks if t.name in batch.records]
+    pooled, scored = pooled_benchmark(records)
+    print(write_reports(out, records, pooled, scored))
+    failed = sum(r.get("status") != "ok" for r in records)
+    return 1 if failed else 0

@@ -1,6 +1,6 @@
 """The bench's as-run pass alone, repeated: a quick A/B of two versions of the code on the same device.
 
-    python -m fmfusion_jax.bench.as_run --scene ../shared/data/scannet/scene0000_00 --cache outputs/bench/cache
+    python -m fmfusion_jax.apps.bench.as_run --scene ../shared/data/scannet/scene0000_00 --cache outputs/bench/cache
 
 Fuses the real scene `--passes` times in this process, as `fmfusion run` does (reader threads preparing the next
 frames, the steps dispatched without waiting; `worker._as_run_pass`), and prints one JSON line per pass: the median,
@@ -19,17 +19,20 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from fmfusion_jax.bench.scenes import BenchScene
+import numpy as np
+
+from fmfusion_jax.apps.bench import harness, worker
+from fmfusion_jax.apps.bench.scenes import BenchScene, prepare_real_scene
+from fmfusion_jax.compile_cache import enable_compile_cache
+from fmfusion_jax.errors import UserError
+from fmfusion_jax.run.scene_fusion import mapper_for_scene
+from fmfusion_jax.xla_options import enable_gpu_command_buffers
 
 
 def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say=print) -> list[dict]:
     """`passes` as-run passes over the first `frames` frames of `scene` (None: all); one dict per pass."""
-    import numpy as np
 
-    from fmfusion_jax.bench import worker
-    from fmfusion_jax.run.scene_fusion import mapper_for_scene
-
-    config, opened, folder = worker._open(scene, frames)
+    config, opened, folder = harness.open_bench_scene(scene, frames)
     sample = opened.sample_depth(max_frames=60)
     rows = []
     for number in range(passes):
@@ -45,7 +48,7 @@ def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say
             "mean_ms": round(float(calls.mean()), 3) if calls.size else None,
             "p90_ms": round(float(np.percentile(calls, 90)), 3) if calls.size else None,
             "wall_s": round(wall, 2),
-            "device": worker.device_description()["device_kind"],
+            "device": harness.device_description()["device_kind"],
         }
         say(json.dumps(row))
         rows.append(row)
@@ -54,10 +57,8 @@ def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from fmfusion_jax.compile_cache import enable_compile_cache
-    from fmfusion_jax.xla_options import enable_gpu_command_buffers
 
-    parser = argparse.ArgumentParser(prog="python -m fmfusion_jax.bench.as_run", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m fmfusion_jax.apps.bench.as_run", description=__doc__.splitlines()[0])
     parser.add_argument("--scene", type=Path, required=True, help="real ScanNet-layout scene with ground truth")
     parser.add_argument("--cache", type=Path, default=Path("outputs/bench/cache"), help="simulated detections (made once)")
     parser.add_argument("--passes", type=int, default=3, help="passes over the frames (default 3; the first compiles)")
@@ -67,8 +68,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--passes must be at least 1")
     enable_gpu_command_buffers()  # as the `fmfusion` commands: before JAX starts a backend
     enable_compile_cache()
-    from fmfusion_jax.bench.scenes import prepare_real_scene
-    from fmfusion_jax.errors import UserError
 
     try:
         as_run_passes(prepare_real_scene(args.scene, args.cache, args.frames, progress=False), args.passes, args.frames)

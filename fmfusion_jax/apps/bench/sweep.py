@@ -13,7 +13,7 @@ the packer's own rule when a frame has more detections than its capacity; ties: 
 their original order; a frame with `k` or fewer usable detections is left as it is. So a run capped at
 `k` fuses what a run with `detections.max_detections = k` would fuse.
 
-    python -m fmfusion_jax.bench.worker SPEC.json RESULT.json   (pipeline "ours-sweep" or "peer-sweep")
+    python -m fmfusion_jax.apps.bench.worker SPEC.json RESULT.json   (pipeline "ours-sweep" or "peer-sweep")
 
 The runs of the different caps advance together, one frame each in turn (the order rotating from frame
 to frame), so that a change in the machine's load hits every cap alike; for ours, as many maps as fit in
@@ -24,15 +24,30 @@ once uncapped (not timed), which compiles every jitted function once for the who
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import os
 import sys
 import time
 from collections.abc import Sequence
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from fmfusion_jax.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.harness import (
+    PEER_MODULE,
+    device_description,
+    frames_with_detections,
+    open_bench_scene,
+    peak_rss_mb,
+    peer_unavailable_reason,
+    scene_map_config,
+)
+from fmfusion_jax.apps.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.stages import FrameTimer
 from fmfusion_jax.engine.detections import select_detections
+from fmfusion_jax.labels import load_label_sets, load_likelihood
+from fmfusion_jax.mapping.builder import MapBuilder
 from fmfusion_jax.types import FrameDetections
 
 
@@ -63,7 +78,6 @@ def _rotated(items: Sequence, shift: int) -> list:
 
 def _free_bytes() -> float:
     """Memory the maps can take: the accelerator's free bytes where it reports them, else the host's."""
-    import jax
 
     try:
         stats = jax.devices()[0].memory_stats() or {}
@@ -95,16 +109,10 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     """Our engine (the fused step, as `fmfusion run` drives it) once per cap in `sweep` on the first
     `frames` frames. Per cap: `frames`/`compiled` as the ours worker's, detections given and fused and
     live instances per frame."""
-    import jax.numpy as jnp
 
-    from fmfusion_jax.bench.stages import FrameTimer
-    from fmfusion_jax.bench.worker import _frames_with_detections, _open, device_description, peak_rss_mb, scene_map_config
-    from fmfusion_jax.labels import load_label_sets, load_likelihood
-    from fmfusion_jax.mapping.builder import MapBuilder
-
-    config, opened, folder = _open(scene, frames)
+    config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
-    map_config = scene_map_config(config, _open(scene, None)[1])  # the map of the ours worker (all the scene's frames)
+    map_config = scene_map_config(config, open_bench_scene(scene, None)[1])  # the map of the ours worker (all the scene's frames)
     label_sets = load_label_sets()
     likelihood = jnp.asarray(load_likelihood(config.label_fusion.likelihood), jnp.float32)
     open_labels, det = label_sets.open_labels, config.detections
@@ -116,7 +124,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     start = time.perf_counter()
     warm = FrameTimer()  # the uncapped pass that compiles everything
     warm_builder = builder(warm)
-    for frame, detections in _frames_with_detections(opened, folder, config, progress, f"ours warm-up {scene.name}"):
+    for frame, detections in frames_with_detections(opened, folder, config, progress, f"ours warm-up {scene.name}"):
         warm.start_frame()
         warm_builder.add_frame(frame, detections)
     del warm_builder
@@ -133,7 +141,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
         timers = {k: FrameTimer(first_ms=dict(warm.first_ms), warm=set(warm.warm)) for k in group}  # compiled: all samples
         builders = {k: builder(timers[k]) for k in group}
         for position, (frame, detections) in enumerate(
-            _frames_with_detections(opened, folder, config, progress, f"ours sweep {scene.name} k={','.join(map(str, group))}")
+            frames_with_detections(opened, folder, config, progress, f"ours sweep {scene.name} k={','.join(map(str, group))}")
         ):
             for k in _rotated(group, position):
                 capped = None if detections is None else cap_detections(detections, k, open_labels, det.min_mask_pixels)
@@ -159,22 +167,12 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
 def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep: Sequence[int]) -> dict:
     """The Open3D per-instance peer once per cap in `sweep` on the first `frames` frames (all caps
     together: its pipelines are small)."""
-    import importlib
-
-    from fmfusion_jax.bench.worker import (
-        PEER_MODULE,
-        _frames_with_detections,
-        _open,
-        peak_rss_mb,
-        peer_unavailable_reason,
-    )
-    from fmfusion_jax.labels import load_label_sets, load_likelihood
 
     reason = peer_unavailable_reason()
     if reason:
         return {"pipeline": "peer-sweep", "unavailable": reason}
     peer = importlib.import_module(PEER_MODULE)
-    config, opened, folder = _open(scene, frames)
+    config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
     label_sets = load_label_sets()
     likelihood = load_likelihood(config.label_fusion.likelihood)
@@ -183,7 +181,7 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     runs = {k: _new_run(k) for k in sweep}
     start = time.perf_counter()
     for position, (frame, detections) in enumerate(
-        _frames_with_detections(opened, folder, config, progress, f"Open3D peer sweep {scene.name}")
+        frames_with_detections(opened, folder, config, progress, f"Open3D peer sweep {scene.name}")
     ):
         for k in _rotated(list(sweep), position):
             capped = None if detections is None else cap_detections(detections, k, open_labels, det.min_mask_pixels)

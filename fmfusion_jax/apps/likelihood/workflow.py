@@ -32,8 +32,19 @@ import numpy as np
 
 from fmfusion_jax.config import PipelineConfig, detection_frame_stride, load_config
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
+from fmfusion_jax.instances import drop_small_instances, postprocess_instances
+from fmfusion_jax.io.detections import DetectionFolder
+from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
+from fmfusion_jax.io.heatmap import write_heatmap
+from fmfusion_jax.io.scene import open_dataset_scene, sample_scene_dir
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood, write_likelihood_csv
-from fmfusion_jax.likelihood.matching import MatchedInstances
+from fmfusion_jax.likelihood.matching import MatchedInstances, match_instances
+from fmfusion_jax.likelihood.summarize import LikelihoodCounts, estimate, summarize_scene, write_summary
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
+from fmfusion_jax.simulation.noise import NoiseModel
+from fmfusion_jax.simulation.procedural import generate_scene
+from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, prepare_generated, prepare_real
 
 if TYPE_CHECKING:
     from fmfusion_jax.io.benchmark_format import InstancePredictions
@@ -48,9 +59,8 @@ DEFAULT_REAL_CONFIG = "scannet-subsampled"
 
 
 def default_real_scene() -> Path | None:
-    """The shared ScanNet sample (`experiments.sample_scene_dir`: `$FMFUSION_SCANNET_DIR/scene0000_00` or
+    """The shared ScanNet sample (`io.scene.sample_scene_dir`: `$FMFUSION_SCANNET_DIR/scene0000_00` or
     ../shared/data/scannet/...), if present."""
-    from fmfusion_jax.experiments import sample_scene_dir
 
     scene = sample_scene_dir()
     return scene if scene.is_dir() else None
@@ -82,9 +92,6 @@ def generated_cases(
 ) -> list[Case]:
     """Generated scenes (seeds) with simulated detections (the demo's noise model, seeded like the scene),
     cached under `root`; each fused with the demo config scaled to its size."""
-    from fmfusion_jax.demo import demo_config, demo_noise
-    from fmfusion_jax.simulation.procedural import generate_scene
-    from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, prepare_generated
 
     cases = []
     for seed in seeds:
@@ -106,8 +113,6 @@ def real_case(
 ) -> Case:
     """A real scene with the given detections, or with simulated ones (default noise, seed 0) cached under
     `root` when `detections_dir` is None."""
-    from fmfusion_jax.simulation.noise import NoiseModel
-    from fmfusion_jax.simulation.scene_sets import prepare_real
 
     scene_dir = Path(scene_dir)
     pipeline_config = load_config(config)
@@ -139,7 +144,6 @@ def summarize_cases(
     progress: bool = False,
 ):
     """`LikelihoodCounts` summed over the cases (each rendered at its config's depth truncation)."""
-    from fmfusion_jax.likelihood.summarize import LikelihoodCounts, summarize_scene
 
     label_sets = label_sets or load_label_sets()
     total = LikelihoodCounts.zeros(label_sets.num_open, label_sets.num_classes)
@@ -176,14 +180,9 @@ class RunOutcome:
 def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None = None, progress: bool = False) -> RunOutcome:
     """Fuses `case` with `likelihood` (packaged name or CSV), matches its instances to ground truth and
     scores its benchmark export."""
-    from fmfusion_jax.instances import drop_small_instances, postprocess_instances
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.io.scene import open_dataset_scene
-    from fmfusion_jax.likelihood.matching import match_instances
-    from fmfusion_jax.mapping.export import extract_map_instances
-    from fmfusion_jax.run.outputs import score_instances
-    from fmfusion_jax.run.scene_fusion import fuse_scene
+    from fmfusion_jax.mapping.export import extract_map_instances  # lazy: JAX (`fmfusion --help` imports this module)
+    from fmfusion_jax.run.outputs import score_instances  # lazy: JAX (`fmfusion --help` imports this module)
+    from fmfusion_jax.run.scene_fusion import fuse_scene  # lazy: JAX (`fmfusion --help` imports this module)
 
     label_sets = label_sets or load_label_sets()
     start = time.perf_counter()
@@ -215,7 +214,6 @@ def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None =
 
 def pooled_scores(outcomes: Sequence[RunOutcome]) -> dict[str, float]:
     """The benchmark over several scenes at once (AP pooled over their instances, as the benchmark does)."""
-    from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 
     if not outcomes:
         return {}
@@ -261,11 +259,9 @@ def calibrate_and_compare(
     calibrated.png, difference.png (calibrated - initial, absolute), loss.csv (the loss per step),
     validation.csv (the pooled validation loss per l2 and step, when cross-validated), report.json, report.md.
     """
-    import jax.numpy as jnp
+    import jax.numpy as jnp  # lazy: JAX (`fmfusion --help` imports this module)
 
-    from fmfusion_jax.io.heatmap import write_heatmap
-    from fmfusion_jax.likelihood import calibrate as cal
-    from fmfusion_jax.likelihood.summarize import estimate, write_summary
+    from fmfusion_jax.likelihood import calibrate as cal  # lazy: JAX (`fmfusion --help` imports this module)
 
     settings = settings or CalibrationSettings()
     if not train:

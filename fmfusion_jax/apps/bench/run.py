@@ -17,9 +17,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from fmfusion_jax.bench import report
-from fmfusion_jax.bench.scenes import BenchScene, prepare_generated_scene, prepare_real_scene
+from fmfusion_jax.apps.bench import report
+from fmfusion_jax.apps.bench.scenes import DEFAULT_SCENE, BenchScene, prepare_generated_scene, prepare_real_scene
 from fmfusion_jax.errors import UserError
+from fmfusion_jax.run.folder import prepare_output_dir
 
 DEFAULT_OUT = Path("outputs/bench")
 #: The sizes of `--quick`: a smoke test in well under a minute.
@@ -63,8 +64,7 @@ def run_bench(
     say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True),
 ) -> dict:
     """Runs the benchmark; writes `bench.md` and `bench.json` into `options.out`; returns the summary."""
-    from fmfusion_jax.bench.worker import peer_unavailable_reason
-    from fmfusion_jax.run.folder import prepare_output_dir
+    from fmfusion_jax.apps.bench.worker import peer_unavailable_reason
 
     out = prepare_output_dir(options.out)
     cache = options.cache or out / "cache"
@@ -173,7 +173,9 @@ def _child(
     caps = f", detections capped to {' '.join(map(str, sweep))}" if sweep else ""
     say(f"running {names[pipeline]} on {scene.name} ({min(frames or scene.frames, scene.frames)} frames{caps})")
     start = time.perf_counter()
-    completed = subprocess.run([sys.executable, "-m", "fmfusion_jax.bench.worker", str(spec_path), str(result_path)], check=False)
+    completed = subprocess.run(
+        [sys.executable, "-m", "fmfusion_jax.apps.bench.worker", str(spec_path), str(result_path)], check=False
+    )
     seconds = time.perf_counter() - start
     if completed.returncode != 0 or not result_path.is_file():
         say(f"  {names[pipeline]} failed (exit {completed.returncode}) after {seconds:.0f} s")
@@ -196,3 +198,92 @@ def _jsonable(value):
 
 
 __all__ = ["BenchOptions", "run_bench", "DEFAULT_OUT"]
+
+
+def run_bench_command(
+    *,
+    objects: list[int] | None,
+    generated_frames: int | None,
+    sweep: list[int] | None,
+    sweep_frames: int | None,
+    profile: int,
+    quick: bool,
+    frames: int | None,
+    peer_frames: int | None,
+    size: list[int] | None,
+    no_scene: bool,
+    scene: Path | None,
+    out: Path,
+    cache: Path | None,
+    no_peer: bool,
+    seed: int,
+    overrides: list[str],
+    no_progress: bool,
+    command: str,
+) -> int:
+    for name, value in (
+        ("frames", frames),
+        ("generated_frames", generated_frames),
+        ("peer_frames", peer_frames),
+        ("sweep_frames", sweep_frames),
+    ):
+        if value is not None and value < 0:
+            raise UserError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    if objects is not None and any(n < 1 for n in objects):
+        raise UserError(f"--objects must be positive, got {objects}")
+    if generated_frames == 0 or generated_frames == 1:
+        raise UserError("--generated-frames must be >= 2")
+    if sweep is not None and any(k < 1 for k in sweep):
+        raise UserError(f"--sweep caps must be >= 1, got {sweep}")
+    if sweep_frames == 1:
+        raise UserError("--sweep-frames must be >= 2 (frame 0 warms up)")
+    if profile < 0:
+        raise UserError(f"--profile must be >= 0, got {profile}")
+
+    defaults = dict(QUICK_SIZES) if quick else {}
+    given: dict[str, Any] = {
+        "frames": frames,
+        "objects": None if objects is None else tuple(objects),
+        "generated_frames": generated_frames,
+        "peer_frames": peer_frames,
+        "sweep": None if sweep is None else tuple(dict.fromkeys(sweep)),
+        "sweep_frames": sweep_frames,
+    }
+    if size is not None:
+        given["width"], given["height"] = size
+    options = {**defaults, **{k: v for k, v in given.items() if v is not None}}
+    for name in ("frames", "peer_frames", "sweep_frames"):  # 0 = all
+        if options.get(name) == 0:
+            options[name] = None
+    real_scene = None if no_scene else _real_scene(scene, quick=quick)
+    bench = BenchOptions(
+        out=out,
+        cache=cache,
+        scene=real_scene,
+        peer=not no_peer,
+        seed=seed,
+        overrides=tuple(overrides),
+        progress=not no_progress,
+        profile_frames=profile,
+        **options,
+    )
+    summary = run_bench(bench, command=command)
+    print(summary["markdown"])
+    print(f"written: {out / 'bench.md'}, {out / 'bench.json'}")
+    return 0
+
+
+def _real_scene(given: Path | None, quick: bool) -> Path | None:
+    """The real scene to run: the one given (must exist), else the shared sample when present (not with
+    --quick); None, saying so, when there is none."""
+    if given is not None:
+        if not given.is_dir():
+            raise UserError(f"scene folder {given} does not exist")
+        return given
+    if quick:
+        print("fmfusion bench: --quick runs generated rooms only (give --scene to add the real scene)", file=sys.stderr)
+        return None
+    if DEFAULT_SCENE.is_dir():
+        return DEFAULT_SCENE
+    print(f"fmfusion bench: no real scene at {DEFAULT_SCENE} (give one with --scene); generated rooms only", file=sys.stderr)
+    return None

@@ -1,6 +1,6 @@
 """One pipeline on one scene, in a process of its own (so that peak memory is that pipeline's alone).
 
-    python -m fmfusion_jax.bench.worker SPEC.json RESULT.json
+    python -m fmfusion_jax.apps.bench.worker SPEC.json RESULT.json
 
 SPEC: `{"pipeline": "ours" | "peer" | "vbg" | "ours-sweep" | "peer-sweep", "scene": BenchScene.to_json(),
 "frames": N | null, "progress": bool}`; the sweeps (`bench.sweep`) add `"sweep": [k, ...]`. RESULT:
@@ -19,108 +19,37 @@ arrays on the device, which `MapBuilder` does before each step).
 
 from __future__ import annotations
 
+import concurrent.futures
+import hashlib
+import importlib
+import itertools
 import json
 import os
-import resource
 import sys
 import time
 from pathlib import Path
 
-from fmfusion_jax.bench.scenes import BenchScene
+import jax
+import numpy as np
 
-#: Module of the Open3D peer pipelines (an optional dependency: `open3d-cpu`).
-PEER_MODULE = "fmfusion_jax.bench.open3d_peer"
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far, MiB (Linux reports KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def cpu_count() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def peer_unavailable_reason() -> str | None:
-    """Why the Open3D peer cannot run here, or None."""
-    import importlib
-
-    try:
-        peer = importlib.import_module(PEER_MODULE)
-    except ImportError as error:
-        return f"the Open3D peer module is missing ({error})"
-    return peer.open3d_unavailable_reason()
-
-
-def _open(scene: BenchScene, frames: int | None):
-    """(config, opened scene, detection folder) for the first `frames` frames of the scene."""
-    from fmfusion_jax.config import load_config
-    from fmfusion_jax.io.detections import DetectionFolder
-    from fmfusion_jax.io.scene import open_scene
-
-    config = load_config(str(scene.config_path))
-    dataset = config.dataset
-    limit = min(x for x in (frames, scene.frames, dataset.max_frames) if x)
-    opened = open_scene(
-        scene.scene_dir,
-        layout=dataset.layout,
-        stride=dataset.frame_stride,
-        depth_max=dataset.depth_max,
-        depth_scale=dataset.depth_scale,
-        max_frames=limit,
-    )
-    folder = DetectionFolder(scene.detections_dir, image_shape=(opened.intrinsics.height, opened.intrinsics.width))
-    return config, opened, folder
-
-
-def _frames_with_detections(opened, folder, config, progress: bool, desc: str):
-    """Yields `(frame, detections or None)` on the fusion's schedule, with a progress bar on stderr."""
-    from tqdm import tqdm
-
-    from fmfusion_jax.mapping.schedule import scheduled_detections
-
-    frames = tqdm(
-        opened.frames(), total=len(opened), desc=desc, unit="frame", disable=not progress, dynamic_ncols=True, leave=False
-    )
-    yield from scheduled_detections(frames, folder, config)
-
-
-def device_description() -> dict:
-    import jax
-
-    device = jax.devices()[0]
-    return {
-        "platform": device.platform,
-        "device_kind": device.device_kind,
-        "jax": jax.__version__,
-        "cpus": cpu_count(),
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-    }
-
-
-def _device_memory_mb() -> float | None:
-    """Peak bytes the accelerator allocator reports (GPU), MiB; None where the backend reports none (CPU)."""
-    import jax
-
-    try:
-        stats = jax.devices()[0].memory_stats() or {}
-    except Exception:  # noqa: BLE001 - backends without memory statistics raise various errors
-        return None
-    peak = stats.get("peak_bytes_in_use")
-    return None if peak is None else peak / 2**20
-
-
-def scene_map_config(config, opened):
-    """The map `fmfusion run` starts with for the opened scene (`run.scene_fusion.scene_extent`,
-    `mapping.capacity.bounded_map_config`). The sweep's builders keep it (they do not grow)."""
-    from fmfusion_jax.mapping.capacity import bounded_map_config
-    from fmfusion_jax.run.scene_fusion import scene_extent
-
-    bounds, expected = scene_extent(opened, config)
-    return bounded_map_config(config, bounds, opened.intrinsics.height, opened.intrinsics.width, expected)
+from fmfusion_jax.apps.bench import profile as tracing
+from fmfusion_jax.apps.bench.harness import (
+    PEER_MODULE,
+    device_description,
+    device_memory_mb,
+    frames_with_detections,
+    open_bench_scene,
+    peak_rss_mb,
+    peer_unavailable_reason,
+)
+from fmfusion_jax.apps.bench.report import AS_RUN_CHUNK
+from fmfusion_jax.apps.bench.scenes import BenchScene
+from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
+from fmfusion_jax.apps.bench.sweep import RUNNERS as SWEEP_RUNNERS
+from fmfusion_jax.compile_cache import enable_compile_cache
+from fmfusion_jax.labels import load_label_sets, load_likelihood
+from fmfusion_jax.mapping.mapper import Mapper
+from fmfusion_jax.run.scene_fusion import SceneFusion, mapper_for_scene, read_ahead
 
 
 def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dict | None = None) -> dict:
@@ -130,14 +59,11 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
 
     The map is `fmfusion run`'s (`run.scene_fusion.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
     doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
-    from fmfusion_jax.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
-    from fmfusion_jax.compile_cache import enable_compile_cache
-    from fmfusion_jax.mapping.mapper import Mapper
-    from fmfusion_jax.run.scene_fusion import mapper_for_scene
+    from fmfusion_jax.apps.bench.stages import FrameTimer
 
     cache = enable_compile_cache()  # as `fmfusion run` has it (FMFUSION_COMPILE_CACHE=off: compile everything)
     cache_entries = _entries(cache)
-    config, opened, folder = _open(scene, frames)
+    config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
     sample = opened.sample_depth(max_frames=60)
     device = device_description()
@@ -153,7 +79,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
         step_hook = {"fuse_detections": staged_fuse_detections(timer)} if staged else {}
         mapper = mapper_for_scene(opened, config, sample, timer=timer, **step_hook)
         counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
-        for frame, detections in _frames_with_detections(
+        for frame, detections in frames_with_detections(
             opened, folder, config, progress, f"ours {'staged' if staged else 'fused'} {scene.name}"
         ):
             timer.start_frame()
@@ -191,7 +117,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
         "block_capacity": map_config.block_capacity,
         "peak_rss_mb": peak_rss_mb(),
         "baseline_rss_mb": baseline_mb,
-        "device_memory_mb": _device_memory_mb(),
+        "device_memory_mb": device_memory_mb(),
         "geometry_fusion_every": config.refinement.geometry_fusion_every,
         "seconds_fused": time.perf_counter() - start,
     }
@@ -231,21 +157,15 @@ def _as_run_pass(
     With `profile` (`{"frames": N, "trace": path}`, `--profile`), the last N frames are traced with `jax.profiler`
     and left out; `profile` gains the trace's summary (`bench.profile.summarize_trace`).
     """
-    import concurrent.futures
-    import itertools
 
     import jax
-
-    from fmfusion_jax.bench import profile as tracing
-    from fmfusion_jax.bench.report import AS_RUN_CHUNK
-    from fmfusion_jax.run.scene_fusion import SceneFusion, read_ahead
 
     frames: list[dict] = []
     left_out: list[dict] = []
     # at most half of the frames traced: the others make the as-run figures
     traced_from = len(opened) - min(int(profile["frames"]), len(opened) // 2) if profile else None
     trace_dir = Path(profile["trace"]).with_suffix(".tmp") if profile else None
-    stream = _frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
+    stream = frames_with_detections(opened, folder, config, progress, f"ours as run {scene.name}")
     workers = SceneFusion.READ_WORKERS  # as `fmfusion run`: one reader on a small machine, up to four on many cores
     with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fmfusion-read") as reader:
         while chunk := list(itertools.islice(stream, AS_RUN_CHUNK)):
@@ -286,7 +206,6 @@ def _entries(cache) -> int | None:
 
 def _mismatch_cause(device: dict) -> str:
     """Why two passes over the same frames may differ on this device ("" where they must not)."""
-    import os
 
     if device["platform"] != "gpu" or "xla_gpu_deterministic_ops=true" in os.environ.get("XLA_FLAGS", ""):
         return ""
@@ -299,10 +218,6 @@ def _mismatch_cause(device: dict) -> str:
 
 def state_digest(state) -> str:
     """SHA-256 of every array of a map state (bit-exact comparison of two maps without keeping both)."""
-    import hashlib
-
-    import jax
-    import numpy as np
 
     digest = hashlib.sha256()
     for leaf in jax.tree.leaves(state):
@@ -317,22 +232,20 @@ def _compile_ms(timer) -> dict[str, float]:
 
 def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """The Open3D per-instance reference pipeline: `frames` is its stage name -> ms per frame."""
-    import importlib
 
     reason = peer_unavailable_reason()
     if reason:
         return {"pipeline": "peer", "unavailable": reason}
     peer = importlib.import_module(PEER_MODULE)
-    from fmfusion_jax.labels import load_label_sets, load_likelihood
 
-    config, opened, folder = _open(scene, frames)
+    config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
     pipeline = peer.Open3DInstancePipeline(
         config, opened.intrinsics, load_likelihood(config.label_fusion.likelihood), load_label_sets()
     )
     times = []
     counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
-    for frame, detections in _frames_with_detections(opened, folder, config, progress, f"Open3D peer {scene.name}"):
+    for frame, detections in frames_with_detections(opened, folder, config, progress, f"Open3D peer {scene.name}"):
         times.append({k: float(v) for k, v in pipeline.add_frame(frame, detections).items()})
         counts["detections_in"].append(0 if detections is None else detections.num_detections)
         counts["live_instances"].append(int(pipeline.num_instances))
@@ -348,18 +261,17 @@ def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
 
 def run_vbg(scene: BenchScene, frames: int | None, progress: bool) -> dict:
     """Open3D's VoxelBlockGrid TSDF integration alone: `frames` is `{"tsdf": ms}` per frame."""
-    import importlib
 
     reason = peer_unavailable_reason()
     if reason:
         return {"pipeline": "vbg", "unavailable": reason}
     peer = importlib.import_module(PEER_MODULE)
-    config, opened, folder = _open(scene, frames)
+    config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
     tsdf = peer.VoxelBlockGridTSDF(config.tsdf.voxel_size, config.tsdf.sdf_trunc, config.dataset.depth_max, opened.intrinsics)
     times = [
         {"tsdf": float(tsdf.integrate(frame))}
-        for frame, _ in _frames_with_detections(opened, folder, config, progress, f"Open3D VBG {scene.name}")
+        for frame, _ in frames_with_detections(opened, folder, config, progress, f"Open3D VBG {scene.name}")
     ]
     return {
         "pipeline": "vbg",
@@ -387,8 +299,6 @@ def main(argv: list[str]) -> int:
     scene = BenchScene.from_json(spec["scene"])
     args = (scene, spec.get("frames"), bool(spec.get("progress", True)))
     if spec["pipeline"].endswith("-sweep"):
-        from fmfusion_jax.bench.sweep import RUNNERS as SWEEP_RUNNERS
-
         result = SWEEP_RUNNERS[spec["pipeline"]](*args, [int(k) for k in spec["sweep"]])
     else:
         traced = {"profile": spec["profile"]} if spec.get("profile") else {}  # `--profile`: ours on the main scene
