@@ -19,7 +19,7 @@ from fusion_helpers import load_map
 
 from fmfusion_jax.apps.demo import MARKER, run_demo
 from fmfusion_jax.io.ground_truth import read_ply_vertices
-from fmfusion_jax.mapping.map_file import MAP_STATE_FILE
+from fmfusion_jax.run.outputs import MAP_STATE_FILE
 from fmfusion_jax.simulation.demo_setup import demo_config
 
 TINY = dict(seed=3, num_objects=4, num_frames=12, width=160, height=120, progress=False)

@@ -36,9 +36,6 @@ from fmfusion_jax.simulation.demo_setup import (
     demo_config,
     demo_noise,
 )
-from fmfusion_jax.simulation.procedural import generate_scene
-from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
-from fmfusion_jax.simulation.simulate import simulate_scene
 
 if TYPE_CHECKING:  # pragma: no cover
     from fmfusion_jax.mapping.builder import FusionResult
@@ -115,6 +112,10 @@ def run_demo(
       progress: tqdm progress bars.
       depth_noise: simulate depth-sensor noise.
     """
+    from fmfusion_jax.simulation.procedural import generate_scene  # lazy: `fmfusion --help` imports this module
+    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene  # lazy: `fmfusion --help` imports this module
+    from fmfusion_jax.simulation.simulate import simulate_scene  # lazy: `fmfusion --help` imports this module
+
     if num_frames < 2 or num_objects < 1 or stacked < 0 or width < 32 or height < 24:
         raise UserError(
             f"demo needs at least 2 frames, 1 object and 32x24 pixels (got {num_frames} frames, "

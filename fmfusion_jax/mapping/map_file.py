@@ -152,10 +152,6 @@ def read_map_file(path: str | Path) -> SavedMap:
     return SavedMap(state, map_config, config, dict(metadata.get("progress", {})))
 
 
-#: File name of the saved map in a run's output folder.
-MAP_STATE_FILE = "map_state.npz"
-
-
 def save_map(path: str | Path, result: FusionResult) -> Path:
     """Saves a fused map (state, MapConfig, PipelineConfig, how far fusion got) to an `.npz` file."""
     return write_map_file(path, result.state, result.map_config, result.config, result.progress())

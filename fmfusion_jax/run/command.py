@@ -19,10 +19,10 @@ from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.mapping.builder import FusionResult
 from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import DetectionSource
-from fmfusion_jax.mapping.map_file import MAP_STATE_FILE
 from fmfusion_jax.run import outputs
 from fmfusion_jax.run.checkpoint import Checkpoint
 from fmfusion_jax.run.folder import OutputLock, clear_outputs, partial_dir, prepare_output_dir, replace_folder
+from fmfusion_jax.run.outputs import MAP_STATE_FILE
 from fmfusion_jax.run.outputs import capacity_used as capacity_used  # re-exported: experiments, likelihood, examples
 from fmfusion_jax.run.outputs import score_instances as score_instances
 from fmfusion_jax.run.scene_fusion import SceneFusion, progress_bar

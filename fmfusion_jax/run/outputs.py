@@ -19,24 +19,18 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from fmfusion_jax import scene_graph
 from fmfusion_jax.config import PipelineConfig
-from fmfusion_jax.engine import extraction
 from fmfusion_jax.evaluation.explain import explain_scene
-from fmfusion_jax.evaluation.explain_report import write_explanation
 from fmfusion_jax.evaluation.scannet_benchmark import BenchmarkResult, evaluate_scenes
 from fmfusion_jax.instances import MapInstance
-from fmfusion_jax.io import map_outputs
 from fmfusion_jax.io.benchmark_format import InstancePredictions, write_benchmark_predictions
 from fmfusion_jax.io.scene import Scene
-from fmfusion_jax.io.vertex_transfer import floor_vertices
 from fmfusion_jax.labels import LabelSets
-from fmfusion_jax.mapping.builder import FusionResult
-from fmfusion_jax.mapping.map_file import MAP_STATE_FILE, save_map
-from fmfusion_jax.viz import overview
 
 if TYPE_CHECKING:
     from fmfusion_jax.io.ground_truth import SceneGroundTruth
+    from fmfusion_jax.io.map_outputs import InstancePoints
+    from fmfusion_jax.mapping.builder import FusionResult
 
 log = logging.getLogger(__name__)
 
@@ -90,19 +84,26 @@ class OutputContext:
     @functools.cached_property
     def records(self) -> list[dict]:
         """The records of instances.json."""
+        from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
         return map_outputs.instances_json(self.instances, self.label_sets)
 
     @functools.cached_property
-    def points(self) -> map_outputs.InstancePoints:
+    def points(self) -> InstancePoints:
+        from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
         return map_outputs.instance_points(self.instances, self.label_sets)
 
     @functools.cached_property
     def graph(self) -> dict[str, Any]:
+        from fmfusion_jax import scene_graph  # lazy: `fmfusion --help` reads the registry
+
         return scene_graph.build_scene_graph(self.records)
 
     @functools.cached_property
     def mesh(self) -> tuple[Any, Any, Any]:
         """`(vertices, faces, colors)` of the global TSDF surface."""
+        from fmfusion_jax.engine import extraction  # lazy: `fmfusion --help` reads the registry
 
         return extraction.extract_mesh(self.fused_map.state, self.fused_map.map_config)
 
@@ -151,6 +152,8 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
       gt_ids: `gt.benchmark_ids()` when the caller already has it (computed here otherwise).
       floor: the map's floor (`FusionResult.floor()`: `(up, height)`), whose mesh vertices no object claims.
     """
+    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+    from fmfusion_jax.io.vertex_transfer import floor_vertices  # lazy: `fmfusion --help` reads the registry
 
     on_floor = None
     if floor is not None:
@@ -235,24 +238,34 @@ def _write_config(context: OutputContext) -> None:
 
 
 def _write_instances_json(context: OutputContext) -> None:
+    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
     map_outputs.write_instances_json(context.out_dir / "instances.json", context.records)
 
 
 def _write_semantic_cloud(context: OutputContext) -> None:
+    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
     p = context.points
     map_outputs.write_point_cloud(context.out_dir / "semantic.ply", p.points, p.class_colors, p.label, p.instance)
 
 
 def _write_instance_cloud(context: OutputContext) -> None:
+    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
     p = context.points
     map_outputs.write_point_cloud(context.out_dir / "instances.ply", p.points, p.instance_colors, p.label, p.instance)
 
 
 def _write_instance_folder(context: OutputContext) -> None:
+    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
     map_outputs.write_instance_folder(context.out_dir / "instances", context.instances, context.label_sets)
 
 
 def _write_labelled_points(context: OutputContext) -> None:
+    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
     p = context.points
     map_outputs.write_labelled_points(context.out_dir, p.points, p.class_colors, p.label, p.instance)
 
@@ -262,10 +275,14 @@ def _write_scene_graph_json(context: OutputContext) -> None:
 
 
 def _write_scene_graph_graphml(context: OutputContext) -> None:
+    from fmfusion_jax import scene_graph  # lazy: `fmfusion --help` reads the registry
+
     scene_graph.write_graphml(context.out_dir / "scene_graph.graphml", context.graph)
 
 
 def _write_mesh(context: OutputContext) -> None:
+    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+
     vertices, faces, colors = context.mesh
     map_outputs.write_mesh(context.out_dir / "mesh.ply", vertices, faces, colors)
     if len(faces) == 0:
@@ -273,6 +290,8 @@ def _write_mesh(context: OutputContext) -> None:
 
 
 def _write_map_state(context: OutputContext) -> None:
+    from fmfusion_jax.mapping.map_file import save_map  # lazy: `fmfusion --help` reads the registry
+
     save_map(context.out_dir / MAP_STATE_FILE, context.fused_map)
 
 
@@ -296,6 +315,7 @@ def _write_report(context: OutputContext) -> None:
 def _write_explain(context: OutputContext) -> None:
     """The error analysis beside report.json; its counts go into run.json. It reads the predictions already
     scored; it does not run the benchmark again."""
+    from fmfusion_jax.evaluation.explain_report import write_explanation  # lazy: `fmfusion --help` reads the registry
 
     assert context.ground_truth is not None
     gt = context.ground_truth
@@ -311,6 +331,8 @@ def _write_explain(context: OutputContext) -> None:
 
 
 def _write_overview(context: OutputContext) -> None:
+    from fmfusion_jax.viz import overview  # lazy: `fmfusion --help` reads the registry
+
     result, gt, label_sets, benchmark = context.fused_map, context.ground_truth, context.label_sets, context.benchmark
     vertices, faces, colors = context.mesh
     panels = [overview.map_overview_panel(context.instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)]
@@ -335,6 +357,9 @@ def _write_run_json(context: OutputContext) -> None:
 
 
 #: Every output of a run, in the order written (the overview shows the score; run.json holds every step's time).
+#: File name of the saved map in a run's output folder.
+MAP_STATE_FILE = "map_state.npz"
+
 OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
     OutputWriter("config.yaml", ("config.yaml",), "the config used", _write_config),
     OutputWriter(

@@ -24,8 +24,6 @@ from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 from fmfusion_jax.io.scene import open_scene
 from fmfusion_jax.simulation.noise import NoiseModel
 from fmfusion_jax.simulation.procedural import generate_scene
-from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
-from fmfusion_jax.simulation.simulate import simulate_scene
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +59,7 @@ class PreparedScene:
 
 def generated_scene(spec: GeneratedSceneSpec, root: str | Path, progress: bool = False) -> Path:
     """The folder of the generated scene `spec` under `root`, rendered unless already there."""
+    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene  # lazy: `fmfusion --help` imports this module
 
     scene_dir = Path(root) / spec.name
     record = dataclasses.asdict(spec)
@@ -95,6 +94,7 @@ def simulated_detections(
       likelihood: float[O, C] likelihood the labels are drawn from (default: the statistical one); a
         custom one is never taken from the cache.
     """
+    from fmfusion_jax.simulation.simulate import simulate_scene  # lazy: `fmfusion --help` imports this module
 
     out_dir = Path(out_dir)
     scene = open_scene(scene_dir)

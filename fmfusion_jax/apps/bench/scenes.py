@@ -17,7 +17,6 @@ from fmfusion_jax.config import load_config
 from fmfusion_jax.io.scene import open_dataset_scene
 from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.noise import NoiseModel
-from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
 
 #: The real scene `fmfusion bench` runs when none is given (when present).
 DEFAULT_SCENE = Path("../shared/data/scannet/scene0000_00")
@@ -56,6 +55,7 @@ def prepare_real_scene(
 ) -> BenchScene:
     """The real scene's first `max_frames` frames (None: all), with detections simulated on every frame of
     the scene into `cache_dir/<scene>/detections` (once: any frame count reuses them)."""
+    from fmfusion_jax.simulation.scene_sets import simulated_detections  # lazy: `fmfusion --help` imports this module
 
     config = load_config(REAL_SCENE_CONFIG, [*([f"dataset.max_frames={max_frames}"] if max_frames else []), *overrides])
     dataset = config.dataset
@@ -86,6 +86,11 @@ def prepare_generated_scene(
     fusion timed however short the run.
     Everything lives in `cache_dir/synth-o<objects>-f<frames>-<W>x<H>-s<seed>` and is reused when there.
     """
+    from fmfusion_jax.simulation.scene_sets import (
+        GeneratedSceneSpec,  # lazy: `fmfusion --help` imports this module
+        generated_scene,  # lazy: `fmfusion --help` imports this module
+        simulated_detections,  # lazy: `fmfusion --help` imports this module
+    )
 
     folder = cache_dir / f"synth-o{objects}-f{frames}-{width}x{height}-s{seed}"
     scene_dir = generated_scene(GeneratedSceneSpec(seed, objects, frames, width, height), folder, progress)

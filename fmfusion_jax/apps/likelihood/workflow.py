@@ -39,15 +39,12 @@ from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 from fmfusion_jax.io.heatmap import write_heatmap
 from fmfusion_jax.io.scene import open_dataset_scene, sample_scene_dir
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood, write_likelihood_csv
-from fmfusion_jax.likelihood.matching import MatchedInstances, match_instances
-from fmfusion_jax.likelihood.summarize import LikelihoodCounts, estimate, summarize_scene, write_summary
 from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.noise import NoiseModel
-from fmfusion_jax.simulation.procedural import generate_scene
-from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, prepare_generated, prepare_real
 
 if TYPE_CHECKING:
     from fmfusion_jax.io.benchmark_format import InstancePredictions
+    from fmfusion_jax.likelihood.matching import MatchedInstances
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +89,11 @@ def generated_cases(
 ) -> list[Case]:
     """Generated scenes (seeds) with simulated detections (the demo's noise model, seeded like the scene),
     cached under `root`; each fused with the demo config scaled to its size."""
+    from fmfusion_jax.simulation.procedural import generate_scene  # lazy: `fmfusion --help` imports this module
+    from fmfusion_jax.simulation.scene_sets import (
+        GeneratedSceneSpec,  # lazy: `fmfusion --help` imports this module
+        prepare_generated,  # lazy: `fmfusion --help` imports this module
+    )
 
     cases = []
     for seed in seeds:
@@ -113,6 +115,7 @@ def real_case(
 ) -> Case:
     """A real scene with the given detections, or with simulated ones (default noise, seed 0) cached under
     `root` when `detections_dir` is None."""
+    from fmfusion_jax.simulation.scene_sets import prepare_real  # lazy: `fmfusion --help` imports this module
 
     scene_dir = Path(scene_dir)
     pipeline_config = load_config(config)
@@ -144,6 +147,10 @@ def summarize_cases(
     progress: bool = False,
 ):
     """`LikelihoodCounts` summed over the cases (each rendered at its config's depth truncation)."""
+    from fmfusion_jax.likelihood.summarize import (
+        LikelihoodCounts,  # lazy: `fmfusion --help` imports this module
+        summarize_scene,  # lazy: `fmfusion --help` imports this module
+    )
 
     label_sets = label_sets or load_label_sets()
     total = LikelihoodCounts.zeros(label_sets.num_open, label_sets.num_classes)
@@ -180,6 +187,7 @@ class RunOutcome:
 def fuse_case(case: Case, likelihood: str | Path, label_sets: LabelSets | None = None, progress: bool = False) -> RunOutcome:
     """Fuses `case` with `likelihood` (packaged name or CSV), matches its instances to ground truth and
     scores its benchmark export."""
+    from fmfusion_jax.likelihood.matching import match_instances  # lazy: `fmfusion --help` imports this module
     from fmfusion_jax.mapping.export import extract_map_instances  # lazy: JAX (`fmfusion --help` imports this module)
     from fmfusion_jax.run.outputs import score_instances  # lazy: JAX (`fmfusion --help` imports this module)
     from fmfusion_jax.run.scene_fusion import fuse_scene  # lazy: JAX (`fmfusion --help` imports this module)
@@ -262,6 +270,11 @@ def calibrate_and_compare(
     import jax.numpy as jnp  # lazy: JAX (`fmfusion --help` imports this module)
 
     from fmfusion_jax.likelihood import calibrate as cal  # lazy: JAX (`fmfusion --help` imports this module)
+    from fmfusion_jax.likelihood.matching import MatchedInstances  # lazy: `fmfusion --help` imports this module
+    from fmfusion_jax.likelihood.summarize import (
+        estimate,  # lazy: `fmfusion --help` imports this module
+        write_summary,  # lazy: `fmfusion --help` imports this module
+    )
 
     settings = settings or CalibrationSettings()
     if not train:
