@@ -53,7 +53,7 @@ from fmfusion_jax.comparison.scenes import (
     prepare_source,
     scene_sources,
 )
-from fmfusion_jax.comparison.tables import fraction, markdown_table, percent, stderr_report
+from fmfusion_jax.comparison.tables import fraction, markdown_table, percent, scene_kind, stderr_report
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.scene import sample_scene_dir
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec
@@ -394,12 +394,7 @@ def experiment_markdown(
     """experiment.md: the two tables, per-scene mAP50, the scenes, and the paper's figures."""
     scene_lines = []
     for s in scenes:
-        what = (
-            "real ScanNet scene"
-            if s["kind"] == "real"
-            else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
-            f"{s['spec']['width']}x{s['spec']['height']}"
-        )
+        what = scene_kind(s)
         given = next((n["detections"] for n in s["noise"].values() if n.get("simulated") is False), None)
         if given:
             what += f", detections read from `{given}` (every method the same files)"

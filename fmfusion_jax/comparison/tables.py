@@ -34,3 +34,11 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]], align_f
     ]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def scene_kind(record: dict) -> str:
+    """What a scene of a comparison is, from its record: a real ScanNet scene, or a generated room and its size."""
+    if record["kind"] == "real":
+        return "real ScanNet scene"
+    spec = record["spec"]
+    return f"generated room, seed {spec['seed']}, {spec['num_objects']} objects, {spec['width']}x{spec['height']}"

@@ -16,7 +16,7 @@ import numpy as np
 from fmfusion_jax.comparison.methods import (
     Method,
 )
-from fmfusion_jax.comparison.tables import markdown_table
+from fmfusion_jax.comparison.tables import markdown_table, scene_kind
 from fmfusion_jax.evaluation.explain import explain_scene
 from fmfusion_jax.simulation.noise import NoiseModel
 from fmfusion_jax.simulation.zoo import FAMILIES, MIXED, ZooEntry
@@ -330,12 +330,7 @@ def robustness_markdown(
         ]
     scene_lines = []
     for s in scenes:
-        what = (
-            "real ScanNet scene"
-            if s["kind"] == "real"
-            else f"generated room, seed {s['spec']['seed']}, {s['spec']['num_objects']} objects, "
-            f"{s['spec']['width']}x{s['spec']['height']}"
-        )
+        what = scene_kind(s)
         scene_lines.append(f"- `{s['name']}`: {what}, {s['frames']} frames, config {s['config']}")
     return "\n".join(
         [
