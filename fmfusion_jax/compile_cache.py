@@ -8,7 +8,8 @@ image size, capacities and the block index's shape (rounded up to buckets), not 
 state holds that, docs/compile-sharing.md), so rooms of similar size share their steps. Entries are keyed
 by the program, the compile options, the JAX version and the device, so a stale entry is never used.
 
-The `fmfusion` commands turn it on (`enable_compile_cache()`); the Python API leaves it to the caller.
+The `fmfusion` commands turn it on (`enable_compile_cache()`), and so does the Python API (`Mapper`, `MapperBatch`)
+unless the process chose a cache folder of its own.
 `FMFUSION_COMPILE_CACHE=off` turns it off, `FMFUSION_COMPILE_CACHE=DIR` moves it (default:
 `$XDG_CACHE_HOME/fmfusion-jax/xla`, i.e. `~/.cache/fmfusion-jax/xla`).
 """

@@ -55,3 +55,21 @@ def test_a_folder_that_cannot_be_made_turns_it_off_with_a_warning(restore_jax_ca
     with caplog.at_level(logging.WARNING, logger="fmfusion_jax.compile_cache"):
         assert compile_cache.enable_compile_cache(blocker / "xla") is None
     assert "compile cache off" in caplog.text and str(blocker / "xla") in caplog.text
+
+
+def test_the_python_api_uses_the_cache_unless_the_process_chose_its_own(restore_jax_cache, tmp_path, monkeypatch):
+    """A `Mapper` in a notebook loads the steps the commands compiled (same folder, same rule to turn it off),
+    but a process that set a cache folder of its own keeps it."""
+    from fmfusion_jax import Mapper
+
+    monkeypatch.setenv(compile_cache.ENV, str(tmp_path / "ours"))
+    jax.config.update("jax_compilation_cache_dir", None)
+    Mapper("demo")
+    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "ours")
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path / "theirs"))
+    Mapper("demo")
+    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "theirs")
+    jax.config.update("jax_compilation_cache_dir", None)
+    monkeypatch.setenv(compile_cache.ENV, "off")
+    Mapper("demo")
+    assert jax.config.jax_compilation_cache_dir is None

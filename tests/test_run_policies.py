@@ -14,12 +14,14 @@ from pathlib import Path
 
 import pytest
 
+from fmfusion_jax.cli import main
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
 from fmfusion_jax.run.checkpoint import Checkpoint
 from fmfusion_jax.run.command import run_and_export
 from fmfusion_jax.run.folder import partial_dir
+from fmfusion_jax.run.outputs import chosen_outputs
 from fmfusion_jax.run.scene_fusion import SceneFusion
 from fmfusion_jax.simulation.demo_setup import demo_config, demo_noise
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene, simulated_detections
@@ -130,6 +132,24 @@ def test_a_second_run_replaces_the_first_runs_outputs_as_a_whole(room, tmp_path)
     assert (out / run["benchmark"]["predictions"]).is_file()
     assert run["frame_ms_as_run"]["frames"] == SPEC.num_frames and run["frame_ms_as_run"]["median"] > 0
     assert not (out.with_name(out.name + ".lock")).exists()  # the lock goes with the run
+
+
+def test_a_run_writes_only_the_outputs_asked_for(room, tmp_path, capsys):
+    """`--outputs`: the writers named (and run.json, the run's record); a name that is no output fails before any
+    frame is fused."""
+    out = tmp_path / "out"
+    assert _run(room, out, outputs_chosen=chosen_outputs(["instances.json", "mesh.ply"])).complete
+    assert sorted(p.name for p in out.iterdir()) == ["instances.json", "mesh.ply", "run.json"]
+    assert len(_instances(out)) == json.loads((out / "run.json").read_text())["instances"]
+    with pytest.raises(UserError, match="--outputs: unknown outputs mesh.obj .known: config.yaml, instances.json"):
+        chosen_outputs(["mesh.obj"])
+    scene_dir, detections, _ = room
+
+    status = main(
+        ["run", str(scene_dir), "--detections", str(detections), "--out", str(tmp_path / "cli"), "--outputs", "mesh.obj"]
+    )
+    assert status == 2 and "unknown outputs mesh.obj" in capsys.readouterr().err
+    assert not (tmp_path / "cli").exists()
 
 
 def test_bad_frames_are_skipped_and_listed_or_stop_the_run(room, tmp_path):

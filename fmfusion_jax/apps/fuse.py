@@ -12,6 +12,7 @@ from fmfusion_jax.interrupt import StopRequest
 from fmfusion_jax.io.scene import open_dataset_scene
 from fmfusion_jax.run.command import run_and_export
 from fmfusion_jax.run.folder import check_output_folder, prepare_output_dir
+from fmfusion_jax.run.outputs import chosen_outputs
 from fmfusion_jax.sources import open_detection_source
 from fmfusion_jax.viz.live import RerunView
 
@@ -34,6 +35,7 @@ def run_scene(
     resume: bool,
     restart: bool,
     verbose: Any,
+    outputs: list[str] | None = None,
 ) -> int:
 
     if not scene_dir.is_dir():
@@ -41,6 +43,7 @@ def run_scene(
     if checkpoint_every < 0:
         raise UserError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
     config = load_config(config_name, overrides)
+    outputs_chosen = chosen_outputs(outputs)  # a wrong name fails now, not after the fusion
     check_output_folder(out, (scene_dir, detections, models), overwrite)
     prepare_output_dir(out, create=False)  # a bad --out fails now, not after the fusion
     scene = open_dataset_scene(scene_dir, config.dataset)
@@ -65,6 +68,7 @@ def run_scene(
             should_stop=stop,
             time_stages=verbose > 0,
             observer=observer,
+            outputs_chosen=outputs_chosen,
         )
     print(outcome.summary)
     if not outcome.complete:

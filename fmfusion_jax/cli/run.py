@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from fmfusion_jax.cli import HelpFormatter, options
-from fmfusion_jax.run.outputs import outputs_help
+from fmfusion_jax.run.outputs import output_names, outputs_help
 
 
 def register(subparsers) -> None:
@@ -68,6 +68,12 @@ def register(subparsers) -> None:
         metavar="FILE.rrd",
         help="record the live view to a Rerun file instead of opening a window (headless)",
     )
+    parser.add_argument(
+        "--outputs",
+        nargs="+",
+        metavar="NAME",
+        help="write only these outputs (their names: " + ", ".join(output_names()) + "; run.json always; default: all)",
+    )
     options.add_no_progress(parser, help="no progress bar")
     parser.set_defaults(func=run)
 
@@ -92,4 +98,5 @@ def run(args: argparse.Namespace) -> int:
         resume=args.resume,
         restart=args.restart,
         verbose=args.verbose,
+        outputs=args.outputs,
     )

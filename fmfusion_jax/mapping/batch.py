@@ -19,7 +19,7 @@ from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.mapping.builder import FusionProgress, FusionResult
 from fmfusion_jax.mapping.capacity import CapacityMonitor
 from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config
-from fmfusion_jax.mapping.inputs import HostAdapter, as_config
+from fmfusion_jax.mapping.inputs import HostAdapter, as_config, use_compile_cache
 from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.mapping.schedule import DetectionSchedule
 from fmfusion_jax.mapping.telemetry import StageTimer
@@ -58,6 +58,7 @@ class MapperBatch:
         if batch_size < 1:
             raise UserError(f"batch_size must be >= 1, got {batch_size}")
         self.config = as_config(config)
+        use_compile_cache()
         self.label_sets = label_sets or load_label_sets()
         self.batch_size = batch_size
         self._bounds = (np.asarray(bounds[0], float), np.asarray(bounds[1], float))

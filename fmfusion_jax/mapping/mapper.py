@@ -59,6 +59,7 @@ from fmfusion_jax.mapping.inputs import (
     as_frame,
     check_detections,
     checked_pose,
+    use_compile_cache,
 )
 from fmfusion_jax.mapping.map_file import read_map_file, write_map_file
 from fmfusion_jax.mapping.schedule import DetectionSchedule
@@ -102,6 +103,7 @@ class Mapper:
         fuse_detections: Callable[..., Any] = step.fuse_detections,
     ):
         self.config = as_config(config)
+        use_compile_cache()
         self.time_stages = time_stages
         self._timer = timer
         self._fuse_detections = fuse_detections

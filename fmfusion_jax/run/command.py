@@ -120,6 +120,7 @@ def run_and_export(
     should_stop: Callable[[], bool] | None = None,
     time_stages: bool = False,
     observer: Callable[..., None] | None = None,
+    outputs_chosen: Collection[str] | None = None,
 ) -> RunOutcome:
     """`fmfusion run`: fuse, write, and summarize.
 
@@ -128,6 +129,7 @@ def run_and_export(
     a checkpoint and the outputs of what was fused are written into `OUT.partial`, and `resume=True` later
     continues from the checkpoint (the map equals an uninterrupted run's). `checkpoint_every` frames also
     writes one. An unfinished `OUT.partial` is continued (`resume`) or discarded (`restart`), never silently.
+    `outputs_chosen`: the writers to run (`run.outputs.chosen_outputs`; None: all).
     """
     start = time.perf_counter()
     out_dir = prepare_output_dir(out_dir, create=False)
@@ -164,7 +166,13 @@ def run_and_export(
             timings_ms = getattr(detection_source, "timings_ms", None)
             detection_ms = timings_ms() if callable(timings_ms) else None
             summary = write_outputs(
-                result, scene, staging, skipped=fusion.skipped, detection_ms=detection_ms, frame_seconds=fusion.frame_seconds
+                result,
+                scene,
+                staging,
+                skipped=fusion.skipped,
+                detection_ms=detection_ms,
+                frame_seconds=fusion.frame_seconds,
+                names=outputs_chosen,
             )
             if complete:
                 checkpoint.remove()

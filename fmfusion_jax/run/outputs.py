@@ -8,6 +8,7 @@ writer added here (and its README row, `readme_table`).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import json
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.errors import UserError
 from fmfusion_jax.evaluation.explain import explain_scene
 from fmfusion_jax.evaluation.scannet_benchmark import BenchmarkResult, evaluate_scenes
 from fmfusion_jax.instances import MapInstance
@@ -132,6 +134,7 @@ class OutputWriter:
       lap: the run.json `export_seconds` entry its time adds to (None: its time counts toward the next writer's).
       listed: its place in the end-of-run summary's "outputs in ..." line (None: not named there).
       needs_ground_truth: written only when the scene has ground truth.
+      uses: the `OutputContext` values it reads that other writers read too (made once, before the writers run).
     """
 
     name: str
@@ -141,6 +144,7 @@ class OutputWriter:
     lap: str | None = None
     listed: int | None = None
     needs_ground_truth: bool = False
+    uses: tuple[str, ...] = ()
 
 
 def score_instances(instances, gt, scene_name: str, config: PipelineConfig, label_sets, gt_ids=None, floor=None):
@@ -333,7 +337,7 @@ def _write_explain(context: OutputContext) -> None:
 def _write_overview(context: OutputContext) -> None:
     from fmfusion_jax.viz import overview  # lazy: `fmfusion --help` reads the registry
 
-    result, gt, label_sets, benchmark = context.fused_map, context.ground_truth, context.label_sets, context.benchmark
+    result, gt, label_sets = context.fused_map, context.ground_truth, context.label_sets
     vertices, faces, colors = context.mesh
     panels = [overview.map_overview_panel(context.instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)]
     if gt is not None:
@@ -343,8 +347,9 @@ def _write_overview(context: OutputContext) -> None:
             )
         )
     title = f"{context.scene.name}: {result.frames_integrated} frames"
-    if "mAP" in benchmark:
-        title += f"  |  AP {benchmark['mAP']:.3f}   AP50 {benchmark['mAP50']:.3f}   AP25 {benchmark['mAP25']:.3f}"
+    if gt is not None:
+        score = context.scored[2]
+        title += f"  |  AP {score.mAP:.3f}   AP50 {score.mAP50:.3f}   AP25 {score.mAP25:.3f}"
     try:
         overview.write_overview(context.out_dir / "overview.png", panels, label_sets, title)
     except OSError as error:
@@ -353,13 +358,15 @@ def _write_overview(context: OutputContext) -> None:
 
 def _write_run_json(context: OutputContext) -> None:
     context.summary = run_summary(context)
-    (context.out_dir / "run.json").write_text(json.dumps(context.summary, indent=1, default=float))
+    (context.out_dir / RUN_RECORD).write_text(json.dumps(context.summary, indent=1, default=float))
 
 
-#: Every output of a run, in the order written (the overview shows the score; run.json holds every step's time).
 #: File name of the saved map in a run's output folder.
 MAP_STATE_FILE = "map_state.npz"
+#: The run's record (counts, timings, capacities): written last, and by every run whatever outputs it chose.
+RUN_RECORD = "run.json"
 
+#: Every output of a run (run.json last: it holds every other writer's time).
 OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
     OutputWriter("config.yaml", ("config.yaml",), "the config used", _write_config),
     OutputWriter(
@@ -368,6 +375,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "per instance: class, confidence, fused distribution, observations, open-set label histogram, voxel count, "
         "oriented box; metres, world frame (schema: docs/instances.schema.json)",
         _write_instances_json,
+        uses=("records",),
         lap="write_instances",
         listed=2,
     ),
@@ -377,6 +385,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "the instance points (binary PLY, metres, world frame) coloured by class (NYU40 palette), with `label` "
         "(NYU40 id, as ScanNet's `*_vh_clean_2.labels.ply`) and `instance` (the `id` of instances.json) vertex properties",
         _write_semantic_cloud,
+        uses=("points",),
         lap="write_instances",
         listed=3,
     ),
@@ -385,6 +394,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("instances.ply",),
         "the same points coloured by instance, with the same `label` and `instance` vertex properties",
         _write_instance_cloud,
+        uses=("points",),
         lap="write_instances",
         listed=4,
     ),
@@ -401,6 +411,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "the instance points with their labels for robotics tools (ROS, PCL, NumPy): `points` (metres, world frame), "
         "`colors`, `label` (NYU40 id), `instance` (id of instances.json); the PCD has fields x y z rgb label instance",
         _write_labelled_points,
+        uses=("points",),
         lap="write_instances",
     ),
     OutputWriter(
@@ -409,6 +420,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "the scene graph: nodes = the instances (class, confidence, top open-set labels, centroid, oriented box, "
         "points) and the floor as root; edges `on`, `inside`, `near` computed from the boxes, each with a score",
         _write_scene_graph_json,
+        uses=("graph",),
         lap="scene_graph",
         listed=8,
     ),
@@ -417,10 +429,17 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("scene_graph.graphml",),
         "the scene graph as GraphML (for networkx, Gephi, yEd)",
         _write_scene_graph_graphml,
+        uses=("graph",),
         lap="scene_graph",
     ),
     OutputWriter(
-        "mesh.ply", ("mesh.ply",), "the global TSDF surface (marching cubes) with colour", _write_mesh, lap="mesh", listed=5
+        "mesh.ply",
+        ("mesh.ply",),
+        "the global TSDF surface (marching cubes) with colour",
+        _write_mesh,
+        lap="mesh",
+        listed=5,
+        uses=("mesh",),
     ),
     OutputWriter(
         "map_state.npz",
@@ -436,6 +455,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "ScanNet benchmark prediction files (`<scene>.txt`, `pred_mask/`) over the scene's `_vh_clean_2.ply` "
         "vertices, when the scene has ground truth",
         _write_benchmark,
+        uses=("scored",),
         lap="benchmark",
         needs_ground_truth=True,
     ),
@@ -444,6 +464,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("report.json",),
         "the evaluation, when the scene has ground truth",
         _write_report,
+        uses=("scored",),
         lap="benchmark",
         listed=9,
         needs_ground_truth=True,
@@ -454,6 +475,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "the error analysis beside report.json: why each object was (not) found and what each prediction is, "
         "with a top-down picture (docs/error-analysis.md)",
         _write_explain,
+        uses=("scored",),
         lap="benchmark",
         listed=10,
         needs_ground_truth=True,
@@ -463,10 +485,11 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("overview.png",),
         "top-down picture of the instances by class, beside the ground truth when there is one",
         _write_overview,
+        uses=("mesh", "scored"),
         lap="overview",
         listed=1,
     ),
-    OutputWriter("run.json", ("run.json",), "counts, timings per stage, capacities used", _write_run_json, listed=7),
+    OutputWriter(RUN_RECORD, (RUN_RECORD,), "counts, timings per stage, capacities used", _write_run_json, listed=7),
 )
 
 #: Every file and folder the writers may write: removed before a run writes into a folder again.
@@ -484,25 +507,69 @@ def select_writers(names: Collection[str] | None = None) -> list[OutputWriter]:
     return [writer for writer in OUTPUT_WRITERS if writer.name in names]
 
 
+def chosen_outputs(names: Sequence[str] | None) -> tuple[str, ...] | None:
+    """`fmfusion run --outputs NAME...` as writer names (run.json always: it is the run's record), or None for
+    all; an unknown name is a UserError listing the known ones."""
+    if names is None:
+        return None
+    try:
+        select_writers(names)
+    except ValueError as error:
+        raise UserError(f"--outputs: {error}") from None
+    return tuple(dict.fromkeys([*names, RUN_RECORD]))
+
+
+#: Threads the writers run in: their heavy parts (marching cubes, zlib, PNG encoding, NumPy) release the GIL.
+WRITER_THREADS = 2
+
+
 def write_files(context: OutputContext, names: Collection[str] | None = None) -> None:
-    """Runs the writers named in `names` (all by default), in registry order, into `context.out_dir`; each
-    step's seconds go into `context.timings` under the writer's `lap`. The benchmark writers are skipped
-    without ground truth."""
-    clock = time.perf_counter()
-    for writer in select_writers(names):
-        if writer.needs_ground_truth and context.ground_truth is None:
-            continue
-        writer.write(context)
+    """Runs the writers named in `names` (all by default) into `context.out_dir`, side by side in threads: first
+    the values several of them read (`OutputWriter.uses`), then the writers, then run.json, which records each
+    step's seconds (`context.timings`, under the writer's `lap`). The benchmark writers are skipped without
+    ground truth. The files do not depend on the order the threads finish in."""
+    writers = [w for w in select_writers(names) if not (w.needs_ground_truth and context.ground_truth is None)]
+    record = [w for w in writers if w.name == RUN_RECORD]
+    others = [w for w in writers if w.name != RUN_RECORD]
+    shared = [name for name in ("records", "points", "mesh", "scored") if any(name in w.uses for w in others)]
+    if context.ground_truth is None and "scored" in shared:
+        shared.remove("scored")
+    if any("graph" in w.uses for w in others) and "records" not in shared:
+        shared.insert(0, "records")  # the graph is made from them
+    for writer in others:  # run.json lists the steps in registry order
         if writer.lap is not None:
-            now = time.perf_counter()
-            context.timings[writer.lap] = round(context.timings.get(writer.lap, 0.0) + now - clock, 3)
-            clock = now
+            context.timings.setdefault(writer.lap, 0.0)
+    # a shared value's time counts to the first writer that reads it
+    laps = [next(w.lap for w in others if name in w.uses or (name == "records" and "graph" in w.uses)) for name in shared]
+    with concurrent.futures.ThreadPoolExecutor(WRITER_THREADS, thread_name_prefix="outputs") as pool:
+        seconds = list(pool.map(lambda name: _timed(getattr, context, name), shared))
+        if any("graph" in w.uses for w in others):
+            seconds.append(_timed(getattr, context, "graph"))
+            laps.append(next(w.lap for w in others if "graph" in w.uses))
+        seconds += pool.map(lambda w: _timed(w.write, context), others)
+    for lap, elapsed in zip([*laps, *(w.lap for w in others)], seconds):
+        if lap is not None:
+            context.timings[lap] = round(context.timings.get(lap, 0.0) + elapsed, 3)
+    for writer in record:
+        writer.write(context)
+
+
+def _timed(fn: Callable[..., Any], *args: Any) -> float:
+    """Seconds `fn(*args)` took."""
+    start = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - start
 
 
 def listed_outputs(out_dir: Path) -> list[str]:
     """The files of `out_dir` that the end-of-run summary names, in its order."""
     listed = sorted((writer for writer in OUTPUT_WRITERS if writer.listed is not None), key=lambda w: w.listed or 0)
     return [file for writer in listed for file in writer.files if (out_dir / file).is_file()]
+
+
+def output_names() -> list[str]:
+    """The writers' names, in registry order (what `--outputs` takes)."""
+    return [writer.name for writer in OUTPUT_WRITERS]
 
 
 def outputs_help() -> str:
