@@ -73,11 +73,30 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float)
         vol_t = np.ones((size, size, size), np.float32)
         vol_w = np.zeros((size, size, size), np.float32)
         vol_c = np.zeros((size, size, size, 3), np.float32)
-        for b, r in zip(block_ids[group], rel[group]):
-            sl = tuple(slice(int(x) * bs, int(x) * bs + bs) for x in r)
-            vol_t[sl], vol_w[sl], vol_c[sl] = tsdf[b], weight[b], color[b]
+        # the blocks written at once through block-major views of the volumes (no loop over blocks)
+        b, r = block_ids[group], rel[group]
+        for volume, values in ((vol_t, tsdf), (vol_w, weight), (vol_c, color)):
+            _block_view(volume, chunk_blocks + 1, bs)[r[:, 0], r[:, 1], r[:, 2]] = values[b]
         valid = (vol_w >= min_weight)[:n, :n, :n]
         yield chunk * chunk_blocks * bs, vol_t[:n, :n, :n], valid, vol_c[:n, :n, :n]
+
+
+def _packed_rows(key: np.ndarray) -> np.ndarray:
+    """`key int64 (N, 3)` as one int64 per row in the same lexicographic order (x first), when the rows' ranges
+    fit in 63 bits (a 1-D unique is ~5x faster than a unique over rows); else `key` itself."""
+    low = key.min(axis=0)
+    bits = [int(span).bit_length() for span in key.max(axis=0) - low]
+    if sum(bits) > 63:
+        return key
+    shifted = key - low
+    return (shifted[:, 0] << (bits[1] + bits[2])) | (shifted[:, 1] << bits[2]) | shifted[:, 2]
+
+
+def _block_view(volume: np.ndarray, blocks: int, bs: int) -> np.ndarray:
+    """`volume (blocks*bs, blocks*bs, blocks*bs, ...)` as a writable view `(blocks, blocks, blocks, bs, bs, bs, ...)`."""
+    tail = volume.shape[3:]
+    view = volume.reshape(blocks, bs, blocks, bs, blocks, bs, *tail)
+    return view.transpose(0, 2, 4, 1, 3, 5, *range(6, 6 + len(tail)))
 
 
 def _voxel_to_world(g: np.ndarray, config: MapConfig) -> np.ndarray:
@@ -154,7 +173,8 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
     c = np.concatenate(colors)
     # merge the copies of vertices on chunk faces (identical coordinates: same values, same arithmetic)
     key = np.round(g * 4096).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    packed = _packed_rows(key)
+    _, first, inverse = np.unique(packed, axis=0 if packed.ndim == 2 else None, return_index=True, return_inverse=True)
     f = inverse.reshape(-1)[f]
     g, c = g[first], c[first]
     return _voxel_to_world(g, config), f.astype(np.int32), np.clip(np.round(c), 0, 255).astype(np.uint8)
