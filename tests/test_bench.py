@@ -417,3 +417,28 @@ def test_the_as_run_passes_alone_report_each_pass(tmp_path, capsys):
     assert "scene folder not found" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         as_run.main(["--scene", str(tmp_path), "--passes", "0"])
+
+
+def test_the_whole_run_is_split_by_its_record_and_judged_on_a_real_scene():
+    """`fmfusion run` end to end: its wall time split into the frames as run, the outputs' wall time and the rest;
+    the targets judge a real scene only, on the warm and the cold pass."""
+    from fmfusion_jax.apps.bench.whole_run import split_of_run
+
+    record = {
+        "frame_ms_as_run": {"frames": 300, "mean": 20.0, "median": 10.0},
+        "export_seconds": {"mesh": 2.0, "map_state": 1.5},  # writers side by side: more than their wall time
+        "export_wall_seconds": 2.5,
+        "peak_rss_mib": 900.0,
+    }
+    split = split_of_run(record, 12.0)
+    assert (split["frames_s"], split["outputs_s"], split["other_s"]) == (6.0, 2.5, 3.5)
+    warm, cold = split, split_of_run({**record, "peak_rss_mib": 1100.0}, 20.0)
+    real = {"scene": {"kind": "real", "name": "s", "frames": 300}}
+    rows = targets.whole_run_targets({"cold": cold, "warm": warm}, real)
+    assert [row["met"] for row in rows] == [False, False, False, False]  # 12 > 10 s, 20 > 18 s, 2.5 > 2 s, 1.07 > 1 GiB
+    fast = split_of_run({**record, "export_wall_seconds": 1.0}, 9.0)
+    rows = targets.whole_run_targets({"cold": fast, "warm": fast}, real)
+    assert [row["met"] for row in rows] == [True, True, True, True]
+    generated = {"scene": {"kind": "generated", "name": "g", "frames": 6}}
+    assert all(row["met"] is None for row in targets.whole_run_targets({"cold": fast, "warm": fast}, generated))
+    assert all("n/a (not run)" in row["figure"] for row in targets.whole_run_targets(None, real))

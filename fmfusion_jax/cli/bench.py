@@ -61,6 +61,12 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--no-peer", action="store_true", help="ours only (no Open3D)")
     parser.add_argument(
+        "--no-whole-run",
+        action="store_true",
+        help="leave out `fmfusion run` end to end on the main scene (a fresh process with an empty compile cache, "
+        "then with the cache it filled: wall time, its split, peak RSS)",
+    )
+    parser.add_argument(
         "--peer-frames",
         type=int,
         default=None,
@@ -130,7 +136,11 @@ def _command_line(args: argparse.Namespace) -> str:
         words += ["--seed", str(args.seed)]
     if args.profile:
         words += ["--profile", str(args.profile)]
-    words += [flag for flag, on in (("--no-scene", args.no_scene), ("--no-peer", args.no_peer)) if on]
+    words += [
+        flag
+        for flag, on in (("--no-scene", args.no_scene), ("--no-peer", args.no_peer), ("--no-whole-run", args.no_whole_run))
+        if on
+    ]
     for override in args.overrides:
         words += ["--set", override]
     return shlex.join(words)
@@ -158,4 +168,5 @@ def run(args: argparse.Namespace) -> int:
         overrides=args.overrides,
         no_progress=args.no_progress,
         command=_command_line(args),
+        no_whole_run=args.no_whole_run,
     )

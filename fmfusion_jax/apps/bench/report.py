@@ -28,7 +28,7 @@ from fmfusion_jax.apps.bench.figures import (
 )
 from fmfusion_jax.apps.bench.profile import profile_lines
 from fmfusion_jax.apps.bench.stages import FUSION_STAGES
-from fmfusion_jax.apps.bench.targets import _ms, _ratio, compile_cache_state, targets
+from fmfusion_jax.apps.bench.targets import _ms, _ratio, compile_cache_state, targets, whole_run_targets
 from fmfusion_jax.xla_options import GPU_COMMAND_BUFFER_FLAG
 
 #: Frames the worker's pass without timers reads ahead at a time (`worker._as_run_pass`; the first call of each
@@ -229,9 +229,10 @@ def sweep_costs(sweep: dict | None) -> dict | None:
     }
 
 
-def summarize(runs: Sequence[dict], primary: str, sweep: dict | None = None) -> dict:
-    """The report's figures out of the runs (`{"scene": BenchScene json, "ours", "peer", "vbg"}` each) and
-    the per-object sweep (`{"scene", "sweep", "frames", "ours", "peer"}`, or None)."""
+def summarize(runs: Sequence[dict], primary: str, sweep: dict | None = None, whole_run: dict | None = None) -> dict:
+    """The report's figures out of the runs (`{"scene": BenchScene json, "ours", "peer", "vbg"}` each), the
+    per-object sweep (`{"scene", "sweep", "frames", "ours", "peer"}`, or None) and `fmfusion run` end to end on the
+    main scene (`whole_run.measure_whole_run`, or None)."""
     by_name = {run["scene"]["name"]: run for run in runs}
     main = by_name[primary]
     ours, peer, vbg = main.get("ours"), main.get("peer"), main.get("vbg")
@@ -255,7 +256,8 @@ def summarize(runs: Sequence[dict], primary: str, sweep: dict | None = None) -> 
     }
     summary["per_object"] = per_object_costs([run for run in runs if run["scene"]["kind"] == "generated"])
     summary["sweep"] = sweep_costs(sweep)
-    summary["targets"] = targets(summary, main)
+    summary["whole_run"] = whole_run
+    summary["targets"] = targets(summary, main) + whole_run_targets(whole_run, main)
     return summary
 
 
@@ -353,6 +355,7 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
     if _usable(main.get("ours")):
         lines += [f"Ours: {compile_cache_state(main['ours'])}."]
     lines.append("")
+    lines += _whole_run_lines(summary.get("whole_run"), scene)
     lines += _sweep_lines(summary.get("sweep"))
     lines += _per_object_lines(summary["per_object"])
     lines += profile_lines((main.get("ours") or {}).get("profile"))
@@ -362,6 +365,38 @@ def render_markdown(summary: dict, runs: Sequence[dict], command: str) -> str:
         for t in summary["targets"]
     ]
     return "\n".join(lines) + "\n"
+
+
+def _whole_run_lines(whole_run: dict | None, scene: dict) -> list[str]:
+    """The section on `fmfusion run` end to end: each pass's wall time and its split, the outputs one by one."""
+    lines = ["## The whole command: `fmfusion run`", ""]
+    if whole_run is None:
+        return lines + ["Not run (`--no-whole-run`).", ""]
+    if "error" in whole_run:
+        return lines + [f"Failed: {whole_run['error']}", ""]
+    lines += [
+        f"`fmfusion run` on {scene['frames']} frames of {scene['name']} with all outputs, in a fresh process: first with "
+        "an empty compile cache (cold: every step compiled), then with the cache it filled (warm). Frames: the frames "
+        "as run (reading, detections, fusion; the first calls compile or load the steps); outputs: their wall time, "
+        "from the instances' extraction to run.json (`export_wall_seconds`); other: start-up, imports, opening the "
+        "scene and its ground truth, the final merge.",
+        "",
+        "| compile cache | wall, s | frames, s | outputs, s | other, s | peak RSS, MiB |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, split in whole_run.items():
+        lines.append(
+            f"| {name} | {split['wall_s']:.1f} | {split['frames_s']:.1f} | {split['outputs_s']:.1f} | "
+            f"{split['other_s']:.1f} | {_mb(split['peak_rss_mib'])} |"
+        )
+    warm = whole_run.get("warm") or next(iter(whole_run.values()))
+    parts = ", ".join(f"{name} {seconds:.2f}" for name, seconds in warm["outputs"].items())
+    lines += [
+        "",
+        f"Outputs of the warm run, s (each writer's own time; they run two at a time): {parts}.",
+        "",
+    ]
+    return lines
 
 
 def _per_object_lines(per_object: dict) -> list[str]:

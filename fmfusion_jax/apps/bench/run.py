@@ -1,8 +1,9 @@
 """`fmfusion bench`: prepares the scenes, runs every pipeline on them in its own process, writes the report.
 
 scenes (real + generated, cached) ──► a worker process per (pipeline, scene) ──► report ──► bench.md/.json
-                                  └──► the per-object sweep on the main scene (`bench.sweep`): a
-                                       process per pipeline, running every cap
+                                  ├──► the per-object sweep on the main scene (`bench.sweep`): a
+                                  │    process per pipeline, running every cap
+                                  └──► `fmfusion run` on the main scene, cold and warm (`bench.whole_run`)
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 
 from fmfusion_jax.apps.bench import report
 from fmfusion_jax.apps.bench.scenes import DEFAULT_SCENE, BenchScene, prepare_generated_scene, prepare_real_scene
+from fmfusion_jax.apps.bench.whole_run import measure_whole_run
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.run.folder import prepare_output_dir
 
@@ -56,6 +58,7 @@ class BenchOptions:
     overrides: tuple[str, ...] = ()  # KEY=VALUE config overrides for every scene (`--set`)
     progress: bool = True
     profile_frames: int = 0  # the last N frames of our as-run pass on the main scene traced (`--profile`; 0: none)
+    whole_run: bool = True  # `fmfusion run` end to end on the main scene, cold and warm compile cache
 
 
 def run_bench(
@@ -105,11 +108,19 @@ def run_bench(
             else _child("peer-sweep", primary, options.sweep_frames, options, work, say, sweep=list(options.sweep))
         )
 
-    summary = report.summarize(runs, primary.name, sweep)
+    whole_run = measure_whole_run(primary, work, say) if options.whole_run else None
+    summary = report.summarize(runs, primary.name, sweep, whole_run)
     summary["command"] = command
     (out / "bench.json").write_text(
         json.dumps(
-            {"summary": summary, "runs": runs, "sweep": sweep, "options": _jsonable(dataclasses.asdict(options))}, default=float
+            {
+                "summary": summary,
+                "runs": runs,
+                "sweep": sweep,
+                "whole_run": whole_run,
+                "options": _jsonable(dataclasses.asdict(options)),
+            },
+            default=float,
         )
         + "\n"
     )
@@ -220,6 +231,7 @@ def run_bench_command(
     overrides: list[str],
     no_progress: bool,
     command: str,
+    no_whole_run: bool = False,
 ) -> int:
     for name, value in (
         ("frames", frames),
@@ -265,6 +277,7 @@ def run_bench_command(
         overrides=tuple(overrides),
         progress=not no_progress,
         profile_frames=profile,
+        whole_run=not no_whole_run,
         **options,
     )
     summary = run_bench(bench, command=command)
