@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -98,15 +99,22 @@ def state_to_arrays(
         for which this fails is saved whole (off: trust the invariant and save the allocated rows).
 
     Returns:
-      `{key: np.ndarray}` (see the module docstring for the keys).
+      `{key: np.ndarray}` (see the module docstring for the keys), each array a copy of its own.
     """
+    return {key: value.copy() for key, value in state_arrays(state, map_config, check_unallocated)}
+
+
+def state_arrays(
+    state: MapState, map_config: MapConfig | None = None, check_unallocated: bool = True
+) -> Iterator[tuple[str, np.ndarray]]:
+    """`state_to_arrays`' items one at a time, as views of the state's host arrays (a writer that stores each
+    before asking for the next holds one array at a time; the state must not change meanwhile)."""
     map_config = map_config or _layout_of(state)
     n = int(state.blocks.num_blocks)
     capacity = map_config.block_capacity
     if not 0 <= n < capacity:
         raise ValueError(f"num_blocks {n} outside [0, {capacity - 1})")
     initial = _initial_rows(map_config)
-    arrays: dict[str, np.ndarray] = {}
     for key in _keys():
         if key in UNSAVED_FILL:
             continue
@@ -117,13 +125,12 @@ def state_to_arrays(
                 raise ValueError(f"{key} has {value.shape[0]} slots, the config says {capacity}")
             unallocated = value[n : capacity - 1]
             if check_unallocated and not np.array_equal(unallocated, np.broadcast_to(initial[name], unallocated.shape)):
-                arrays[key] = value.copy()  # the invariant does not hold here: keep every slot
+                yield key, value  # the invariant does not hold here: keep every slot
                 continue
-            arrays[key] = value[:n].copy()
-            arrays[key + SCRATCH_SUFFIX] = value[capacity - 1 :].copy()
+            yield key, value[:n]
+            yield key + SCRATCH_SUFFIX, value[capacity - 1 :]
         else:
-            arrays[key] = value.copy()
-    return arrays
+            yield key, value
 
 
 def _instance_bits(arrays: dict, n: int, shape) -> np.ndarray:
@@ -204,4 +211,4 @@ def state_from_arrays(arrays: dict[str, np.ndarray], map_config: MapConfig, devi
     )
 
 
-__all__ = ["state_to_arrays", "state_from_arrays", "POOL_FIELDS", "SCRATCH_SUFFIX"]
+__all__ = ["state_arrays", "state_to_arrays", "state_from_arrays", "POOL_FIELDS", "SCRATCH_SUFFIX"]

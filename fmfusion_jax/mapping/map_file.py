@@ -12,8 +12,10 @@ times for little time.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import zipfile
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +23,7 @@ import numpy as np
 
 from fmfusion_jax.config import config_from_dict
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.serialization import state_from_arrays, state_to_arrays
+from fmfusion_jax.engine.serialization import state_arrays, state_from_arrays
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.mapping.builder import FusionResult
 
@@ -30,19 +32,26 @@ MAP_FORMAT = "fmfusion-jax map state"
 MAP_FORMAT_VERSION = 1
 
 
-def write_state_file(path: str | Path, arrays: dict[str, np.ndarray], metadata: dict[str, Any], compresslevel: int = 1) -> Path:
-    """Writes `arrays` and the JSON-serializable `metadata` to `path` (`.npz`); returns the path.
+def write_state_file(
+    path: str | Path,
+    arrays: Mapping[str, np.ndarray] | Iterable[tuple[str, np.ndarray]],
+    metadata: dict[str, Any],
+    compresslevel: int = 1,
+) -> Path:
+    """Writes `arrays` (a mapping, or `(name, array)` pairs stored one at a time as they come) and the
+    JSON-serializable `metadata` to `path` (`.npz`); returns the path.
 
     The file is written beside the target and renamed into place, so a crash never leaves half a file.
     """
     path = Path(path)
-    if METADATA_KEY in arrays:
-        raise ValueError(f"{METADATA_KEY} is reserved for the metadata")
+    items = arrays.items() if isinstance(arrays, Mapping) else arrays
     text = json.dumps(metadata, sort_keys=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(path.name + ".partial")
     with zipfile.ZipFile(partial, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel) as archive:
-        for name, value in [(METADATA_KEY, np.array(text)), *arrays.items()]:
+        for index, (name, value) in enumerate(itertools.chain([(METADATA_KEY, np.array(text))], items)):
+            if index and name == METADATA_KEY:
+                raise ValueError(f"{METADATA_KEY} is reserved for the metadata")
             value = np.asarray(value)
             if value.dtype == object:
                 raise ValueError(f"{name}: object arrays cannot be saved (no pickle)")
@@ -120,7 +129,7 @@ def write_map_file(path: str | Path, state, map_config, config, progress: dict[s
         "pipeline_config": config.to_dict(),
         "progress": progress or {},
     }
-    return write_state_file(path, state_to_arrays(state, map_config), metadata)
+    return write_state_file(path, state_arrays(state, map_config), metadata)  # one array in memory at a time
 
 
 @dataclasses.dataclass
