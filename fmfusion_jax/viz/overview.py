@@ -215,6 +215,10 @@ def _top_points(idx: np.ndarray, z: np.ndarray) -> np.ndarray:
     return order[last]
 
 
+#: Points splatted at a time (each a disc of up to ~130 pixels): bounds the z-buffer's working memory.
+SPLAT_CHUNK = 65536
+
+
 def _rasterize(
     shape: tuple[int, int], u: np.ndarray, v: np.ndarray, z: np.ndarray, colors: np.ndarray, radii: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -231,24 +235,36 @@ def _rasterize(
         # Only the highest point of each pixel can win anywhere its disc reaches (same radius per pixel).
         top = _top_points((v * width + u) * 8 + radii, z)
         u, v, z, colors, radii = u[top], v[top], z[top], colors[top], radii[top]
-        pixel_parts: list[np.ndarray] = []
-        height_parts: list[np.ndarray] = []
-        source_parts: list[np.ndarray] = []
+        # The splats' z-buffer kept per pixel as (height in mm, splat position, source point), chunk by chunk: the
+        # same winner as one `_top_points` over all splats (highest, the later of equals), without holding them all.
+        zmin = z.min()  # every point splats its own pixel, so this is the lowest splat too
+        best_mm = np.full(height * width, -1, np.int64)
+        best_at = np.full(height * width, -1, np.int64)
+        best_source = np.zeros(height * width, np.int64)
+        position = 0
         for r in np.unique(radii):
-            members = np.flatnonzero(radii == r)
             offsets = np.array(
                 [(dx, dy) for dx in range(-r, r + 1) for dy in range(-r, r + 1) if dx * dx + dy * dy <= r * r + r], np.int64
             )
-            uu = u[members, None] + offsets[None, :, 0]
-            vv = v[members, None] + offsets[None, :, 1]
-            ok = (uu >= 0) & (uu < width) & (vv >= 0) & (vv < height)
-            pixel_parts.append((vv * width + uu)[ok])
-            height_parts.append(np.broadcast_to(z[members, None], uu.shape)[ok])
-            source_parts.append(np.broadcast_to(members[:, None], uu.shape)[ok])
-        pixels, heights, sources = np.concatenate(pixel_parts), np.concatenate(height_parts), np.concatenate(source_parts)
-        win = _top_points(pixels, heights)
-        image[pixels[win]] = colors[sources[win]]
-        covered[pixels[win]] = True
+            group = np.flatnonzero(radii == r)
+            for start in range(0, len(group), SPLAT_CHUNK):
+                members = group[start : start + SPLAT_CHUNK]
+                uu = u[members, None] + offsets[None, :, 0]
+                vv = v[members, None] + offsets[None, :, 1]
+                ok = (uu >= 0) & (uu < width) & (vv >= 0) & (vv < height)
+                pixels = (vv * width + uu)[ok]
+                mm = np.round((np.broadcast_to(z[members, None], uu.shape)[ok] - zmin) * 1000).astype(np.int64)
+                sources = np.broadcast_to(members[:, None], uu.shape)[ok]
+                top = _top_points(pixels, mm.astype(np.float64) / 1000)  # the chunk's winner of each pixel
+                at = position + top
+                position += len(pixels)
+                pixels, mm, sources = pixels[top], mm[top], sources[top]
+                wins = (mm > best_mm[pixels]) | ((mm == best_mm[pixels]) & (at > best_at[pixels]))
+                pixels = pixels[wins]
+                best_mm[pixels], best_at[pixels], best_source[pixels] = mm[wins], at[wins], sources[wins]
+        won = np.flatnonzero(best_at >= 0)
+        image[won] = colors[best_source[won]]
+        covered[won] = True
     return image.reshape(height, width, 3), covered.reshape(height, width)
 
 
