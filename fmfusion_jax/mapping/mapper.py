@@ -8,7 +8,8 @@
     mapper.extract_mesh().export("mesh.ply"); mapper.save("map.npz"); Mapper.load("map.npz")
 
 Without `bounds`, the map grows as the camera explores: the block index, the voxel-block pool and the instance
-table start small and are enlarged (by doubling, so a handful of recompiles per run, each logged) before a
+table start small and are enlarged (the pool four times while far below its ceiling, then by doubling; the index a
+side by its whole extent: a handful of recompiles per run, each logged) before a
 frame that would not fit. The voxel lattice is fixed (origins on whole blocks), so a grown map equals one
 allocated at its final size. With `bounds` (as `fmfusion run` passes the scene's), the index is fixed; the pool
 starts at `expected_blocks` (the config's capacity when not given) and grows the same way, and so does the
@@ -429,8 +430,8 @@ class Mapper:
         return known.blocks + sum(entry[1] for entry in self._recent), known.instances + sum(entry[2] for entry in self._recent)
 
     def _grow_for(self, frame: RGBDFrame, detections_due: bool, prepared: PreparedFrame | None = None) -> None:
-        """Enlarges the pool or the table (doubling) and, without bounds, the index (by at least half a side)
-        if `frame` might not fit.
+        """Enlarges the pool (four times while far below its ceiling, then doubling), the table (doubling) and,
+        without bounds, the index (a side by at least the whole extent) if `frame` might not fit.
 
         The frame adds at most its distinct blocks to the pool and `detections.max_detections` rows to the
         table. The bounds are the sizes after the last frame whose statistics were read (`MapBuilder.sizes_after`,
@@ -459,7 +460,9 @@ class Mapper:
             assert bounds is not None
         blocks_bound, rows_bound = bounds
         if not full_pool and blocks_bound + 1 > pool:
-            pool = min(ceiling.block_capacity, max(2 * pool, _next_power_of_two(blocks_bound + 1)))
+            # far below the ceiling, four times: a room's pool is reached in a couple of recompiles, not five
+            factor = 4 if 4 * pool <= ceiling.block_capacity // 2 else 2
+            pool = min(ceiling.block_capacity, max(factor * pool, _next_power_of_two(blocks_bound + 1)))
         if not full_table and rows_bound > rows:
             rows = min(ceiling.instance_capacity, max(2 * rows, _next_power_of_two(rows_bound)))
 
@@ -470,9 +473,9 @@ class Mapper:
             extent = hi - lo
             for axis in range(3):  # grow a side by at least half the extent: few recompiles
                 if need_lo[axis] < lo[axis]:
-                    new_lo[axis] = min(need_lo[axis] - INDEX_PAD_BLOCKS, lo[axis] - extent[axis] // 2)
+                    new_lo[axis] = min(need_lo[axis] - INDEX_PAD_BLOCKS, lo[axis] - extent[axis])
                 if need_hi[axis] > hi[axis]:
-                    new_hi[axis] = max(need_hi[axis] + INDEX_PAD_BLOCKS, hi[axis] + extent[axis] // 2)
+                    new_hi[axis] = max(need_hi[axis] + INDEX_PAD_BLOCKS, hi[axis] + extent[axis])
         if (new_lo == lo).all() and (new_hi == hi).all() and pool == old.block_capacity and rows == old.instance_capacity:
             return
         new = dataclasses.replace(growth.config_for_block_range(old, new_lo, new_hi), block_capacity=pool, instance_capacity=rows)
