@@ -63,4 +63,14 @@ def enable_compile_cache(path: str | Path | None = None) -> Path | None:
     return folder
 
 
-__all__ = ["ENV", "compile_cache_dir", "enable_compile_cache"]
+def use_compile_cache() -> None:
+    """The Python API's default (`Mapper`, `MapperBatch`): the cache the `fmfusion` commands fill, unless this
+    process chose a cache folder of its own; `FMFUSION_COMPILE_CACHE=off` turns it off. Without it every new process
+    compiles each step again (seconds each on a CPU)."""
+    import jax  # lazy: JAX (`fmfusion --help` imports this module); the Python API has imported it already
+
+    if not getattr(jax.config, "jax_compilation_cache_dir", None):
+        enable_compile_cache()
+
+
+__all__ = ["ENV", "compile_cache_dir", "enable_compile_cache", "use_compile_cache"]

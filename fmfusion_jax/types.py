@@ -37,9 +37,8 @@ def pose_problem(T_world_camera: np.ndarray) -> str | None:
         return "the pose is not finite (a lost track?)"
     if not np.allclose(pose[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
         return (
-            f"the pose is not a rigid transform: its last row is {pose[3].tolist()}, not [0, 0, 0, 1] (a transposed pose? "
-            "the translation belongs "
-            "in the last column)"
+            f"the pose is not a rigid transform: its last row is {pose[3].tolist()}, not [0, 0, 0, 1] "
+            "(a transposed pose? the translation belongs in the last column)"
         )
     error = rotation_error(pose)
     if error > ROTATION_TOLERANCE:

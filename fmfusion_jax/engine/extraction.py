@@ -45,8 +45,6 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float)
     if len(coords) == 0:
         return
     perm = _row_major_permutation(bs)
-    # each chunk's blocks are put in raster order as the chunk is assembled (not the whole pool up front)
-    pool = {name: host[name] for name in ("tsdf", "weight", "color")}
     # Each block feeds its own chunk, and (as the apron) the chunks just below it along each axis
     # where it sits on the chunk's lower face.
     block_parts: list[np.ndarray] = []
@@ -72,10 +70,11 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float)
         vol_t = np.ones((size, size, size), np.float32)
         vol_w = np.zeros((size, size, size), np.float32)
         vol_c = np.zeros((size, size, size, 3), np.float32)
-        # the blocks written at once through block-major views of the volumes (no loop over blocks)
+        # the chunk's blocks, put in raster order here (not the whole pool up front), written at once through
+        # block-major views of the volumes
         b, r = block_ids[group], rel[group]
         for volume, name in ((vol_t, "tsdf"), (vol_w, "weight"), (vol_c, "color")):
-            values = pool[name][b][:, perm].reshape(len(b), bs, bs, bs, *pool[name].shape[2:])
+            values = host[name][b][:, perm].reshape(len(b), bs, bs, bs, *host[name].shape[2:])
             _block_view(volume, chunk_blocks + 1, bs)[r[:, 0], r[:, 1], r[:, 2]] = values
         valid = (vol_w >= min_weight)[:n, :n, :n]
         yield chunk * chunk_blocks * bs, vol_t[:n, :n, :n], valid, vol_c[:n, :n, :n]

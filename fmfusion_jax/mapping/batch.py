@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fmfusion_jax.compile_cache import use_compile_cache
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine.frame import finalize_maps, fuse_frames
 from fmfusion_jax.engine.state import init_map_state
@@ -19,7 +20,7 @@ from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.mapping.builder import FusionProgress, FusionResult
 from fmfusion_jax.mapping.capacity import CapacityMonitor
 from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config
-from fmfusion_jax.mapping.inputs import HostAdapter, as_config, use_compile_cache
+from fmfusion_jax.mapping.inputs import HostAdapter, as_config
 from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.mapping.schedule import DetectionSchedule
 from fmfusion_jax.mapping.telemetry import StageTimer

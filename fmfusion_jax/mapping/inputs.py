@@ -11,10 +11,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-import jax
 import numpy as np
 
-from fmfusion_jax.compile_cache import enable_compile_cache
 from fmfusion_jax.config import PipelineConfig, load_config
 from fmfusion_jax.engine import step
 from fmfusion_jax.engine.config import MapConfig
@@ -99,15 +97,6 @@ class HostAdapter:
             stride=self.map_config.pixel_stride,
             as_image=True,
         )
-
-
-def use_compile_cache() -> None:
-    """The Python API's steps load from the persistent compile cache the `fmfusion` commands fill
-    (`compile_cache.enable_compile_cache`: `~/.cache/fmfusion-jax/xla`), unless this process chose a cache folder
-    of its own; `FMFUSION_COMPILE_CACHE=off` turns it off. Without it every new process compiles each step again
-    (seconds each on a CPU)."""
-    if not getattr(jax.config, "jax_compilation_cache_dir", None):
-        enable_compile_cache()
 
 
 def as_config(config: "str | Path | Mapping[str, Any] | PipelineConfig | None") -> PipelineConfig:

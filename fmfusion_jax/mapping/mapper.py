@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fmfusion_jax.compile_cache import use_compile_cache
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine import extraction, growth, step
 from fmfusion_jax.engine.config import MapConfig
@@ -60,7 +61,6 @@ from fmfusion_jax.mapping.inputs import (
     as_frame,
     check_detections,
     checked_pose,
-    use_compile_cache,
 )
 from fmfusion_jax.mapping.map_file import read_map_file, write_map_file
 from fmfusion_jax.mapping.schedule import DetectionSchedule

@@ -425,7 +425,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "the scene graph: nodes = the instances (class, confidence, top open-set labels, centroid, oriented box, "
         "points) and the floor as root; edges `on`, `inside`, `near` computed from the boxes, each with a score",
         _write_scene_graph_json,
-        uses=("graph",),
+        uses=("records", "graph"),
         lap="scene_graph",
         listed=8,
     ),
@@ -434,7 +434,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("scene_graph.graphml",),
         "the scene graph as GraphML (for networkx, Gephi, yEd)",
         _write_scene_graph_graphml,
-        uses=("graph",),
+        uses=("records", "graph"),
         lap="scene_graph",
     ),
     OutputWriter(
@@ -524,6 +524,10 @@ def chosen_outputs(names: Sequence[str] | None) -> tuple[str, ...] | None:
     return tuple(dict.fromkeys([*names, RUN_RECORD]))
 
 
+#: The `OutputContext` values several writers read, made side by side before the writers run (then the scene graph,
+#: which is made from the records).
+SHARED_VALUES = ("records", "points", "mesh", "scored")
+
 #: Threads the writers run in: their heavy parts (marching cubes, zlib, PNG encoding, NumPy) release the GIL.
 WRITER_THREADS = 2
 
@@ -537,21 +541,19 @@ def write_files(context: OutputContext, names: Collection[str] | None = None) ->
     writers = [w for w in select_writers(names) if not (w.needs_ground_truth and context.ground_truth is None)]
     record = [w for w in writers if w.name == RUN_RECORD]
     others = [w for w in writers if w.name != RUN_RECORD]
-    shared = [name for name in ("records", "points", "mesh", "scored") if any(name in w.uses for w in others)]
-    if context.ground_truth is None and "scored" in shared:
-        shared.remove("scored")
-    if any("graph" in w.uses for w in others) and "records" not in shared:
-        shared.insert(0, "records")  # the graph is made from them
+    needed = [name for name in (*SHARED_VALUES, "graph") if any(name in w.uses for w in others)]
+    if context.ground_truth is None and "scored" in needed:
+        needed.remove("scored")  # the overview reads the score only with ground truth
     for writer in others:  # run.json lists the steps in registry order
         if writer.lap is not None:
             context.timings.setdefault(writer.lap, 0.0)
     # a shared value's time counts to the first writer that reads it
-    laps = [next(w.lap for w in others if name in w.uses or (name == "records" and "graph" in w.uses)) for name in shared]
+    laps = [next(w.lap for w in others if name in w.uses) for name in needed]
     with concurrent.futures.ThreadPoolExecutor(WRITER_THREADS, thread_name_prefix="outputs") as pool:
-        seconds = list(pool.map(lambda name: _timed(getattr, context, name), shared))
-        if any("graph" in w.uses for w in others):
+        side_by_side = [name for name in needed if name != "graph"]
+        seconds = list(pool.map(lambda name: _timed(getattr, context, name), side_by_side))
+        if "graph" in needed:  # made from the records made above
             seconds.append(_timed(getattr, context, "graph"))
-            laps.append(next(w.lap for w in others if "graph" in w.uses))
         seconds += pool.map(lambda w: _timed(w.write, context), others)
     for lap, elapsed in zip([*laps, *(w.lap for w in others)], seconds):
         if lap is not None:

@@ -235,13 +235,12 @@ def _rasterize(
         # Only the highest point of each pixel can win anywhere its disc reaches (same radius per pixel).
         top = _top_points((v * width + u) * 8 + radii, z)
         u, v, z, colors, radii = u[top], v[top], z[top], colors[top], radii[top]
-        # The splats' z-buffer kept per pixel as (height in mm, splat position, source point), chunk by chunk: the
-        # same winner as one `_top_points` over all splats (highest, the later of equals), without holding them all.
+        # The splats' z-buffer kept per pixel as (height in mm, source point), chunk by chunk: the same winner as one
+        # `_top_points` over all splats (highest, the later of equals: a later chunk's splats come later), without
+        # holding them all.
         zmin = z.min()  # every point splats its own pixel, so this is the lowest splat too
         best_mm = np.full(height * width, -1, np.int64)
-        best_at = np.full(height * width, -1, np.int64)
         best_source = np.zeros(height * width, np.int64)
-        position = 0
         for r in np.unique(radii):
             offsets = np.array(
                 [(dx, dy) for dx in range(-r, r + 1) for dy in range(-r, r + 1) if dx * dx + dy * dy <= r * r + r], np.int64
@@ -255,14 +254,11 @@ def _rasterize(
                 pixels = (vv * width + uu)[ok]
                 mm = np.round((np.broadcast_to(z[members, None], uu.shape)[ok] - zmin) * 1000).astype(np.int64)
                 sources = np.broadcast_to(members[:, None], uu.shape)[ok]
-                top = _top_points(pixels, mm.astype(np.float64) / 1000)  # the chunk's winner of each pixel
-                at = position + top
-                position += len(pixels)
+                top = _top_points(pixels, mm / 1000)  # the chunk's winner of each pixel
                 pixels, mm, sources = pixels[top], mm[top], sources[top]
-                wins = (mm > best_mm[pixels]) | ((mm == best_mm[pixels]) & (at > best_at[pixels]))
-                pixels = pixels[wins]
-                best_mm[pixels], best_at[pixels], best_source[pixels] = mm[wins], at[wins], sources[wins]
-        won = np.flatnonzero(best_at >= 0)
+                wins = mm >= best_mm[pixels]
+                best_mm[pixels[wins]], best_source[pixels[wins]] = mm[wins], sources[wins]
+        won = np.flatnonzero(best_mm >= 0)
         image[won] = colors[best_source[won]]
         covered[won] = True
     return image.reshape(height, width, 3), covered.reshape(height, width)
