@@ -147,6 +147,8 @@ def voxel_offsets(block_size: int) -> np.ndarray:
 # Construction.
 
 
+# Jitted with the config static: one executable per layout, instead of a compiled (or cache-loaded) op per array.
+@functools.partial(jax.jit, static_argnums=0)
 def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
     """An empty pool: no block allocated, tsdf 1, weights 0, every instance slot empty."""
     b, v, s = config.block_capacity, config.voxels_per_block, config.instance_slots
@@ -174,6 +176,7 @@ def init_voxel_blocks(config: MapConfig) -> VoxelBlocks:
     )
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def init_instance_table(config: MapConfig) -> InstanceTable:
     """An empty table. `label_evidence` starts at zeros: the label-fusion code gives a row its prior
     (e.g. the uniform 1/C of additive fusion) when it creates the instance."""
@@ -201,6 +204,7 @@ def init_instance_table(config: MapConfig) -> InstanceTable:
     )
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def init_map_state(config: MapConfig) -> MapState:
     """An empty map for `config` (allocates about `config.memory_bytes()` bytes)."""
     return MapState(

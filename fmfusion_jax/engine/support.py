@@ -113,6 +113,7 @@ class Floor(NamedTuple):
     found: jax.Array  # bool[]: enough up-facing samples there to call it the floor
 
 
+@jax.jit
 def floor_height(up_heights: jax.Array) -> Floor:
     """The floor from the histogram `up_heights int32[HEIGHT_BINS]`: the lowest height holding at least
     `FLOOR_SHARE_OF_PEAK` of the most-populated height (3 bins summed, so that a plane straddling a bin edge

@@ -9,10 +9,8 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import cast
 
 import numpy as np
-import trimesh
 
 from fmfusion_jax.instances import STRUCTURE_CLASSES, MapInstance
 from fmfusion_jax.io.benchmark_format import InstancePredictions
@@ -80,13 +78,35 @@ def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.n
         ]
         path.write_bytes(("\n".join(header) + "\n").encode("ascii"))
         return
-    mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces), process=False)
+    vertex_fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    properties = ["property float x", "property float y", "property float z"]
     if colors is not None:
-        # a mesh built without texture carries ColorVisuals
-        cast(trimesh.visual.ColorVisuals, mesh.visual).vertex_colors = np.concatenate(
-            [colors.astype(np.uint8), np.full((len(colors), 1), 255, np.uint8)], axis=1
-        )
-    mesh.export(str(path))
+        vertex_fields += [(channel, "u1") for channel in ("red", "green", "blue", "alpha")]
+        properties += [f"property uchar {channel}" for channel in ("red", "green", "blue", "alpha")]
+    vertex = np.empty(len(vertices), np.dtype(vertex_fields))
+    for i, axis in enumerate("xyz"):
+        vertex[axis] = np.asarray(vertices, np.float32)[:, i]
+    if colors is not None:
+        for i, channel in enumerate(("red", "green", "blue")):
+            vertex[channel] = np.asarray(colors, np.uint8)[:, i]
+        vertex["alpha"] = 255
+    face = np.empty(len(faces), np.dtype([("count", "u1"), ("vertex_indices", "<i4", (3,))]))
+    face["count"] = 3
+    face["vertex_indices"] = faces
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment written by fmfusion-jax",
+        f"element vertex {len(vertices)}",
+        *properties,
+        f"element face {len(faces)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
+    with open(path, "wb") as stream:
+        stream.write(("\n".join(header) + "\n").encode("ascii"))
+        stream.write(vertex.tobytes())
+        stream.write(face.tobytes())
 
 
 def write_labelled_points(out_dir: Path, points: np.ndarray, colors: np.ndarray, label: np.ndarray, instance: np.ndarray) -> None:

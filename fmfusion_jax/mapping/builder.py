@@ -49,7 +49,7 @@ class FusionResult:
         up = self.fusion_config.floor_up
         if up is None:
             return None
-        floor = support.floor_height(jnp.asarray(self.state.blocks.up_heights))
+        floor = support.floor_height(self.state.blocks.up_heights)
         return (up, float(floor.height)) if bool(floor.found) else None
 
     def progress(self) -> dict:

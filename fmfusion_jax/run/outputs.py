@@ -524,43 +524,68 @@ def chosen_outputs(names: Sequence[str] | None) -> tuple[str, ...] | None:
     return tuple(dict.fromkeys([*names, RUN_RECORD]))
 
 
-#: The `OutputContext` values several writers read, made side by side before the writers run (then the scene graph,
-#: which is made from the records).
-SHARED_VALUES = ("records", "points", "mesh", "scored")
+#: The `OutputContext` values several writers read, each made once; `graph` is made from the records.
+SHARED_VALUES = ("records", "points", "mesh", "scored", "graph")
+#: What a shared value is made from (`write_files` starts it once these are made).
+_VALUE_INPUTS = {"graph": ("records",)}
+#: Steps started first when they are ready, longest chains first: the mesh (the overview waits for it), the map
+#: file (long, and its zlib runs beside everything else), the benchmark score (three writers and the overview).
+_FIRST = ("mesh", "map_state.npz", "scored")
 
-#: Threads the writers run in: their heavy parts (marching cubes, zlib, PNG encoding, NumPy) release the GIL.
+#: Threads the writers run in: zlib and PNG encoding release the GIL, and so does much of NumPy.
 WRITER_THREADS = 2
 
 
 def write_files(context: OutputContext, names: Collection[str] | None = None) -> None:
-    """Runs the writers named in `names` (all by default) into `context.out_dir`, side by side in threads: first
-    the values several of them read (`OutputWriter.uses`), then the writers, then run.json, which records each
-    step's seconds (`context.timings`, under the writer's `lap`). The benchmark writers are skipped without
-    ground truth. The files do not depend on the order the threads finish in."""
+    """Runs the writers named in `names` (all by default) into `context.out_dir`, side by side in threads, each as
+    soon as the values it reads (`OutputWriter.uses`) are made, then run.json, which records each step's seconds
+    (`context.timings`, under the writer's `lap`). The benchmark writers are skipped without ground truth. The
+    files do not depend on the order the threads finish in."""
     start = time.perf_counter()
     writers = [w for w in select_writers(names) if not (w.needs_ground_truth and context.ground_truth is None)]
     record = [w for w in writers if w.name == RUN_RECORD]
     others = [w for w in writers if w.name != RUN_RECORD]
-    needed = [name for name in (*SHARED_VALUES, "graph") if any(name in w.uses for w in others)]
-    if context.ground_truth is None and "scored" in needed:
-        needed.remove("scored")  # the overview reads the score only with ground truth
     for writer in others:  # run.json lists the steps in registry order
         if writer.lap is not None:
             context.timings.setdefault(writer.lap, 0.0)
-    # a shared value's time counts to the first writer that reads it
-    laps = [next(w.lap for w in others if name in w.uses) for name in needed]
-    with concurrent.futures.ThreadPoolExecutor(WRITER_THREADS, thread_name_prefix="outputs") as pool:
-        side_by_side = [name for name in needed if name != "graph"]
-        seconds = list(pool.map(lambda name: _timed(getattr, context, name), side_by_side))
-        if "graph" in needed:  # made from the records made above
-            seconds.append(_timed(getattr, context, "graph"))
-        seconds += pool.map(lambda w: _timed(w.write, context), others)
-    for lap, elapsed in zip([*laps, *(w.lap for w in others)], seconds):
+    steps: dict[str, tuple[Callable[[], Any], tuple[str, ...], str | None]] = {}
+    for name in SHARED_VALUES:
+        readers = [w for w in others if name in w.uses]
+        if name == "scored" and context.ground_truth is None:
+            readers = [w for w in readers if w.needs_ground_truth]  # the overview reads the score only with ground truth
+        if readers:  # a shared value's time counts to the first writer that reads it
+            steps[name] = (functools.partial(getattr, context, name), _VALUE_INPUTS.get(name, ()), readers[0].lap)
+    for writer in others:
+        inputs = tuple(name for name in writer.uses if name in steps)
+        steps[writer.name] = (functools.partial(writer.write, context), inputs, writer.lap)
+    order = sorted(steps, key=lambda name: _FIRST.index(name) if name in _FIRST else len(_FIRST))
+    seconds = _run_steps({name: steps[name][:2] for name in order}, WRITER_THREADS)
+    for name in steps:  # registry order: the sums do not depend on which thread finished first
+        lap = steps[name][2]
         if lap is not None:
-            context.timings[lap] = round(context.timings.get(lap, 0.0) + elapsed, 3)
+            context.timings[lap] = round(context.timings.get(lap, 0.0) + seconds[name], 3)
     context.outputs_wall_s = context.timings.get("extract_instances", 0.0) + time.perf_counter() - start
     for writer in record:
         writer.write(context)
+
+
+def _run_steps(steps: dict[str, tuple[Callable[[], Any], tuple[str, ...]]], threads: int) -> dict[str, float]:
+    """Runs each step `name: (fn, inputs)` in a pool of `threads` once the steps named in its inputs are done,
+    ready steps in the order given; returns each step's seconds. A step's exception is raised here once the
+    steps already running have finished."""
+    seconds: dict[str, float] = {}
+    waiting = dict(steps)
+    with concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="outputs") as pool:
+        running: dict[concurrent.futures.Future, str] = {}
+        while waiting or running:
+            for name, (fn, inputs) in list(waiting.items()):
+                if all(i in seconds for i in inputs):
+                    running[pool.submit(_timed, fn)] = name
+                    del waiting[name]
+            done, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
+            for future in done:
+                seconds[running.pop(future)] = future.result()
+    return seconds
 
 
 def _timed(fn: Callable[..., Any], *args: Any) -> float:
