@@ -14,8 +14,9 @@ TUM RGB-D::
   A colour image is paired with the depth image closest in time within `max_time_difference` seconds (the
   greedy rule of TUM's associate.py); its pose is interpolated at the colour image's time stamp (translation
   linearly, rotation by slerp). Colour images without a depth image within the tolerance are left out (one
-  log line says how many); frames outside the trajectory's time span, or in a gap of it longer than the
-  tolerance, are skipped with the reason. A frame is named by its colour image's stem (``1305031102.175304``).
+  log line says how many); frames outside the trajectory's time span, or in a gap of it (no pose within the
+  tolerance and the poses around more than `MAX_POSE_GAP` apart), are skipped with the reason.
+  A frame is named by its colour image's stem (``1305031102.175304``).
 
 Replica as NICE-SLAM ships it::
 
@@ -59,6 +60,9 @@ REDWOOD_DEPTH_SCALE = 1000.0
 REPLICA_CAMERA = {"w": 1200, "h": 680, "fx": 600.0, "fy": 600.0, "cx": 599.5, "cy": 339.5, "scale": 6553.5}
 #: Seconds between a colour image and its depth image (and pose) that still pair: TUM associate.py's default.
 MAX_TIME_DIFFERENCE = 0.02
+#: Seconds between two poses of a TUM trajectory that a frame's pose is still interpolated across when neither
+#: is within `MAX_TIME_DIFFERENCE` of it (a trajectory at 10 Hz or faster; a longer gap is lost tracking).
+MAX_POSE_GAP = 0.1
 #: TUM's published calibration of the colour camera (the depth images are registered to it), used when the
 #: recording's folder name says which Kinect took it (``rgbd_dataset_freiburg1_xyz``) and it holds no camera file.
 TUM_FREIBURG_CAMERAS = {
@@ -70,7 +74,7 @@ TUM_FREIBURG_CAMERAS = {
 RECORDING_MARKERS = {
     "tum": ("rgb.txt", "depth.txt"),
     "replica": ("results/", "traj.txt"),
-    "redwood": ("camera_intrinsic.json", "depth/"),
+    "redwood": ("camera_intrinsic.json", "color/", "depth/"),
 }
 _OPEN3D_INTRINSICS = ("camera_intrinsic.json", "intrinsic.json")
 
@@ -101,12 +105,13 @@ class Recording:
 
 def recording_layouts(root: Path) -> list[str]:
     """The recording formats whose marker files `root` holds (`RECORDING_MARKERS`; Redwood's intrinsics may
-    also be named intrinsic.json, as Open3D's Azure Kinect tools write it)."""
+    also be named intrinsic.json, as Open3D's Azure Kinect tools write it, and its colour folder image/)."""
     found = []
     for name, markers in RECORDING_MARKERS.items():
         present = [(root / m).is_dir() if m.endswith("/") else (root / m).is_file() for m in markers]
         if name == "redwood":
             present[0] = any((root / file).is_file() for file in _OPEN3D_INTRINSICS)
+            present[1] = present[1] or (root / "image").is_dir()
         if all(present):
             found.append(name)
     return found
@@ -317,9 +322,9 @@ def _tum_pose_source(root: Path, frame_stamps: np.ndarray, max_time_difference: 
         t = frame_stamps[i]
         if not inside[i]:
             return None, f"time stamp {t:.6f} outside the time span of {path.name} ({first:.3f}..{last:.3f} s)"
-        gap = float(np.min(np.abs(stamps[max(np.searchsorted(stamps, t) - 1, 0) :][:2] - t)))
-        if gap > max_time_difference:
-            return None, f"time stamp {t:.6f} in a gap of {path.name} (nearest pose {gap:.3f} s away)"
+        around = stamps[max(np.searchsorted(stamps, t) - 1, 0) :][:2]
+        if np.min(np.abs(around - t)) > max_time_difference and np.ptp(around) > MAX_POSE_GAP:
+            return None, f"time stamp {t:.6f} in a {np.ptp(around):.3f} s gap of {path.name}"
         return interpolate_pose(stamps, translations, quaternions, float(t)), f"{path.name} at {t:.6f}"
 
     return pose
