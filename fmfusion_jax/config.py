@@ -45,11 +45,21 @@ class _Section(BaseModel):
 
 
 class DatasetConfig(_Section):
-    layout: Literal["auto", "scannet", "scenenn"] = knob("auto", "folder layout (auto: detected from the folder)")
-    depth_scale: Float = knob(1000.0, "depth png units per metre (millimetres: 1000)", gt=0)
+    layout: Literal["auto", "scannet", "scenenn", "tum", "replica", "redwood"] = knob(
+        "auto", "folder layout (auto: detected from the folder; docs/your-own-data.md)"
+    )
+    depth_scale: Float | None = knob(
+        None,
+        "depth png units per metre (null: the recording's own: ScanNet, SceneNN, Redwood 1000 (millimetres), "
+        "TUM 5000, Replica 6553.5 or its cam_params.json's)",
+        gt=0,
+    )
     depth_max: Float = knob(4.0, "m; farther depth is dropped (reference: 4.0)", gt=0)
     frame_stride: Int = knob(1, "read every Nth frame", ge=1)
     max_frames: Int | None = knob(None, "stop after this many frames (null: all)", ge=1)
+    max_time_difference: Float = knob(
+        0.02, "s; TUM recordings: a colour image pairs with the depth image and pose this close in time", gt=0
+    )
 
 
 class TSDFConfig(_Section):

@@ -60,7 +60,12 @@ def test_run_errors(capsys, tmp_path, tiny_scene):
     _fails_in_one_line(capsys, ["run", str(tmp_path / "missing"), "--detections", str(dets), "--out", out], "does not exist")
     wrong = tmp_path / "wrong"
     (wrong / "color").mkdir(parents=True)
-    _fails_in_one_line(capsys, ["run", str(wrong), "--detections", str(dets), "--out", out], "folder missing")
+    _fails_in_one_line(
+        capsys,
+        ["run", str(wrong), "--detections", str(dets), "--out", out],
+        "unknown scene layout",
+        "scannet: color/, depth/, intrinsic/",
+    )
     _fails_in_one_line(
         capsys, ["run", str(tiny_scene), "--detections", str(tmp_path / "nodets"), "--out", out], "detections folder"
     )

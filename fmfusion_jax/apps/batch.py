@@ -76,8 +76,8 @@ class SceneTask:
 
 
 def list_scenes(source: Path, root: Path | None = None) -> list[Path]:
-    """The scene folders of a dataset: the sub-folders of `source` that are scenes (ScanNet or SceneNN
-    layout), or the scene ids of a split file (one per line, `#` comments) resolved under `root` (default: the
+    """The scene folders of a dataset: the sub-folders of `source` that are scenes (any layout `detect_layout`
+    knows), or the scene ids of a split file (one per line, `#` comments) resolved under `root` (default: the
     split file's folder). A listed scene that does not exist is a `UserError`."""
     if source.is_dir():
         scenes = []
@@ -89,7 +89,9 @@ def list_scenes(source: Path, root: Path | None = None) -> list[Path]:
                     continue
                 scenes.append(child)
         if not scenes:
-            raise UserError(f"{source}: no scene folder inside (ScanNet or SceneNN layout)")
+            raise UserError(
+                f"{source}: no scene folder inside (ScanNet or SceneNN layout, or a TUM, Replica or Redwood recording)"
+            )
         return scenes
     if not source.is_file():
         raise UserError(f"{source}: neither a folder of scenes nor a split file")

@@ -51,7 +51,8 @@ def describe_scene(scene) -> list[tuple[str, str]]:
         ("image size", f"{intrinsics.width} x {intrinsics.height}"),
         (
             "intrinsics",
-            f"fx {intrinsics.fx:.2f}  fy {intrinsics.fy:.2f}  cx {intrinsics.cx:.2f}  cy {intrinsics.cy:.2f}  (depth camera)",
+            f"fx {intrinsics.fx:.2f}  fy {intrinsics.fy:.2f}  cx {intrinsics.cx:.2f}  cy {intrinsics.cy:.2f}  "
+            f"(depth camera; depth png {scene.depth_scale:g} units per metre)",
         ),
     ]
     if len(scene):

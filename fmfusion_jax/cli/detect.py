@@ -20,7 +20,9 @@ def register(subparsers) -> None:
         "arguments, it continues where it stopped (frames already written are kept).",
         formatter_class=HelpFormatter,
     )
-    parser.add_argument("scene", type=Path, help="scene folder (ScanNet or SceneNN layout)")
+    parser.add_argument(
+        "scene", type=Path, help="scene folder (ScanNet or SceneNN layout, or a TUM, Replica or Redwood recording)"
+    )
     parser.add_argument(
         "--models",
         type=Path,
@@ -30,7 +32,7 @@ def register(subparsers) -> None:
         "or ram.onnx, groundingdino.onnx, sam_encoder.onnx, sam_decoder.onnx (docs/detectors.md)",
     )
     options.add_out(parser, required=True, metavar="DIR", help="detection folder to write (created)")
-    options.add_layout(parser, choices=("auto", "scannet", "scenenn"), help="scene layout")
+    options.add_layout(parser, help="scene layout")
     options.add_stride(parser, metavar="N", help="read every N-th frame of the sequence")
     parser.add_argument(
         "--every",

@@ -13,12 +13,15 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "info",
         help="summarize a scene folder (and a detection folder)",
-        description="Summarizes a ScanNet or SceneNN scene folder: frames, camera, depth range, world bounds, "
+        description="Summarizes a scene folder (ScanNet or SceneNN layout, or a TUM, Replica or Open3D/Redwood "
+        "recording: docs/your-own-data.md): frames, camera, depth range, world bounds, "
         "trajectory, ground-truth files; with --detections, the detection files. Reads the poses and "
         f"{SAMPLED_FRAMES} depth images, so it takes a few seconds at most.",
     )
-    parser.add_argument("scene", type=Path, help="scene folder (ScanNet color/ depth/ pose/ intrinsic/, or SceneNN)")
-    options.add_layout(parser, choices=("auto", "scannet", "scenenn"), help="default: auto")
+    parser.add_argument(
+        "scene", type=Path, help="scene folder (ScanNet color/ depth/ pose/ intrinsic/, SceneNN, TUM, Replica, Redwood)"
+    )
+    options.add_layout(parser, help="default: auto")
     options.add_stride(parser, help="use every N-th frame (default 1)")
     options.add_depth_max(parser)
     parser.add_argument(

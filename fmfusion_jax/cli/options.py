@@ -40,7 +40,11 @@ def add_seed(parser: argparse.ArgumentParser, help: str, default: int | None = 0
     parser.add_argument("--seed", type=int, default=default, help=help)
 
 
-def add_layout(parser: argparse.ArgumentParser, help: str, choices: tuple[str, ...] = ("auto", "scannet", "scenenn")) -> None:
+#: `--layout`'s choices: `io.scene.LAYOUTS` (a test keeps them equal; the parsers do not import the readers).
+LAYOUT_CHOICES = ("auto", "scannet", "scenenn", "tum", "replica", "redwood")
+
+
+def add_layout(parser: argparse.ArgumentParser, help: str, choices: tuple[str, ...] = LAYOUT_CHOICES) -> None:
     """`--layout`: the scene folder's layout (`auto`: detected)."""
     parser.add_argument("--layout", default="auto", choices=choices, help=help)
 

@@ -1,4 +1,6 @@
-"""Readers for posed RGB-D scenes in the ScanNet and SceneNN folder layouts.
+"""Readers for posed RGB-D scenes: the ScanNet and SceneNN folder layouts here, TUM RGB-D, Replica (NICE-SLAM)
+and Open3D / Redwood recordings in `io.recordings`; `open_scene` detects which one a folder is and reads
+each into the same `Scene` (docs/your-own-data.md says how to bring one's own recording).
 
 ScanNet (as exported for FM-Fusion; SensReader's plain numeric stems ``0.jpg`` also work)::
 
@@ -13,9 +15,14 @@ SceneNN (as converted by the authors)::
     SCENE/intrinsic/intrinsic_depth.txt; without `pose/`, a `trajectory.log` (Redwood format,
     one 4x4 camera-to-world block per image, in image order) is read instead.
 
+TUM RGB-D (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``; depth_scale 5000), Replica (``results/``,
+``traj.txt``; 6553.5) and Open3D / Redwood (``color/``, ``depth/``, ``camera_intrinsic.json``,
+``trajectory.log``; 1000): see `io.recordings`. A recording's own depth scale is used unless one is given.
+
 A frame is named by its colour image's stem (``frame-000000`` or ``image00000``): the authors' detection
 files are keyed by that name. Frames whose pose holds NaN or inf (ScanNet marks lost tracking so) are
-skipped with a warning and listed in `Scene.skipped`; a missing or unreadable file is a `DataError`.
+skipped with a warning and listed in `Scene.skipped` (so are a TUM recording's frames its trajectory does
+not cover); a missing or unreadable file is a `DataError`.
 """
 
 from __future__ import annotations
@@ -33,6 +40,16 @@ import numpy as np
 
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
+from fmfusion_jax.io.recordings import (
+    MAX_TIME_DIFFERENCE,
+    RECORDING_MARKERS,
+    PoseSource,
+    Recording,
+    check_files_exist,
+    read_recording,
+    read_trajectory_log,
+    recording_layouts,
+)
 from fmfusion_jax.types import CameraIntrinsics, RGBDFrame, pose_problem
 
 if TYPE_CHECKING:
@@ -40,7 +57,8 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-LAYOUTS = ("scannet", "scenenn")
+#: Every layout `open_scene` reads (the recording formats of `io.recordings` after ScanNet and SceneNN).
+LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,14 +92,18 @@ _LAYOUTS = {
 
 
 def detect_layout(path: str | Path) -> str:
-    """The layout of the scene folder `path` (``"scannet"`` or ``"scenenn"``); `UserError` when neither fits."""
+    """The layout of the scene folder `path` (one of `LAYOUTS`); `UserError` when none or several fit."""
     root = Path(path)
     if not root.is_dir():
         raise UserError(f"{root}: scene folder not found")
     matches = [name for name, layout in _LAYOUTS.items() if all((root / d).is_dir() for d in layout.required_dirs)]
+    matches += recording_layouts(root)
     if len(matches) == 1:
         return matches[0]
-    expected = "; ".join(f"{name}: {', '.join(d + '/' for d in layout.required_dirs)}" for name, layout in _LAYOUTS.items())
+    expected = "; ".join(
+        [f"{name}: {', '.join(d + '/' for d in layout.required_dirs)}" for name, layout in _LAYOUTS.items()]
+        + [f"{name}: {', '.join(markers)}" for name, markers in RECORDING_MARKERS.items()]
+    )
     if not matches:
         present = sorted(p.name + "/" for p in root.iterdir() if p.is_dir())
         raise UserError(f"{root}: unknown scene layout (sub-folders {present or 'none'}); expected {expected}")
@@ -129,29 +151,6 @@ def read_pose(path: Path) -> np.ndarray | None:
     if problem is not None:
         raise DataError(f"{path}: {problem}")
     return pose
-
-
-def read_trajectory_log(path: Path) -> np.ndarray:
-    """Reads a Redwood/SceneNN `trajectory.log`: blocks of one header line and 4 matrix rows.
-
-    Returns `(N, 4, 4)` float64 camera-to-world poses in file order.
-    """
-    if not path.is_file():
-        raise DataError(f"{path}: not a regular file")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as error:
-        raise DataError(f"{path}: unreadable ({error})") from None
-    lines = [line.split() for line in text.splitlines() if line.strip()]
-    if len(lines) % 5:
-        raise DataError(f"{path}: {len(lines)} non-empty lines, expected blocks of 5 (header + 4x4 matrix)")
-    try:
-        rows = [[float(x) for x in line] for k, line in enumerate(lines) if k % 5]
-    except ValueError as error:
-        raise DataError(f"{path}: {error}") from None
-    if any(len(row) != 4 for row in rows):
-        raise DataError(f"{path}: every matrix row must hold 4 numbers")
-    return np.asarray(rows, np.float64).reshape(-1, 4, 4)
 
 
 def read_depth_image(path: Path, depth_scale: float, depth_max: float) -> np.ndarray:
@@ -230,12 +229,12 @@ class Scene:
     Attributes:
       name: the scene folder's name (``scene0000_00``).
       path: the scene folder.
-      layout: ``"scannet"`` or ``"scenenn"``.
+      layout: the folder's format, one of `LAYOUTS` (``"scannet"``, ``"scenenn"``, ``"tum"``, ...).
       intrinsics: the depth camera; colour is registered (resized) to it.
       frame_names: names of the usable frames.
       frame_indices: `(N,)` int, each usable frame's position in the whole sequence (before the stride).
-      skipped: `(frame name, reason)` of the frames left out for a bad pose.
-      depth_max, depth_scale, stride: the reading options.
+      skipped: `(frame name, reason)` of the frames left out for a bad or missing pose.
+      depth_max, depth_scale, stride: the reading options (depth_scale: the one given, else the format's own).
     """
 
     def __init__(
@@ -248,6 +247,7 @@ class Scene:
         T_world_cameras: np.ndarray,
         skipped: Sequence[tuple[str, str]],
         color_paths: Sequence[Path],
+        depth_paths: Sequence[Path],
         depth_scale: float,
         depth_max: float,
         stride: int,
@@ -262,9 +262,9 @@ class Scene:
         self.depth_scale = depth_scale
         self.depth_max = depth_max
         self.stride = stride
-        self._layout = _LAYOUTS[layout]
         self._T_world_cameras = np.asarray(T_world_cameras, np.float64).reshape(-1, 4, 4)
         self._color_paths = list(color_paths)
+        self._depth_paths = list(depth_paths)
         self._resize_noted = False
 
     def __len__(self) -> int:
@@ -284,7 +284,7 @@ class Scene:
         return self._color_paths[i]
 
     def depth_path(self, i: int) -> Path:
-        return self._layout.depth_path(self.path, self.frame_names[i])
+        return self._depth_paths[i]
 
     def read_depth(self, i: int) -> np.ndarray:
         """`(H, W)` float32 metres of frame `i`; `DataError` when unreadable or not of the intrinsics' size."""
@@ -422,7 +422,8 @@ class Scene:
         return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
 
     def ground_truth_files(self) -> dict[str, Path | None]:
-        """The layout's ground-truth files by role, each the path when present, else None."""
+        """The layout's ground-truth files by role, each the path when present, else None (a recording of the
+        formats of `io.recordings` has none)."""
         if self.layout == "scannet":
             names = {
                 "mesh": f"{self.name}_vh_clean_2.ply",
@@ -430,8 +431,10 @@ class Scene:
                 "segments": f"{self.name}_vh_clean_2.0.010000.segs.json",
                 "aggregation": f"{self.name}.aggregation.json",
             }
-        else:
+        elif self.layout == "scenenn":
             names = {"mesh": f"{self.name}.ply", "annotation": f"{self.name}.xml"}
+        else:
+            names = {}
         return {role: (self.path / file if (self.path / file).is_file() else None) for role, file in names.items()}
 
 
@@ -440,18 +443,22 @@ def open_scene(
     layout: str = "auto",
     stride: int = 1,
     depth_max: float = 4.0,
-    depth_scale: float = 1000.0,
+    depth_scale: float | None = None,
     max_frames: int | None = None,
+    max_time_difference: float = MAX_TIME_DIFFERENCE,
 ) -> Scene:
     """Opens a scene folder: lists its frames, reads the intrinsics and the poses, checks every file exists.
 
     Args:
       path: the scene folder.
-      layout: ``"auto"``, ``"scannet"`` or ``"scenenn"``.
+      layout: ``"auto"`` or one of `LAYOUTS`.
       stride: keep every `stride`-th frame of the sequence (counted before skipping bad poses).
       depth_max: metres; farther depth reads as 0.
-      depth_scale: raw depth units per metre.
+      depth_scale: raw depth units per metre; None: the format's own (ScanNet, SceneNN, Redwood 1000, TUM 5000,
+        Replica 6553.5 or its cam_params.json's).
       max_frames: keep at most this many usable frames (after the stride), or all.
+      max_time_difference: seconds; a TUM recording's colour image pairs with a depth image (and a pose)
+        this close in time.
 
     Raises:
       UserError: bad arguments or an unknown layout.
@@ -460,7 +467,7 @@ def open_scene(
     root = Path(path)
     if layout == "auto":
         layout = detect_layout(root)
-    elif layout not in _LAYOUTS:
+    elif layout not in LAYOUTS:
         raise UserError(f"layout {layout!r}: expected 'auto' or one of {list(LAYOUTS)}")
     elif not root.is_dir():
         raise UserError(f"{root}: scene folder not found")
@@ -468,34 +475,26 @@ def open_scene(
         raise UserError(f"stride must be a positive integer, got {stride!r}")
     if max_frames is not None and not (isinstance(max_frames, int) and max_frames >= 1):
         raise UserError(f"max_frames must be a positive integer or None, got {max_frames!r}")
-    if not (depth_max > 0 and depth_scale > 0):
+    if not (depth_max > 0 and (depth_scale is None or depth_scale > 0)):
         raise UserError(f"depth_max ({depth_max}) and depth_scale ({depth_scale}) must be positive")
-    spec = _LAYOUTS[layout]
-    for folder in spec.required_dirs:
-        if not (root / folder).is_dir():
-            raise DataError(f"{root / folder}: folder missing (layout {layout} needs {', '.join(spec.required_dirs)})")
+    if not max_time_difference > 0:
+        raise UserError(f"max_time_difference must be positive, got {max_time_difference!r}")
+    if layout in _LAYOUTS:
+        recording = _read_folder_layout(root, _LAYOUTS[layout], stride)
+    else:
+        recording = read_recording(layout, root, stride, max_time_difference)
 
-    color_paths = _list_color_images(root / spec.color_dir, spec)
-    _check_every_depth_has_color(root, spec, color_paths)
-    all_names = [p.stem for p in color_paths]
-    picked = list(range(0, len(all_names), stride))
-    _check_files_exist([spec.depth_path(root, all_names[i]) for i in picked])
-    pose_source = _pose_source(root, spec, all_names, picked)
-
+    all_names = recording.names
     names: list[str] = []
     indices: list[int] = []
     poses: list[np.ndarray] = []
     skipped: list[tuple[str, str]] = []
-    for i in picked:
+    for i in range(0, len(all_names), stride):
         if max_frames is not None and len(names) >= max_frames:
             break
-        pose, where = pose_source(i)
-        reason = None
-        if pose is None:
-            reason = f"empty pose file {where}"
-        elif not np.all(np.isfinite(pose)):
-            reason = f"non-finite pose in {where}"
-        if reason:
+        pose, where = recording.pose(i)
+        if pose is None or not np.all(np.isfinite(pose)):
+            reason = where if pose is None else f"non-finite pose in {where}"
             logger.warning("%s: skipping frame %s: %s", root.name, all_names[i], reason)
             skipped.append((all_names[i], reason))
             continue
@@ -503,7 +502,7 @@ def open_scene(
         indices.append(i)
         poses.append(pose)
 
-    intrinsics = _read_intrinsics(root, spec, all_names[0])
+    intrinsics = recording.intrinsics()
     return Scene(
         root,
         layout,
@@ -512,8 +511,9 @@ def open_scene(
         indices,
         np.array(poses).reshape(-1, 4, 4),
         skipped,
-        [color_paths[i] for i in indices],
-        depth_scale,
+        [recording.color_paths[i] for i in indices],
+        [recording.depth_paths[i] for i in indices],
+        recording.depth_scale if depth_scale is None else depth_scale,
         depth_max,
         stride,
     )
@@ -521,7 +521,7 @@ def open_scene(
 
 def open_dataset_scene(path: str | Path, dataset: "DatasetConfig") -> Scene:
     """`open_scene` with the reading options of a config's `dataset` section (layout, stride, depth range,
-    depth scale, frame limit)."""
+    depth scale, frame limit, time tolerance)."""
     return open_scene(
         path,
         layout=dataset.layout,
@@ -529,6 +529,30 @@ def open_dataset_scene(path: str | Path, dataset: "DatasetConfig") -> Scene:
         depth_max=dataset.depth_max,
         depth_scale=dataset.depth_scale,
         max_frames=dataset.max_frames,
+        max_time_difference=dataset.max_time_difference,
+    )
+
+
+def _read_folder_layout(root: Path, spec: _Layout, stride: int) -> Recording:
+    """The frames of a ScanNet or SceneNN folder (every `stride`-th one's files checked to exist)."""
+    for folder in spec.required_dirs:
+        if not (root / folder).is_dir():
+            raise DataError(f"{root / folder}: folder missing (layout {spec.name} needs {', '.join(spec.required_dirs)})")
+    color_paths = _list_color_images(root / spec.color_dir, spec)
+    _check_every_depth_has_color(root, spec, color_paths)
+    all_names = [p.stem for p in color_paths]
+    picked = list(range(0, len(all_names), stride))
+    depth_paths = [spec.depth_path(root, name) for name in all_names]
+    check_files_exist([depth_paths[i] for i in picked])
+    pose_source = _pose_source(root, spec, all_names, picked)
+    return Recording(
+        spec.name,
+        all_names,
+        color_paths,
+        depth_paths,
+        pose_source,
+        lambda: _read_intrinsics(root, spec, all_names[0]),
+        1000.0,
     )
 
 
@@ -568,18 +592,7 @@ def _check_every_depth_has_color(root: Path, spec: _Layout, color_paths: list[Pa
         )
 
 
-def _check_files_exist(paths: list[Path]) -> None:
-    """`DataError` naming the first missing file (one listing per folder, not one stat per file)."""
-    listings: dict[Path, set[str]] = {}
-    for path in paths:
-        if path.parent not in listings:
-            listings[path.parent] = set(p.name for p in path.parent.iterdir()) if path.parent.is_dir() else set()
-        if path.name not in listings[path.parent]:
-            missing = sum(1 for p in paths if p.name not in listings.get(p.parent, set()))
-            raise DataError(f"{path}: file missing ({missing} of {len(paths)} such files missing)")
-
-
-def _pose_source(root: Path, spec: _Layout, names: list[str], picked: list[int]):
+def _pose_source(root: Path, spec: _Layout, names: list[str], picked: list[int]) -> PoseSource:
     """A function `i -> (pose or None, where)` for frame `i` of `names`: from `pose/`, else `trajectory.log`."""
     log_path = root / "trajectory.log"
     if spec.name == "scenenn" and not (root / "pose").is_dir() and log_path.is_file():
@@ -589,8 +602,13 @@ def _pose_source(root: Path, spec: _Layout, names: list[str], picked: list[int])
         logger.info("%s: poses read from %s (one per image, in order)", root.name, log_path)
         return lambda i: (trajectory[i], f"{log_path.name} block {i}")
     paths = [spec.pose_path(root, name) for name in names]
-    _check_files_exist([paths[i] for i in picked])
-    return lambda i: (read_pose(paths[i]), paths[i].name)
+    check_files_exist([paths[i] for i in picked])
+
+    def pose(i: int) -> tuple[np.ndarray | None, str]:
+        pose = read_pose(paths[i])
+        return pose, (paths[i].name if pose is not None else f"empty pose file {paths[i].name}")
+
+    return pose
 
 
 def _read_intrinsics(root: Path, spec: _Layout, first_name: str) -> CameraIntrinsics:

@@ -353,7 +353,7 @@ def check_depth_units(scene: Scene, sample: DepthSample) -> None:
         f"check dataset.depth_scale (now {scene.depth_scale:g} raw units per metre; millimetres: 1000, "
         f"TUM: 5000) and dataset.depth_max ({scene.depth_max:g} m)"
     )
-    where = f"{scene.path / 'depth'} ({len(sample.frame_names)} frames sampled)"
+    where = f"{scene.depth_path(0).parent} ({len(sample.frame_names)} frames sampled)"
     if share < _MIN_VALID_DEPTH_SHARE:
         raise UserError(f"{where}: only {100 * share:.2f}% of the pixels have depth within {scene.depth_max:g} m; {hint}")
     if p99 < _NEAR_DEPTH_LIMIT:
