@@ -84,6 +84,20 @@ def test_example_grows_the_same_map_as_fmfusion_run(room):
     assert mapper.frames_integrated == SPEC.num_frames
 
 
+def test_for_scene_is_the_map_fmfusion_run_fuses_into(room):
+    """`Mapper.for_scene`: sized up front as `fmfusion run` sizes its map (same layout: the same compiled steps), it
+    does not grow, and its instances are `fmfusion run`'s."""
+    scene_dir, detections, config = room
+    scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
+    folder = DetectionFolder(detections)
+    mapper = Mapper.for_scene(scene, config)
+    for frame in scene.frames(progress=True):
+        mapper.integrate(frame, folder.get(frame.name))
+    reference = fuse_scene(scene, lambda frame: folder.get(frame.name), config, progress=False)
+    assert mapper.growths == 0 and mapper.map_config == reference.map_config
+    assert _key(mapper.instances()) == _key(extract_map_instances(reference))
+
+
 def test_a_bounded_map_grows_its_pool_from_the_expected_blocks_to_the_same_map(room):
     """With bounds and a (far too small) expected block count, the pool starts small and doubles before a frame
     that might not fit: the same map, voxel for voxel, as the pool allocated at the config's capacity."""

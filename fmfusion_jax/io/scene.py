@@ -31,12 +31,13 @@ import dataclasses
 import logging
 import os
 import re
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
@@ -335,9 +336,12 @@ class Scene:
             intrinsics=self.intrinsics,
         )
 
-    def frames(self) -> Iterator[RGBDFrame]:
-        """Reads the usable frames one by one, in order."""
-        for i in range(len(self)):
+    def frames(self, progress: bool = False) -> Iterator[RGBDFrame]:
+        """Reads the usable frames one by one, in order; `progress`: with a progress bar on stderr (tqdm)."""
+        indices: Iterable[int] = range(len(self))
+        if progress:
+            indices = tqdm(indices, desc=self.name, unit="frame", dynamic_ncols=True)
+        for i in indices:
             yield self.read_frame(i)
 
     def sample_depth(self, max_frames: int = 30, pixel_step: int = 8) -> DepthSample:

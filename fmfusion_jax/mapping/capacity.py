@@ -218,3 +218,13 @@ def bounded_map_config(
     rows = initial_instance_rows(config.detections.max_detections, layout.instance_capacity)
     pool = layout.block_capacity if expected_blocks is None else initial_pool_blocks(expected_blocks, layout.block_capacity)
     return dataclasses.replace(layout, instance_capacity=rows, block_capacity=pool)
+
+
+def scene_extent(scene: Any, config: PipelineConfig, sample: Any = None, label_sets: Any = None):
+    """`(bounds, expected_blocks)` of a scene as `fmfusion run` sizes its map: the bounds of a sample of its frames'
+    poses and depth and the voxel blocks those frames allocate. `scene`: an `io.scene.Scene` (its `sample_depth`,
+    `bounds` and `intrinsics`); `sample`: its `sample_depth(...)` (default: 60 evenly spaced frames)."""
+    sample = sample if sample is not None else scene.sample_depth(max_frames=60)
+    low, high = scene.bounds(sample=sample)
+    layout = build_map_config(config, low, high, scene.intrinsics.height, scene.intrinsics.width, label_sets)
+    return (low, high), sample_block_count(sample.points_world, sample.ray_origins, layout)

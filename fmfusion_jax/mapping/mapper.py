@@ -50,6 +50,7 @@ from fmfusion_jax.mapping.capacity import (
     bounded_map_config,
     frame_block_extent,
     initial_instance_rows,
+    scene_extent,
 )
 from fmfusion_jax.mapping.engine_configs import build_map_config
 from fmfusion_jax.mapping.export import extract_map_instances
@@ -322,6 +323,29 @@ class Mapper:
             "schedule": self._schedule.state(),
         }
         return write_map_file(path, state, builder.map_config, builder.config, progress)
+
+    @classmethod
+    def for_scene(
+        cls,
+        scene: Any,
+        config: "str | Path | Mapping[str, Any] | PipelineConfig | None" = None,
+        *,
+        sample: Any = None,
+        **options: Any,
+    ) -> "Mapper":
+        """The Mapper `fmfusion run` fuses `scene` into (`fmfusion_jax.open_scene`'s `Scene`, or anything with its
+        `sample_depth`, `bounds` and `intrinsics`): sized up front from a sample of its frames (the bounds of their
+        poses and depth, the blocks they allocate), so that the map does not grow and recompile while fusing, and
+        its compiled steps are the ones `fmfusion run` compiled for a room of this size. A growing
+        `Mapper(config)` suits a live camera, whose scene is not known ahead.
+
+        Args:
+          sample: a `scene.sample_depth(...)` result (default: 60 evenly spaced frames).
+          options: the other keyword arguments of `Mapper` (`label_sets`, `likelihood`, `time_stages`, hooks).
+        """
+        pipeline = as_config(config)
+        bounds, expected = scene_extent(scene, pipeline, sample, options.get("label_sets"))
+        return cls(pipeline, scene.intrinsics, bounds=bounds, expected_blocks=expected, **options)
 
     @classmethod
     def load(cls, path: str | Path, time_stages: bool = False) -> "Mapper":

@@ -21,8 +21,6 @@ from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.scene import DepthSample, Scene
 from fmfusion_jax.mapping.builder import FusionResult
-from fmfusion_jax.mapping.capacity import sample_block_count
-from fmfusion_jax.mapping.engine_configs import build_map_config
 from fmfusion_jax.mapping.inputs import DetectionSource, PreparedFrame
 from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.mapping.schedule import DetectionSchedule, camera_motion
@@ -286,25 +284,12 @@ def read_ahead(read: Callable[[Any], T], items: Iterable[Any], reader: concurren
         yield pending.popleft().result()
 
 
-def scene_extent(scene: Scene, config: PipelineConfig, sample: DepthSample | None = None):
-    """`(bounds, expected_blocks)` of `scene` as `fmfusion run` sizes its map: the bounds of the sampled frames'
-    poses and depth (`sample`: a `Scene.sample_depth`, default 60 frames) and the blocks those frames allocate."""
-
-    sample = sample or scene.sample_depth(max_frames=60)
-    bounds = scene.bounds(sample=sample)
-    layout = build_map_config(config, *bounds, scene.intrinsics.height, scene.intrinsics.width)
-    return bounds, sample_block_count(sample.points_world, sample.ray_origins, layout)
-
-
 def mapper_for_scene(
     scene: Scene, config: PipelineConfig, sample: DepthSample | None = None, time_stages: bool = False, **hooks: Any
 ):
-    """The `Mapper` `fmfusion run` fuses `scene` into: its block index over the scene's bounds, its pool
-    starting at the blocks the sampled frames allocate (`scene_extent`) and doubling if the others show more.
-    `hooks`: the Mapper's `timer` and `fuse_detections` (the benchmark's)."""
-
-    bounds, expected = scene_extent(scene, config, sample)
-    return Mapper(config, bounds=bounds, expected_blocks=expected, time_stages=time_stages, **hooks)
+    """The `Mapper` `fmfusion run` fuses `scene` into (`Mapper.for_scene`). `hooks`: the Mapper's `timer` and
+    `fuse_detections` (the benchmark's)."""
+    return Mapper.for_scene(scene, config, sample=sample, time_stages=time_stages, **hooks)
 
 
 def fuse_scene(

@@ -14,9 +14,8 @@ from fmfusion_jax.apps.bench.scenes import BenchScene
 from fmfusion_jax.config import load_config
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.mapping.capacity import bounded_map_config
+from fmfusion_jax.mapping.capacity import bounded_map_config, scene_extent
 from fmfusion_jax.mapping.schedule import scheduled_detections
-from fmfusion_jax.run.scene_fusion import scene_extent
 
 #: Module of the Open3D peer pipelines (an optional dependency: `open3d-cpu`).
 PEER_MODULE = "fmfusion_jax.apps.bench.open3d_peer"
@@ -95,7 +94,7 @@ def device_memory_mb() -> float | None:
 
 
 def scene_map_config(config, opened):
-    """The map `fmfusion run` starts with for the opened scene (`runner.scene_extent`, `mapper.bounded_map_config`).
+    """The map `fmfusion run` starts with for the opened scene (`mapping.capacity.scene_extent`, `mapper.bounded_map_config`).
     The sweep's builders keep it (they do not grow)."""
 
     bounds, expected = scene_extent(opened, config)
