@@ -55,3 +55,48 @@ def test_the_summary_names_the_listed_files_present_in_its_order(tmp_path):
     for name in ("run.json", "mesh.ply", "overview.png", "config.yaml", "explain.md"):
         (tmp_path / name).write_text("")
     assert listed_outputs(tmp_path) == ["overview.png", "mesh.ply", "run.json", "explain.md"]
+
+
+def test_steps_run_after_their_inputs_and_a_missing_input_is_an_error():
+    """`_run_steps`: a step starts only once its inputs are done, whatever the threads; a step waiting for one that
+    is not there fails at once (it never spins)."""
+    import threading
+    import time
+
+    from fmfusion_jax.run.outputs import _run_steps
+
+    finished: list[str] = []
+    lock = threading.Lock()
+
+    def step(name: str, seconds: float):
+        def run():
+            time.sleep(seconds)
+            with lock:
+                finished.append(name)
+
+        return run
+
+    steps = {
+        "slow": (step("slow", 0.05), ()),
+        "after_slow": (step("after_slow", 0.0), ("slow",)),
+        "fast": (step("fast", 0.0), ()),
+        "after_both": (step("after_both", 0.0), ("after_slow", "fast")),
+    }
+    seconds = _run_steps(steps, threads=2)
+    assert set(seconds) == set(steps)
+    assert finished.index("slow") < finished.index("after_slow") < finished.index("after_both")
+    assert finished.index("fast") < finished.index("after_both")
+    with pytest.raises(RuntimeError, match="never run"):
+        _run_steps({"orphan": (step("orphan", 0.0), ("absent",))}, threads=2)
+
+
+def test_given_instances_are_written_without_a_fused_map(tmp_path):
+    """A context with instances given (a baseline's: no fused map) writes the writers that need no map."""
+    import types
+
+    from fmfusion_jax.labels import load_label_sets
+    from fmfusion_jax.run.outputs import OutputContext, write_files
+
+    context = OutputContext(types.SimpleNamespace(name="given"), tmp_path, None, load_label_sets(), [])
+    write_files(context, names=("instances.json", "semantic.ply", "scene_graph.json"))
+    assert {"instances.json", "semantic.ply", "scene_graph.json"} <= {p.name for p in tmp_path.iterdir()}

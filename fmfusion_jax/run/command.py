@@ -17,7 +17,6 @@ from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 from fmfusion_jax.io.scene import Scene
 from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.mapping.builder import FusionResult
-from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import DetectionSource
 from fmfusion_jax.run import outputs
 from fmfusion_jax.run.checkpoint import Checkpoint
@@ -54,13 +53,6 @@ def write_outputs(
     label_sets = load_label_sets()
     out_dir.mkdir(parents=True, exist_ok=True)
     clear_outputs(out_dir)
-    clock = time.perf_counter()
-    instances = extract_map_instances(result, label_sets)
-    timings = {"extract_instances": round(time.perf_counter() - clock, 3)}
-    if not instances:
-        log.warning(
-            "%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply are empty", scene.name
-        )
     gt = load_ground_truth(scene)
     ground_truth = None if isinstance(gt, str) else gt
     context = outputs.OutputContext(
@@ -68,7 +60,6 @@ def write_outputs(
         out_dir,
         result.config,
         label_sets,
-        instances,
         result=result,
         ground_truth=ground_truth,
         ground_truth_error=gt if isinstance(gt, str) else None,
@@ -76,11 +67,14 @@ def write_outputs(
         skipped=scene.skipped if skipped is None else skipped,
         detection_ms=detection_ms,
         frame_seconds=frame_seconds,
-        timings=timings,
     )
     selected = [w.name for w in outputs.select_writers(names) if save_state or w.name != MAP_STATE_FILE]
-    outputs.write_files(context, selected)
-    log.info("outputs of %s written into %s (seconds: %s)", scene.name, out_dir, timings)
+    outputs.write_files(context, selected)  # the instances are extracted there, beside the mesh and the map file
+    if not context.map_instances:
+        log.warning(
+            "%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply are empty", scene.name
+        )
+    log.info("outputs of %s written into %s (seconds: %s)", scene.name, out_dir, context.timings)
     return context.summary if context.summary is not None else outputs.run_summary(context)
 
 

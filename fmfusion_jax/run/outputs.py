@@ -47,7 +47,7 @@ class OutputContext:
       out_dir: the output folder.
       config: the run's config.
       label_sets: the label sets of the map.
-      instances: the map's instances.
+      instances: the map's instances (None: extracted from `result` when first read, `map_instances`).
       result: the fused map (None: instances without a map, as a baseline's; then only the writers of
         config.yaml, instances.json, the clouds, the scene graph and the benchmark files apply).
       ground_truth: the scene's ground truth (None: none, or `ground_truth_error`).
@@ -67,7 +67,7 @@ class OutputContext:
     out_dir: Path
     config: PipelineConfig
     label_sets: LabelSets
-    instances: list[MapInstance]
+    instances: list[MapInstance] | None = None
     result: FusionResult | None = None
     ground_truth: SceneGroundTruth | None = None
     ground_truth_error: str | None = None
@@ -87,17 +87,26 @@ class OutputContext:
         return self.result
 
     @functools.cached_property
+    def map_instances(self) -> list[MapInstance]:
+        """The instances given, or those of the fused map (`mapping.export.extract_map_instances`)."""
+        if self.instances is not None:
+            return self.instances
+        from fmfusion_jax.mapping.export import extract_map_instances  # lazy: JAX (`fmfusion --help` reads the registry)
+
+        return extract_map_instances(self.fused_map, self.label_sets)
+
+    @functools.cached_property
     def records(self) -> list[dict]:
         """The records of instances.json."""
         from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
 
-        return map_outputs.instances_json(self.instances, self.label_sets)
+        return map_outputs.instances_json(self.map_instances, self.label_sets)
 
     @functools.cached_property
     def points(self) -> InstancePoints:
         from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
 
-        return map_outputs.instance_points(self.instances, self.label_sets)
+        return map_outputs.instance_points(self.map_instances, self.label_sets)
 
     @functools.cached_property
     def graph(self) -> dict[str, Any]:
@@ -120,7 +129,7 @@ class OutputContext:
             raise ValueError(f"{self.out_dir}: the benchmark outputs need the scene's ground truth")
         gt_ids = self.ground_truth.benchmark_ids()
         predictions, score = score_instances(
-            self.instances, self.ground_truth, self.scene.name, self.config, self.label_sets, gt_ids, self.floor
+            self.map_instances, self.ground_truth, self.scene.name, self.config, self.label_sets, gt_ids, self.floor
         )
         return gt_ids, predictions, score
 
@@ -219,7 +228,7 @@ def run_summary(context: OutputContext) -> dict[str, Any]:
         "scene": context.scene.name,
         "frames": result.frames_integrated,
         "detection_frames": result.detection_frames,
-        "instances": len(context.instances),
+        "instances": len(context.map_instances),
         "counters": result.counters,
         "timings_ms": result.timings.summary(),
         **({"frame_ms_as_run": _as_run_summary(context.frame_seconds)} if context.frame_seconds else {}),
@@ -269,7 +278,7 @@ def _write_instance_cloud(context: OutputContext) -> None:
 def _write_instance_folder(context: OutputContext) -> None:
     from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
 
-    map_outputs.write_instance_folder(context.out_dir / "instances", context.instances, context.label_sets)
+    map_outputs.write_instance_folder(context.out_dir / "instances", context.map_instances, context.label_sets)
 
 
 def _write_labelled_points(context: OutputContext) -> None:
@@ -344,7 +353,9 @@ def _write_overview(context: OutputContext) -> None:
 
     result, gt, label_sets = context.fused_map, context.ground_truth, context.label_sets
     vertices, faces, colors = context.mesh
-    panels = [overview.map_overview_panel(context.instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)]
+    panels = [
+        overview.map_overview_panel(context.map_instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)
+    ]
     if gt is not None:
         panels.append(
             overview.ground_truth_overview_panel(
@@ -408,6 +419,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("instances/",),
         "one PLY per instance, `NNNN_<class>.ply`, in its instance colour",
         _write_instance_folder,
+        uses=("map_instances",),
         lap="write_instances",
     ),
     OutputWriter(
@@ -490,7 +502,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("overview.png",),
         "top-down picture of the instances by class, beside the ground truth when there is one",
         _write_overview,
-        uses=("mesh", "scored"),
+        uses=("mesh", "scored", "map_instances"),
         lap="overview",
         listed=1,
     ),
@@ -524,13 +536,13 @@ def chosen_outputs(names: Sequence[str] | None) -> tuple[str, ...] | None:
     return tuple(dict.fromkeys([*names, RUN_RECORD]))
 
 
-#: The `OutputContext` values several writers read, each made once; `graph` is made from the records.
-SHARED_VALUES = ("records", "points", "mesh", "scored", "graph")
+#: The `OutputContext` values several writers read, each made once.
+SHARED_VALUES = ("map_instances", "records", "points", "mesh", "scored", "graph")
 #: What a shared value is made from (`write_files` starts it once these are made).
-_VALUE_INPUTS = {"graph": ("records",)}
-#: Steps started first when they are ready, longest chains first: the mesh (the overview waits for it), the map
-#: file (long, and its zlib runs beside everything else), the benchmark score (three writers and the overview).
-_FIRST = ("mesh", "map_state.npz", "scored")
+_VALUE_INPUTS = {"records": ("map_instances",), "points": ("map_instances",), "scored": ("map_instances",), "graph": ("records",)}
+#: Steps started first when they are ready, the chain to the overview first (it is long, and waits for the mesh,
+#: the instances and the benchmark score), then the map file (long, its zlib runs beside everything else).
+_FIRST = ("mesh", "map_instances", "scored", "overview.png", "map_state.npz")
 
 #: Threads the writers run in: zlib and PNG encoding release the GIL, and so does much of NumPy.
 WRITER_THREADS = 2
@@ -545,16 +557,22 @@ def write_files(context: OutputContext, names: Collection[str] | None = None) ->
     writers = [w for w in select_writers(names) if not (w.needs_ground_truth and context.ground_truth is None)]
     record = [w for w in writers if w.name == RUN_RECORD]
     others = [w for w in writers if w.name != RUN_RECORD]
+    if context.instances is None:  # extracted here, beside the values that do not need them (the mesh, the map file)
+        context.timings.setdefault("extract_instances", 0.0)
     for writer in others:  # run.json lists the steps in registry order
         if writer.lap is not None:
             context.timings.setdefault(writer.lap, 0.0)
     steps: dict[str, tuple[Callable[[], Any], tuple[str, ...], str | None]] = {}
     for name in SHARED_VALUES:
-        readers = [w for w in others if name in w.uses]
+        readers = [w for w in others if name in w.uses or any(name in _VALUE_INPUTS.get(u, ()) for u in w.uses)]
         if name == "scored" and context.ground_truth is None:
             readers = [w for w in readers if w.needs_ground_truth]  # the overview reads the score only with ground truth
+        if name == "map_instances" and context.instances is not None:
+            continue  # given
         if readers:  # a shared value's time counts to the first writer that reads it
-            steps[name] = (functools.partial(getattr, context, name), _VALUE_INPUTS.get(name, ()), readers[0].lap)
+            lap = "extract_instances" if name == "map_instances" else readers[0].lap
+            inputs = tuple(i for i in _VALUE_INPUTS.get(name, ()) if i in steps)
+            steps[name] = (functools.partial(getattr, context, name), inputs, lap)
     for writer in others:
         inputs = tuple(name for name in writer.uses if name in steps)
         steps[writer.name] = (functools.partial(writer.write, context), inputs, writer.lap)
@@ -564,24 +582,27 @@ def write_files(context: OutputContext, names: Collection[str] | None = None) ->
         lap = steps[name][2]
         if lap is not None:
             context.timings[lap] = round(context.timings.get(lap, 0.0) + seconds[name], 3)
-    context.outputs_wall_s = context.timings.get("extract_instances", 0.0) + time.perf_counter() - start
+    context.outputs_wall_s = context.timings.get("extract_instances", 0.0) if context.instances is not None else 0.0
+    context.outputs_wall_s += time.perf_counter() - start
     for writer in record:
         writer.write(context)
 
 
 def _run_steps(steps: dict[str, tuple[Callable[[], Any], tuple[str, ...]]], threads: int) -> dict[str, float]:
-    """Runs each step `name: (fn, inputs)` in a pool of `threads` once the steps named in its inputs are done,
-    ready steps in the order given; returns each step's seconds. A step's exception is raised here once the
-    steps already running have finished."""
+    """Runs each step `name: (fn, inputs)` in a pool of `threads` once the steps named in its inputs are done: a
+    thread that comes free takes the first ready step in the order given. Returns each step's seconds. A step's
+    exception is raised here once the steps already running have finished."""
     seconds: dict[str, float] = {}
     waiting = dict(steps)
     with concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="outputs") as pool:
         running: dict[concurrent.futures.Future, str] = {}
         while waiting or running:
-            for name, (fn, inputs) in list(waiting.items()):
-                if all(i in seconds for i in inputs):
+            for name, (fn, inputs) in list(waiting.items()):  # a free thread takes the first ready step
+                if len(running) < threads and all(i in seconds for i in inputs):
                     running[pool.submit(_timed, fn)] = name
                     del waiting[name]
+            if not running:  # a step waits for one that is not there: a bug in the steps' inputs
+                raise RuntimeError(f"output steps {sorted(waiting)} wait for steps that never run")
             done, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
             for future in done:
                 seconds[running.pop(future)] = future.result()

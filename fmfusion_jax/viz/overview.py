@@ -273,7 +273,9 @@ def _densify(
         return points, colors
     faces = np.asarray(faces, np.int64)
     corners = points[faces]  # (F, 3, 3)
-    edge = np.max(np.linalg.norm(corners[:, [1, 2, 0], :2] - corners[:, :, :2], axis=2), axis=1)
+    # the longest top-down edge: squared lengths compared, one square root per face
+    squared = [np.sum(np.square(corners[:, b, :2] - corners[:, a, :2]), axis=1) for a, b in ((0, 1), (1, 2), (2, 0))]
+    edge = np.sqrt(np.maximum(np.maximum(squared[0], squared[1]), squared[2]))
     step = 1.5 * pixel
     for _ in range(8):  # coarser steps until the new points fit the budget
         steps = np.minimum(np.ceil(edge / step), 32).astype(np.int64)
