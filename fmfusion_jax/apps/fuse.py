@@ -42,7 +42,7 @@ def run_scene(
     outputs: list[str] | None = None,
 ) -> int:
 
-    if not scene_dir.is_dir():
+    if not scene_dir.exists():
         raise UserError(f"scene folder {scene_dir} does not exist")
     if checkpoint_every < 0:
         raise UserError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
