@@ -230,6 +230,17 @@ def test_topic_overrides_and_several_candidates(frames, tmp_path, caplog):
     # chaining to base_link instead of the camera gives the poses without the mounting
     scene = open_scene(bag, topics=BagTopics(pose_frame="base_link"))
     np.testing.assert_allclose(scene.poses(), frames.poses @ np.linalg.inv(MOUNT), atol=1e-6)
+    # raw and compressed colour: raw is chosen and the other named; the override picks the compressed one
+    jpeg = write_bag(frames, tmp_path / "jpeg", ros1=False, color="jpeg")
+    both = tmp_path / "both"
+    topics = ("/camera/color/image_raw", "/camera/aligned_depth_to_color/image_raw", "/camera/aligned_depth_to_color/camera_info")
+    _drop_topics(bag, both, (*topics, "/tf", "/tf_static"), also=(jpeg, "/camera/color/image_raw/compressed"))
+    with caplog.at_level(logging.INFO, logger="fmfusion_jax.io.ros_bags"):
+        raw = open_scene(both)
+    assert "colour images from /camera/color/image_raw (Image rgb8); also ['/camera/color/image_raw/compressed']" in caplog.text
+    compressed = open_scene(both, topics=BagTopics(color="/camera/color/image_raw/compressed"))
+    assert compressed.color_path(0).suffix == ".jpg" and raw.color_path(0).suffix == ".png"
+    np.testing.assert_allclose(compressed.poses(), frames.poses, atol=1e-6)
 
 
 @pytest.mark.parametrize(
@@ -259,17 +270,20 @@ def test_a_partial_bag_is_a_clear_error(frames, tmp_path, options, error):
     assert str(bag) in str(raised.value)
 
 
-def _drop_topics(source: Path, target: Path, keep: tuple[str, ...]) -> None:
+def _drop_topics(source: Path, target: Path, keep: tuple[str, ...], also: tuple[Path, str] | None = None) -> None:
+    """Copies the topics `keep` of the ROS 2 bag `source` into `target` (and the topic `also[1]` of the bag `also[0]`)."""
     from rosbags.highlevel import AnyReader
 
-    with AnyReader([source]) as reader, Writer2(target, version=9) as writer:
-        connections = {}
-        for conn in reader.connections:
-            if conn.topic in keep:
-                connections[conn.id] = writer.add_connection(conn.topic, conn.msgtype, typestore=reader.typestore)
-        for conn, t, raw in reader.messages():
-            if conn.id in connections:
-                writer.write(connections[conn.id], t, raw)
+    with Writer2(target, version=9) as writer:
+        for bag, topics in [(source, keep), *([(also[0], (also[1],))] if also else [])]:
+            with AnyReader([bag]) as reader:
+                connections = {}
+                for conn in reader.connections:
+                    if conn.topic in topics:
+                        connections[conn.id] = writer.add_connection(conn.topic, conn.msgtype, typestore=reader.typestore)
+                for conn, t, raw in reader.messages():
+                    if conn.id in connections:
+                        writer.write(connections[conn.id], t, raw)
 
 
 def test_without_rosbags_the_error_says_how_to_install(frames, tmp_path, monkeypatch):

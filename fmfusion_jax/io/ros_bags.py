@@ -183,7 +183,12 @@ def _extracted(path: Path, topics: BagTopics) -> Path:
         folder.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=folder.name + ".", dir=folder.parent))
         try:
-            _extract(path, reader, topics, staging)
+            try:
+                _extract(path, reader, topics, staging)
+            except (DataError, UserError):
+                raise
+            except Exception as error:  # a message rosbags cannot read, an image cv2 cannot decode: name the bag
+                raise DataError(f"{path}: reading the bag failed ({type(error).__name__}: {error})") from None
             try:
                 staging.rename(folder)
             except OSError:  # another process made it meanwhile: theirs is the same
