@@ -45,7 +45,7 @@ class _Section(BaseModel):
 
 
 class DatasetConfig(_Section):
-    layout: Literal["auto", "scannet", "scenenn", "tum", "replica", "redwood"] = knob(
+    layout: Literal["auto", "scannet", "scenenn", "tum", "replica", "redwood", "rosbag"] = knob(
         "auto", "folder layout (auto: detected from the folder; docs/your-own-data.md)"
     )
     depth_scale: Float | None = knob(
@@ -58,8 +58,19 @@ class DatasetConfig(_Section):
     frame_stride: Int = knob(1, "read every Nth frame", ge=1)
     max_frames: Int | None = knob(None, "stop after this many frames (null: all)", ge=1)
     max_time_difference: Float = knob(
-        0.02, "s; TUM recordings: a colour image pairs with the depth image and pose this close in time", gt=0
+        0.02, "s; TUM recordings, ROS bags: a colour image pairs with the depth image and pose this close in time", gt=0
     )
+    color_topic: str | None = knob(
+        None, "ROS bags: the colour topic (Image rgb8/bgr8/rgba8/bgra8 or CompressedImage; null: chosen and logged)"
+    )
+    depth_topic: str | None = knob(
+        None, "ROS bags: the depth topic, registered to colour (Image 16UC1 mm or 32FC1 m; null: chosen and logged)"
+    )
+    camera_info_topic: str | None = knob(None, "ROS bags: the depth camera's CameraInfo topic (null: chosen and logged)")
+    pose_topic: str | None = knob(
+        None, "ROS bags: the camera poses, a PoseStamped or Odometry topic or /tf (null: /tf when it reaches the camera)"
+    )
+    pose_frame: str | None = knob(None, "ROS bags: the tf frame whose pose is the camera's (null: the camera info's frame_id)")
 
 
 class TSDFConfig(_Section):

@@ -8,6 +8,9 @@ folders the simulator wrote (`fmfusion simulate`), so simulated detections reach
 
     source = open_detection_source(scene, detections="outputs/sim0000")       # files
     source = open_detection_source(scene, models="../shared/models")          # models.yaml or a known layout
+
+`fmfusion run` without `--detections` or `--models` fuses through `NoDetections`: every frame's depth and colour
+into the TSDF, no instance (the geometry alone; `Mapper.load` continues such a map later, with detections).
 """
 
 from __future__ import annotations
@@ -65,6 +68,21 @@ class ModelSource:
         return f"ModelSource({str(self.folder)!r}, frames={self.frames})"
 
 
+class NoDetections:
+    """The source of a run given no detections: no frame has any, so every frame is integrated into the TSDF only
+    (`Mapper.integrate(frame, None)`) and the map holds geometry alone. Stateless, so read ahead with the frames."""
+
+    reads_ahead = True
+    detects_ahead = False
+    geometry_only = True
+
+    def __call__(self, frame: RGBDFrame) -> FrameDetections | None:
+        return None
+
+    def __repr__(self) -> str:
+        return "NoDetections()"
+
+
 def open_detection_source(
     scene: Scene,
     *,
@@ -116,4 +134,4 @@ def open_detection_source(
     return folder
 
 
-__all__ = ["ModelSource", "open_detection_source"]
+__all__ = ["ModelSource", "NoDetections", "open_detection_source"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 from typing import Any
@@ -10,11 +11,14 @@ from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.interrupt import StopRequest
 from fmfusion_jax.io.scene import open_dataset_scene
+from fmfusion_jax.mapping.inputs import DetectionSource
 from fmfusion_jax.run.command import run_and_export
 from fmfusion_jax.run.folder import check_output_folder, prepare_output_dir
 from fmfusion_jax.run.outputs import chosen_outputs
-from fmfusion_jax.sources import open_detection_source
+from fmfusion_jax.sources import NoDetections, open_detection_source
 from fmfusion_jax.viz.live import RerunView
+
+log = logging.getLogger(__name__)
 
 
 def run_scene(
@@ -38,7 +42,7 @@ def run_scene(
     outputs: list[str] | None = None,
 ) -> int:
 
-    if not scene_dir.is_dir():
+    if not scene_dir.exists():
         raise UserError(f"scene folder {scene_dir} does not exist")
     if checkpoint_every < 0:
         raise UserError(f"--checkpoint-every must be >= 0, got {checkpoint_every}")
@@ -47,7 +51,15 @@ def run_scene(
     check_output_folder(out, (scene_dir, detections, models), overwrite)
     prepare_output_dir(out, create=False)  # a bad --out fails now, not after the fusion
     scene = open_dataset_scene(scene_dir, config.dataset)
-    source = open_detection_source(scene, detections=detections, models=models, providers=providers, config=config)
+    if detections is None and models is None:
+        log.warning(
+            "%s: no detection source given (--detections or --models): every frame is fused into the TSDF only, so the "
+            "map holds geometry alone (no instance); Mapper.load(OUT/map_state.npz) continues it later with detections",
+            scene.name,
+        )
+        source: DetectionSource = NoDetections()
+    else:
+        source = open_detection_source(scene, detections=detections, models=models, providers=providers, config=config)
     observer = None
     if viewer or viewer_save:
         observer = RerunView(save=viewer_save, spawn=viewer_save is None)

@@ -16,18 +16,20 @@ def register(subparsers) -> None:
         description="Fuses an RGB-D scene (ScanNet or SceneNN layout, or a TUM, Replica or Open3D/Redwood "
         "recording: docs/your-own-data.md) and its open-set detections (authors' "
         "file format) into a map of 3D instances, then writes the map into --out. With ground truth (the scene's "
-        "_vh_clean_2.ply mesh), it also scores the map (report.json).",
+        "_vh_clean_2.ply mesh), it also scores the map (report.json). Without --detections or --models it builds the "
+        "geometry alone: every frame into the TSDF, no instance (mesh.ply, map_state.npz, an empty instances.json).",
         epilog=outputs_help(),
         formatter_class=HelpFormatter,
     )
     parser.add_argument("scene", type=Path, help="scene folder")
-    source = parser.add_mutually_exclusive_group(required=True)
+    source = parser.add_mutually_exclusive_group()
     source.add_argument(
         "--detections", type=Path, help="folder of precomputed detections (frame-XXXXXX_label.json + _mask.png/.npy)"
     )
     source.add_argument(
         "--models", type=Path, help="run the foundation models online instead: folder of ONNX exports (see docs/detectors.md)"
     )
+    # neither: the map of the geometry alone (every frame into the TSDF, no instance)
     parser.add_argument(
         "--providers", default="cpu", choices=("cpu", "cuda", "auto"), help="onnxruntime execution providers for --models"
     )

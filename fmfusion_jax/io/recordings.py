@@ -317,17 +317,22 @@ def _tum_pose_source(root: Path, frame_stamps: np.ndarray, max_time_difference: 
             f"{path}: the trajectory spans {first:.3f}..{last:.3f} s, but no frame lies within it "
             f"(frames {frame_stamps.min():.3f}..{frame_stamps.max():.3f} s)"
         )
+    return lambda i: pose_at(stamps, translations, quaternions, float(frame_stamps[i]), max_time_difference, path.name)
 
-    def pose(i: int) -> tuple[np.ndarray | None, str]:
-        t = frame_stamps[i]
-        if not inside[i]:
-            return None, f"time stamp {t:.6f} outside the time span of {path.name} ({first:.3f}..{last:.3f} s)"
-        around = stamps[max(np.searchsorted(stamps, t) - 1, 0) :][:2]
-        if np.min(np.abs(around - t)) > max_time_difference and np.ptp(around) > MAX_POSE_GAP:
-            return None, f"time stamp {t:.6f} in a {np.ptp(around):.3f} s gap of {path.name}"
-        return interpolate_pose(stamps, translations, quaternions, float(t)), f"{path.name} at {t:.6f}"
 
-    return pose
+def pose_at(
+    stamps: np.ndarray, translations: np.ndarray, quaternions: np.ndarray, t: float, max_time_difference: float, label: str
+) -> tuple[np.ndarray | None, str]:
+    """The pose of a trajectory (sorted `stamps`, unit `quaternions`) at time `t`, interpolated (`interpolate_pose`),
+    and where it came from; or None and why not: `t` outside the trajectory's span, or in a gap of it (no pose
+    within `max_time_difference` and the two around more than `MAX_POSE_GAP` apart). `label` names the trajectory."""
+    first, last = stamps[0], stamps[-1]
+    if not first <= t <= last:
+        return None, f"time stamp {t:.6f} outside the time span of {label} ({first:.3f}..{last:.3f} s)"
+    around = stamps[max(np.searchsorted(stamps, t) - 1, 0) :][:2]
+    if np.min(np.abs(around - t)) > max_time_difference and np.ptp(around) > MAX_POSE_GAP:
+        return None, f"time stamp {t:.6f} in a {np.ptp(around):.3f} s gap of {label}"
+    return interpolate_pose(stamps, translations, quaternions, t), f"{label} at {t:.6f}"
 
 
 def _read_replica(root: Path, stride: int) -> Recording:

@@ -51,6 +51,7 @@ from fmfusion_jax.io.recordings import (
     read_trajectory_log,
     recording_layouts,
 )
+from fmfusion_jax.io.ros_bags import BagTopics, is_ros_bag, read_bag
 from fmfusion_jax.types import CameraIntrinsics, RGBDFrame, pose_problem
 
 if TYPE_CHECKING:
@@ -59,7 +60,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 #: Every layout `open_scene` reads (the recording formats of `io.recordings` after ScanNet and SceneNN).
-LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS)
+LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS, "rosbag")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,6 +96,8 @@ _LAYOUTS = {
 def detect_layout(path: str | Path) -> str:
     """The layout of the scene folder `path` (one of `LAYOUTS`); `UserError` when none or several fit."""
     root = Path(path)
+    if is_ros_bag(root):
+        return "rosbag"
     if not root.is_dir():
         raise UserError(f"{root}: scene folder not found")
     matches = [name for name, layout in _LAYOUTS.items() if all((root / d).is_dir() for d in layout.required_dirs)]
@@ -104,6 +107,7 @@ def detect_layout(path: str | Path) -> str:
     expected = "; ".join(
         [f"{name}: {', '.join(d + '/' for d in layout.required_dirs)}" for name, layout in _LAYOUTS.items()]
         + [f"{name}: {', '.join(markers)}" for name, markers in RECORDING_MARKERS.items()]
+        + ["rosbag: metadata.yaml and a .db3 or .mcap (ROS 2), or a .bag file (ROS 1)"]
     )
     if not matches:
         present = sorted(p.name + "/" for p in root.iterdir() if p.is_dir())
@@ -450,19 +454,21 @@ def open_scene(
     depth_scale: float | None = None,
     max_frames: int | None = None,
     max_time_difference: float = MAX_TIME_DIFFERENCE,
+    topics: BagTopics | None = None,
 ) -> Scene:
     """Opens a scene folder: lists its frames, reads the intrinsics and the poses, checks every file exists.
 
     Args:
-      path: the scene folder.
+      path: the scene folder (or a ROS 1 ``.bag`` file).
       layout: ``"auto"`` or one of `LAYOUTS`.
       stride: keep every `stride`-th frame of the sequence (counted before skipping bad poses).
       depth_max: metres; farther depth reads as 0.
       depth_scale: raw depth units per metre; None: the format's own (ScanNet, SceneNN, Redwood 1000, TUM 5000,
         Replica 6553.5 or its cam_params.json's).
       max_frames: keep at most this many usable frames (after the stride), or all.
-      max_time_difference: seconds; a TUM recording's colour image pairs with a depth image (and a pose)
-        this close in time.
+      max_time_difference: seconds; a TUM recording's or a ROS bag's colour image pairs with a depth image (and
+        a pose) this close in time.
+      topics: a ROS bag's topics, when not the ones chosen automatically (`io.ros_bags`).
 
     Raises:
       UserError: bad arguments or an unknown layout.
@@ -473,7 +479,9 @@ def open_scene(
         layout = detect_layout(root)
     elif layout not in LAYOUTS:
         raise UserError(f"layout {layout!r}: expected 'auto' or one of {list(LAYOUTS)}")
-    elif not root.is_dir():
+    elif layout != "rosbag" and is_ros_bag(root):
+        raise UserError(f"{root}: a ROS bag, but the layout asked for is {layout!r} (use auto or rosbag)")
+    elif not (root.is_dir() or (layout == "rosbag" and root.is_file())):
         raise UserError(f"{root}: scene folder not found")
     if not (isinstance(stride, int) and stride >= 1):
         raise UserError(f"stride must be a positive integer, got {stride!r}")
@@ -485,6 +493,8 @@ def open_scene(
         raise UserError(f"max_time_difference must be positive, got {max_time_difference!r}")
     if layout in _LAYOUTS:
         recording = _read_folder_layout(root, _LAYOUTS[layout], stride)
+    elif layout == "rosbag":
+        recording = read_bag(root, max_time_difference, topics)
     else:
         recording = read_recording(layout, root, stride, max_time_difference)
 
@@ -525,7 +535,7 @@ def open_scene(
 
 def open_dataset_scene(path: str | Path, dataset: "DatasetConfig") -> Scene:
     """`open_scene` with the reading options of a config's `dataset` section (layout, stride, depth range,
-    depth scale, frame limit, time tolerance)."""
+    depth scale, frame limit, time tolerance, a ROS bag's topics)."""
     return open_scene(
         path,
         layout=dataset.layout,
@@ -534,6 +544,9 @@ def open_dataset_scene(path: str | Path, dataset: "DatasetConfig") -> Scene:
         depth_scale=dataset.depth_scale,
         max_frames=dataset.max_frames,
         max_time_difference=dataset.max_time_difference,
+        topics=BagTopics(
+            dataset.color_topic, dataset.depth_topic, dataset.camera_info_topic, dataset.pose_topic, dataset.pose_frame
+        ),
     )
 
 

@@ -174,12 +174,14 @@ def run_and_export(
         except OSError as error:
             raise UserError(f"cannot write the outputs into {staging}: {error}") from None
         folder = out_dir if complete else staging
-        text = summarize_run(summary, result, time.perf_counter() - start, folder)
+        geometry_only = bool(getattr(detection_source, "geometry_only", False))
+        text = summarize_run(summary, result, time.perf_counter() - start, folder, geometry_only=geometry_only)
         return RunOutcome(text, complete, folder)
 
 
-def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: Path) -> str:
-    """The lines `fmfusion run` / `fmfusion demo` print at the end: AP table, counts, timings, outputs."""
+def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: Path, geometry_only: bool = False) -> str:
+    """The lines `fmfusion run` / `fmfusion demo` print at the end: AP table, counts, timings, outputs
+    (`geometry_only`: the run had no detection source, so no instance is expected)."""
     lines = [
         f"{summary['scene']}: {summary['frames']} frames, {summary['detection_frames']} with detections, "
         f"{summary['instances']} instances "
@@ -207,7 +209,9 @@ def summarize_run(summary: dict, result: FusionResult, seconds: float, out_dir: 
             f"warning: {len(skipped)} frames skipped or partly skipped for bad input (listed in run.json; "
             f"first: {skipped[0]['frame']}: {skipped[0]['reason']})"
         )
-    if result.detection_frames == 0:
+    if geometry_only:
+        lines.append("geometry only: no detection source was given (--detections or --models), so the map has no instance")
+    elif result.detection_frames == 0:
         lines.append("warning: no frame had detections, so the map has no instances: check the detections folder")
     benchmark = summary.get("benchmark", {})
     if "table" in benchmark:
