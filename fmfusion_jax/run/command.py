@@ -70,7 +70,7 @@ def write_outputs(
     )
     selected = [w.name for w in outputs.select_writers(names) if save_state or w.name != MAP_STATE_FILE]
     outputs.write_files(context, selected)  # the instances are extracted there, beside the mesh and the map file
-    if not context.map_instances:
+    if not context.map_instances and result.detection_frames:  # a run without detections holds geometry only
         log.warning(
             "%s: the map has no instance: instances.json lists none, semantic.ply and instances.ply are empty", scene.name
         )
