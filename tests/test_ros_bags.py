@@ -96,20 +96,25 @@ def write_bag(
     T = ts.types
     camera_frame = "camera_color_optical_frame"
     messages: list[tuple[float, str, str, object]] = []
+
+    def raw_image(stamp: float, pixels: np.ndarray, encoding: str):
+        """A sensor_msgs/Image of `pixels` (H, W[, 3])."""
+        return T["sensor_msgs/msg/Image"](
+            header=_header(ts, ros1, stamp, camera_frame),
+            height=HEIGHT,
+            width=WIDTH,
+            encoding=encoding,
+            is_bigendian=0,
+            step=WIDTH * pixels.itemsize * (pixels.shape[2] if pixels.ndim == 3 else 1),
+            data=np.frombuffer(np.ascontiguousarray(pixels).tobytes(), np.uint8),
+        )
+
     for i in range(len(frames.poses)):
         t = T0 + i * DT
         rgb = frames.colors[i]
         if color in ("rgb8", "bgr8"):
             pixels = rgb if color == "rgb8" else rgb[..., ::-1]
-            image = T["sensor_msgs/msg/Image"](
-                header=_header(ts, ros1, t, camera_frame),
-                height=HEIGHT,
-                width=WIDTH,
-                encoding=color,
-                is_bigendian=0,
-                step=WIDTH * 3,
-                data=np.ascontiguousarray(pixels).reshape(-1),
-            )
+            image = raw_image(t, pixels, color)
             messages.append((t, "/camera/color/image_raw", "sensor_msgs/msg/Image", image))
         else:
             ok, data = cv2.imencode("." + ("jpg" if color == "jpeg" else "png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -127,15 +132,7 @@ def write_bag(
             messages.append((td, "/camera/aligned_depth_to_color/image_raw/compressedDepth", image.__msgtype__, image))
         else:
             values = mm if depth == "16UC1" else mm.astype(np.float32) / 1000.0
-            image = T["sensor_msgs/msg/Image"](
-                header=_header(ts, ros1, td, camera_frame),
-                height=HEIGHT,
-                width=WIDTH,
-                encoding=depth,
-                is_bigendian=0,
-                step=WIDTH * values.itemsize,
-                data=np.frombuffer(np.ascontiguousarray(values).tobytes(), np.uint8),
-            )
+            image = raw_image(td, values, depth)
             messages.append((td, "/camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image", image))
         if camera_info:
             K = frames.intrinsics

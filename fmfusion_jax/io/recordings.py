@@ -220,6 +220,35 @@ def associate(first: np.ndarray, second: np.ndarray, max_difference: float) -> l
     return sorted(pairs)
 
 
+def pair_streams(
+    color_stamps: np.ndarray,
+    depth_stamps: np.ndarray,
+    max_time_difference: float,
+    where: str,
+    color_stream: str = "",
+    depth_stream: str = "",
+) -> list[tuple[int, int]]:
+    """`associate`'s `(colour, depth)` index pairs; a DataError naming `where` (and the streams, e.g. a bag's topics)
+    when no colour image has a depth image within the tolerance, and a log line saying how many colour images are
+    left out without one."""
+    pairs = associate(color_stamps, depth_stamps, max_time_difference)
+    if not pairs:
+        raise DataError(
+            f"{where}: no colour image{color_stream} has a depth image{depth_stream} within {max_time_difference:g} s "
+            f"(colour stamps {color_stamps.min():.3f}..{color_stamps.max():.3f}, depth {depth_stamps.min():.3f}.."
+            f"{depth_stamps.max():.3f}; unsynchronised streams? dataset.max_time_difference sets the tolerance)"
+        )
+    if len(pairs) < len(color_stamps):
+        logger.info(
+            "%s: %d of %d colour images have no depth image within %g s; left out",
+            where,
+            len(color_stamps) - len(pairs),
+            len(color_stamps),
+            max_time_difference,
+        )
+    return pairs
+
+
 def read_open3d_intrinsics(path: Path) -> CameraIntrinsics:
     """Open3D's PinholeCameraIntrinsic JSON: ``{"width", "height", "intrinsic_matrix": [9 numbers, column-major]}``."""
     data = _read_json(path)
@@ -263,21 +292,7 @@ def _read_tum(root: Path, stride: int, max_time_difference: float) -> Recording:
     rgb_path, depth_path = root / "rgb.txt", root / "depth.txt"
     rgb_stamps, rgb_files = _read_tum_list(rgb_path)
     depth_stamps, depth_files = _read_tum_list(depth_path)
-    pairs = associate(rgb_stamps, depth_stamps, max_time_difference)
-    if not pairs:
-        raise DataError(
-            f"{rgb_path}, {depth_path}: no colour image has a depth image within {max_time_difference:g} s "
-            f"(colour stamps {rgb_stamps.min():.3f}..{rgb_stamps.max():.3f}, depth {depth_stamps.min():.3f}.."
-            f"{depth_stamps.max():.3f}; unsynchronised streams? dataset.max_time_difference sets the tolerance)"
-        )
-    if len(pairs) < len(rgb_stamps):
-        logger.info(
-            "%s: %d of %d colour images have no depth image within %g s; left out",
-            root.name,
-            len(rgb_stamps) - len(pairs),
-            len(rgb_stamps),
-            max_time_difference,
-        )
+    pairs = pair_streams(rgb_stamps, depth_stamps, max_time_difference, f"{rgb_path}, {depth_path}")
     color_paths = [root / rgb_files[i] for i, _ in pairs]
     depth_paths = [root / depth_files[j] for _, j in pairs]
     names = [path.stem for path in color_paths]

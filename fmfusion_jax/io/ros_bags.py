@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from fmfusion_jax.errors import DataError, UserError
-from fmfusion_jax.io.recordings import Recording, associate, pose_at, quaternion_to_matrix
+from fmfusion_jax.io.recordings import Recording, pair_streams, pose_at, quaternion_to_matrix
 from fmfusion_jax.types import CameraIntrinsics, pose_problem
 
 logger = logging.getLogger(__name__)
@@ -89,22 +89,8 @@ def read_bag(path: Path, max_time_difference: float, topics: BagTopics | None = 
     manifest = json.loads((folder / "manifest.json").read_text())
     arrays = np.load(folder / "stamps.npz")
     color_stamps, depth_stamps = arrays["color"], arrays["depth"]
-    pairs = associate(color_stamps, depth_stamps, max_time_difference)
-    if not pairs:
-        raise DataError(
-            f"{path}: no colour image of {manifest['color_topic']} has a depth image of {manifest['depth_topic']} within "
-            f"{max_time_difference:g} s (colour stamps {color_stamps.min():.3f}..{color_stamps.max():.3f}, depth "
-            f"{depth_stamps.min():.3f}..{depth_stamps.max():.3f}; unsynchronised streams? dataset.max_time_difference "
-            "sets the tolerance)"
-        )
-    if len(pairs) < len(color_stamps):
-        logger.info(
-            "%s: %d of %d colour images have no depth image within %g s; left out",
-            path.name,
-            len(color_stamps) - len(pairs),
-            len(color_stamps),
-            max_time_difference,
-        )
+    of_color, of_depth = f" of {manifest['color_topic']}", f" of {manifest['depth_topic']}"
+    pairs = pair_streams(color_stamps, depth_stamps, max_time_difference, str(path), of_color, of_depth)
     colors, depths = manifest["color_files"], manifest["depth_files"]
     stamps = color_stamps[[i for i, _ in pairs]]
     chain = [(edge["label"], arrays[f"edge{k}"]) for k, edge in enumerate(manifest["pose_chain"])]
