@@ -118,3 +118,16 @@ def test_ray_executor_gives_the_local_results(dataset, local_run, tmp_path):
         ray.shutdown()
     local = _records(local_run[0])
     assert {k: _key(r) for k, r in local.items()} == {k: _key(r) for k, r in _records(distributed).items()}
+
+
+def test_scenes_run_together_share_the_device(monkeypatch):
+    """Several scene processes at once: JAX's GPU preallocation off in their environment (a process would
+    otherwise take 75 % of the device, and the third or fourth could not start); a user's own setting is kept."""
+    from fmfusion_jax.apps.batch import PREALLOCATE_ENV, child_environment
+
+    monkeypatch.delenv(PREALLOCATE_ENV, raising=False)
+    assert child_environment(4)[PREALLOCATE_ENV] == "false"
+    assert PREALLOCATE_ENV not in child_environment(1)
+    assert child_environment(1)["PYTHONUNBUFFERED"] == "1"
+    monkeypatch.setenv(PREALLOCATE_ENV, "true")
+    assert child_environment(4)[PREALLOCATE_ENV] == "true"

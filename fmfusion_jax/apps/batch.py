@@ -115,9 +115,27 @@ def detections_for(pattern: str, scene: Path) -> str:
 PROGRESS_EVERY_S = 15.0
 
 
-def run_scene(task: SceneTask, progress: Callable[[str, str], None] | None = None) -> dict[str, Any]:
-    """Runs one scene's commands in child processes; returns its record (status ok / failed / timeout /
-    memory). `progress(scene, text)` hears how far the fusion got every `PROGRESS_EVERY_S` seconds."""
+#: JAX's GPU memory preallocation (75 % of the device per process by default), turned off for the scene processes
+#: that share a device: with it, the third or fourth process on one GPU cannot start ("no supported devices").
+PREALLOCATE_ENV = "XLA_PYTHON_CLIENT_PREALLOCATE"
+
+
+def child_environment(concurrent_scenes: int) -> dict[str, str]:
+    """The environment of a scene's child processes: this one's, unbuffered, and without JAX's GPU memory
+    preallocation when several scenes run at once (each takes what it uses; a user's own setting is kept). On a
+    CPU the setting changes nothing."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if concurrent_scenes > 1:
+        env.setdefault(PREALLOCATE_ENV, "false")
+    return env
+
+
+def run_scene(
+    task: SceneTask, progress: Callable[[str, str], None] | None = None, env: dict[str, str] | None = None
+) -> dict[str, Any]:
+    """Runs one scene's commands in child processes (environment `env`, default `child_environment(1)`); returns
+    its record (status ok / failed / timeout / memory). `progress(scene, text)` hears how far the fusion got every
+    `PROGRESS_EVERY_S` seconds."""
     start = time.perf_counter()
     record: dict[str, Any] = {"scene": task.name, "path": task.scene, "out": task.out}
     command = [sys.executable, "-m", "fmfusion_jax.cli"]
@@ -129,7 +147,7 @@ def run_scene(task: SceneTask, progress: Callable[[str, str], None] | None = Non
     for argv in steps:
         left = None if task.timeout_s is None else max(1.0, task.timeout_s - (time.perf_counter() - start))
         report = None if progress is None else (lambda text: progress(task.name, text))  # noqa: E731
-        outcome = _run_child(argv, left, task.memory_mib, report)
+        outcome = _run_child(argv, left, task.memory_mib, report, env)
         if outcome["status"] != "ok":
             record.update(status=outcome["status"], error=outcome["error"])
             break
@@ -157,7 +175,11 @@ def _summary_fields(summary: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run_child(
-    argv: list[str], timeout_s: float | None, memory_mib: float | None = None, progress: Callable[[str], None] | None = None
+    argv: list[str],
+    timeout_s: float | None,
+    memory_mib: float | None = None,
+    progress: Callable[[str], None] | None = None,
+    env: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """One child process: its status (ok, failed, timeout, memory) and its error line. The child is stopped
     past `timeout_s` seconds or `memory_mib` MiB of resident memory (polled twice a second); `progress` hears
@@ -165,7 +187,7 @@ def _run_child(
 
     with tempfile.TemporaryFile("w+") as stderr_file:
         process = subprocess.Popen(
-            argv, stdout=subprocess.DEVNULL, stderr=stderr_file, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+            argv, stdout=subprocess.DEVNULL, stderr=stderr_file, text=True, env=env or child_environment(1)
         )
         start = last_report = time.perf_counter()
         stopped = None
@@ -275,9 +297,11 @@ class Batch:
         report: Callable[[dict], None],
         progress: Callable[[str, str], None] | None = None,
     ) -> None:
-        """Runs `tasks` in up to `workers` concurrent scene processes (`progress`: see `run_scene`)."""
+        """Runs `tasks` in up to `workers` concurrent scene processes (`progress`: see `run_scene`), which share the
+        device (`child_environment`)."""
+        env = child_environment(min(workers, len(tasks)))
         with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-            futures = [pool.submit(run_scene, task, progress) for task in tasks]
+            futures = [pool.submit(run_scene, task, progress, env) for task in tasks]
             for future in concurrent.futures.as_completed(futures):
                 result = future.result()
                 self.record(result)
