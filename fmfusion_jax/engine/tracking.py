@@ -57,6 +57,7 @@ class TrackingConfig:
     # Levenberg-Marquardt damping, a share of the mean eigenvalue of J^T J added to its diagonal: a direction the
     # level's geometry hardly constrains (a coarse level of a room of planes) is not moved along by noise
     damping: float = 0.01
+    crease_cos: float = 0.9  # no normal where the one-sided normals differ by more than acos(this) (a crease)
 
     def __post_init__(self) -> None:
         if self.levels < 1 or len(self.iterations) != self.levels or min(self.iterations) < 0:
@@ -168,7 +169,14 @@ def _vertex_normal_map(depth, intrinsics, config: TrackingConfig):
         smooth = smooth & (other > 0) & (jnp.abs(other - d) <= EDGE_STEP * d)
     n = jnp.cross(dx, dy)
     length = jnp.linalg.norm(n, axis=-1)
-    valid = smooth & (length > 0)
+    # a crease (a wall meeting the floor) has a continuous depth but a normal between its two planes: the
+    # one-sided differences disagree there
+    forward = jnp.cross(pad_v[1:-1, 2:] - vertices, pad_v[2:, 1:-1] - vertices)
+    backward = jnp.cross(vertices - pad_v[1:-1, :-2], vertices - pad_v[:-2, 1:-1])
+    agree = jnp.sum(forward * backward, axis=-1) >= config.crease_cos * jnp.linalg.norm(forward, axis=-1) * jnp.linalg.norm(
+        backward, axis=-1
+    )
+    valid = smooth & (length > 0) & agree
     n = n / jnp.where(valid, length, 1.0)[..., None]
     n = jnp.where(jnp.sum(n * vertices, axis=-1, keepdims=True) > 0, -n, n)
     zero = jnp.zeros_like(vertices)
