@@ -1,0 +1,314 @@
+"""Camera tracking: projective point-to-plane ICP of a depth frame against a reference frame.
+
+Frame-to-frame: the reference is the previous (or the last well tracked) frame's vertex and normal maps in its
+own camera frame; the result is `T_reference_current`, the current camera's pose in the reference camera's
+frame. The host chains these into `T_world_camera` (`mapping.tracking`).
+
+Per frame (`track_frame`), coarse to fine over an image pyramid (`TrackingConfig.levels` levels, each the one
+above subsampled 2x), a fixed number of Gauss-Newton iterations per level (`lax.fori_loop`: the loop is
+compiled once for an image size and a config, never per frame):
+
+- every valid current pixel's point `p = T_reference_current @ v_current` is projected into the reference
+  image; the reference's vertex `q` and normal `n` at the nearest pixel are its correspondence
+  (projective data association, as in KinectFusion);
+- pairs further apart than `max_distance` or whose normals differ by more than `max_normal_angle_deg` are
+  rejected;
+- the point-to-plane residual `r = n . (p - q)` is linearised in a left-multiplied twist `xi = (rho, phi)`
+  (translation, rotation; `T <- exp(xi) T`): `dr/dxi = [n, p x n]`; the 6x6 normal equations
+  `(J^T J) xi = -J^T r` are solved with `jnp.linalg.solve`.
+
+The failure signal (`TrackResult`): the RMS point-to-plane residual (m) and the inliers at the final pose on
+the finest level, their share of the current frame's valid pixels, and `lost` when too few inliers remain, the
+residual is too large, the motion is implausibly large for one frame step, or the solve went non-finite.
+
+Shapes: `(H, W)` the depth image, `(Hl, Wl)` a pyramid level (`H >> l, W >> l`); intrinsics are float32
+`(4,) = (fx, fy, cx, cy)` of the full image; poses float32 `(4, 4)`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+#: A depth step of more than this share of the depth between neighbouring pixels is an edge: no normal there.
+EDGE_STEP = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingConfig:
+    """Static parameters of the tracker (hashable: a static argument of the jitted functions)."""
+
+    levels: int = 3  # pyramid levels, each subsampled 2x from the one above
+    iterations: tuple[int, ...] = (10, 5, 4)  # Gauss-Newton iterations per level, finest level first
+    depth_min: float = 0.1  # depth readings below this (m) are ignored
+    depth_max: float = 4.0  # ... and above this
+    max_distance: float = 0.1  # correspondences further apart than this (m) are outliers
+    max_normal_angle_deg: float = 30.0  # ... and so are those whose normals differ by more than this
+    min_inliers: int = 100  # lost: fewer inliers at the final pose (finest level) ...
+    min_inlier_share: float = 0.2  # ... or fewer than this share of the current frame's valid pixels ...
+    max_residual: float = 0.02  # ... or an RMS point-to-plane residual above this (m) ...
+    max_translation: float = 0.3  # ... or a motion of more than this (m) ...
+    max_rotation_deg: float = 30.0  # ... or of more than this (degrees) between the two frames
+    # Levenberg-Marquardt damping, a share of the mean eigenvalue of J^T J added to its diagonal: a direction the
+    # level's geometry hardly constrains (a coarse level of a room of planes) is not moved along by noise
+    damping: float = 0.01
+    crease_cos: float = 0.9  # no normal where the one-sided normals differ by more than acos(this) (a crease)
+
+    def __post_init__(self) -> None:
+        if self.levels < 1 or len(self.iterations) != self.levels or min(self.iterations) < 0:
+            raise ValueError(f"need one non-negative iteration count per level, got {self.iterations} for {self.levels}")
+
+
+class FrameMaps(NamedTuple):
+    """A depth frame's pyramid, finest level first: camera-frame vertices and unit normals (zero where invalid)."""
+
+    vertices: tuple[jax.Array, ...]  # float32[Hl, Wl, 3] per level
+    normals: tuple[jax.Array, ...]  # float32[Hl, Wl, 3] per level
+    valid: tuple[jax.Array, ...]  # bool[Hl, Wl]: a vertex with a normal
+
+
+class TrackResult(NamedTuple):
+    """The estimated motion and how well it fits."""
+
+    T_reference_current: jax.Array  # float32[4, 4]
+    residual: jax.Array  # float32[]: RMS point-to-plane residual of the inliers (m) at the final pose, finest level
+    inliers: jax.Array  # int32[]: inlier correspondences at the final pose, finest level
+    inlier_share: jax.Array  # float32[]: inliers / valid current pixels
+    lost: jax.Array  # bool[]: the estimate is not to be trusted (see `TrackingConfig`)
+
+
+# ------------------------------------------------------------------------------------------- SE(3)
+
+
+def hat(w):
+    """`(3, 3)` skew matrix of `(3,)` `w`: `hat(w) @ x == cross(w, x)`."""
+    zero = jnp.zeros((), w.dtype)
+    return jnp.stack([jnp.stack([zero, -w[2], w[1]]), jnp.stack([w[2], zero, -w[0]]), jnp.stack([-w[1], w[0], zero])])
+
+
+def _so3_coefficients(theta2):
+    """`(sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3)` of `t = sqrt(theta2)`, with Taylor series near 0."""
+    small = theta2 < 1e-4
+    t2 = jnp.where(small, 1.0, theta2)
+    t = jnp.sqrt(t2)
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(t) / t)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(t)) / t2)
+    c = jnp.where(small, 1.0 / 6.0 - theta2 / 120.0, (t - jnp.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def se3_exp(xi):
+    """`(4, 4)` rigid transform `exp(xi)` of the twist `xi = (rho, phi)` `(6,)` (translation part first)."""
+    rho, phi = xi[:3], xi[3:]
+    K = hat(phi)
+    a, b, c = _so3_coefficients(jnp.dot(phi, phi))
+    eye = jnp.eye(3, dtype=xi.dtype)
+    K2 = K @ K
+    R = eye + a * K + b * K2
+    V = eye + b * K + c * K2
+    top = jnp.concatenate([R, (V @ rho)[:, None]], axis=1)
+    return jnp.concatenate([top, jnp.array([[0.0, 0.0, 0.0, 1.0]], xi.dtype)], axis=0)
+
+
+def se3_log(T):
+    """`(6,)` twist `xi = (rho, phi)` with `se3_exp(xi) == T`, for a rotation angle below pi."""
+    R, t = T[:3, :3], T[:3, 3]
+    cos = jnp.clip((jnp.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = jnp.arccos(cos)
+    vee = jnp.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    small = theta < 1e-3
+    sin = jnp.where(small, 1.0, jnp.sin(theta))
+    scale = jnp.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * sin))
+    phi = scale * vee
+    _, b, c = _so3_coefficients(jnp.dot(phi, phi))
+    K = hat(phi)
+    V = jnp.eye(3, dtype=T.dtype) + b * K + c * (K @ K)
+    return jnp.concatenate([jnp.linalg.solve(V, t), phi])
+
+
+def motion_size(T):
+    """`(translation (m), rotation angle (degrees))` of a rigid transform."""
+    cos = jnp.clip((jnp.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return jnp.linalg.norm(T[:3, 3]), jnp.degrees(jnp.arccos(cos))
+
+
+# ------------------------------------------------------------------------------------------- maps
+
+
+def level_intrinsics(intrinsics, level: int):
+    """Intrinsics `(4,)` of pyramid level `level` (pixel `(u, v)` there is `(2^l u, 2^l v)` at full size)."""
+    s = 1.0 / (1 << level)
+    return jnp.asarray(intrinsics, jnp.float32) * s
+
+
+def _vertex_normal_map(depth, intrinsics, config: TrackingConfig):
+    """Vertices, normals and validity `(Hl, Wl, 3), (Hl, Wl, 3), (Hl, Wl)` of one level's depth `(Hl, Wl)`.
+
+    Normals are the cross product of the central differences of the neighbouring vertices, where the pixel and
+    its four neighbours are valid and no neighbour's depth differs by more than `EDGE_STEP` of the pixel's;
+    they face the camera."""
+    h, w = depth.shape
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    ok = (depth >= config.depth_min) & (depth <= config.depth_max)
+    d = jnp.where(ok, depth, 0.0)
+    u = jnp.arange(w, dtype=jnp.float32)[None, :]
+    v = jnp.arange(h, dtype=jnp.float32)[:, None]
+    vertices = jnp.stack([(u - cx) / fx * d, (v - cy) / fy * d, d], axis=-1)
+    pad_v = jnp.pad(vertices, ((1, 1), (1, 1), (0, 0)))
+    pad_d = jnp.pad(d, 1)
+    dx = pad_v[1:-1, 2:] - pad_v[1:-1, :-2]
+    dy = pad_v[2:, 1:-1] - pad_v[:-2, 1:-1]
+    neighbours = (pad_d[1:-1, 2:], pad_d[1:-1, :-2], pad_d[2:, 1:-1], pad_d[:-2, 1:-1])
+    smooth = ok
+    for other in neighbours:
+        smooth = smooth & (other > 0) & (jnp.abs(other - d) <= EDGE_STEP * d)
+    n = jnp.cross(dx, dy)
+    length = jnp.linalg.norm(n, axis=-1)
+    # a crease (a wall meeting the floor) has a continuous depth but a normal between its two planes: the
+    # one-sided differences disagree there
+    forward = jnp.cross(pad_v[1:-1, 2:] - vertices, pad_v[2:, 1:-1] - vertices)
+    backward = jnp.cross(vertices - pad_v[1:-1, :-2], vertices - pad_v[:-2, 1:-1])
+    agree = jnp.sum(forward * backward, axis=-1) >= config.crease_cos * jnp.linalg.norm(forward, axis=-1) * jnp.linalg.norm(
+        backward, axis=-1
+    )
+    valid = smooth & (length > 0) & agree
+    n = n / jnp.where(valid, length, 1.0)[..., None]
+    n = jnp.where(jnp.sum(n * vertices, axis=-1, keepdims=True) > 0, -n, n)
+    zero = jnp.zeros_like(vertices)
+    return jnp.where(valid[..., None], vertices, zero), jnp.where(valid[..., None], n, zero), valid
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def frame_maps(depth, intrinsics, config: TrackingConfig) -> FrameMaps:
+    """The vertex/normal pyramid of a depth frame.
+
+    Args:
+      depth: float32 `(H, W)` metres (readings outside `[depth_min, depth_max]` are invalid).
+      intrinsics: float32 `(4,)` `(fx, fy, cx, cy)` of the full image.
+    """
+    depth = jnp.asarray(depth, jnp.float32)
+    vertices, normals, valid = [], [], []
+    for level in range(config.levels):
+        step = 1 << level
+        v, n, ok = _vertex_normal_map(depth[::step, ::step], level_intrinsics(intrinsics, level), config)
+        vertices.append(v)
+        normals.append(n)
+        valid.append(ok)
+    return FrameMaps(tuple(vertices), tuple(normals), tuple(valid))
+
+
+# ------------------------------------------------------------------------------------------- ICP
+
+
+class NormalEquations(NamedTuple):
+    """The Gauss-Newton system of one ICP iteration at one level."""
+
+    A: jax.Array  # float32[6, 6]: J^T J
+    b: jax.Array  # float32[6]: J^T r
+    squared_error: jax.Array  # float32[]: sum of r^2 over the inliers
+    inliers: jax.Array  # int32[]
+
+
+def normal_equations(
+    ref_vertex, ref_normal, ref_valid, cur_vertex, cur_normal, cur_valid, intrinsics, T, config
+) -> NormalEquations:
+    """Point-to-plane normal equations of the current level maps against the reference's at `T_reference_current`.
+
+    Args:
+      ref_vertex, ref_normal: float32 `(Hl, Wl, 3)`; ref_valid: bool `(Hl, Wl)` (reference camera frame).
+      cur_vertex, cur_normal: float32 `(Hl, Wl, 3)`; cur_valid: bool `(Hl, Wl)` (current camera frame).
+      intrinsics: float32 `(4,)` of this level; T: float32 `(4, 4)` `T_reference_current`.
+    """
+    h, w = ref_valid.shape
+    R, t = T[:3, :3], T[:3, 3]
+    p = cur_vertex @ R.T + t  # (Hl, Wl, 3) in the reference frame
+    n_cur = cur_normal @ R.T
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    z = p[..., 2]
+    z_safe = jnp.where(z > 1e-6, z, 1.0)
+    u = jnp.round(fx * p[..., 0] / z_safe + cx)
+    v = jnp.round(fy * p[..., 1] / z_safe + cy)
+    inside = cur_valid & (z > 1e-6) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    flat = jnp.where(inside, v.astype(jnp.int32) * w + u.astype(jnp.int32), 0)
+    q = ref_vertex.reshape(-1, 3)[flat]
+    n = ref_normal.reshape(-1, 3)[flat]
+    diff = p - q
+    cos_limit = math.cos(math.radians(config.max_normal_angle_deg))
+    inlier = (
+        inside
+        & ref_valid.reshape(-1)[flat]
+        & (jnp.sum(diff * diff, axis=-1) <= config.max_distance**2)
+        & (jnp.sum(n * n_cur, axis=-1) >= cos_limit)
+    )
+    r = jnp.where(inlier, jnp.sum(n * diff, axis=-1), 0.0)
+    J = jnp.where(inlier[..., None], jnp.concatenate([n, jnp.cross(p, n)], axis=-1), 0.0).reshape(-1, 6)
+    r = r.reshape(-1)
+    return NormalEquations(J.T @ J, J.T @ r, jnp.sum(r * r), jnp.sum(inlier.astype(jnp.int32)))
+
+
+def gauss_newton_update(system: NormalEquations, T, damping: float = 0.0):
+    """`T` after one (damped) Gauss-Newton step `exp(xi) T` with `(J^T J + lambda I) xi = -J^T r`, `lambda =
+    damping * trace(J^T J) / 6` (unchanged where the system is degenerate: fewer than 6 inliers or a non-finite
+    solution)."""
+    lam = damping * jnp.trace(system.A) / 6.0
+    xi = jnp.linalg.solve(system.A + lam * jnp.eye(6, dtype=system.A.dtype), -system.b)
+    usable = (system.inliers >= 6) & jnp.all(jnp.isfinite(xi))
+    return jnp.where(usable, se3_exp(jnp.where(usable, xi, 0.0)) @ T, T)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def track_frame(
+    reference: FrameMaps, current: FrameMaps, intrinsics, T_reference_current_guess, config: TrackingConfig
+) -> TrackResult:
+    """`T_reference_current` by coarse-to-fine point-to-plane ICP from a guess (identity for small motions).
+
+    Args:
+      reference, current: `frame_maps` of the two frames (the same image size and config).
+      intrinsics: float32 `(4,)` of the full image.
+      T_reference_current_guess: float32 `(4, 4)`.
+    """
+    T = jnp.asarray(T_reference_current_guess, jnp.float32)
+    for level in reversed(range(config.levels)):
+        K = level_intrinsics(intrinsics, level)
+        maps = (
+            reference.vertices[level],
+            reference.normals[level],
+            reference.valid[level],
+            current.vertices[level],
+            current.normals[level],
+            current.valid[level],
+        )
+
+        def body(_, T, maps=maps, K=K):
+            return gauss_newton_update(normal_equations(*maps, K, T, config), T, config.damping)
+
+        T = jax.lax.fori_loop(0, config.iterations[level], body, T)
+    final = normal_equations(
+        reference.vertices[0],
+        reference.normals[0],
+        reference.valid[0],
+        current.vertices[0],
+        current.normals[0],
+        current.valid[0],
+        level_intrinsics(intrinsics, 0),
+        T,
+        config,
+    )
+    count = jnp.maximum(final.inliers, 1).astype(jnp.float32)
+    residual = jnp.sqrt(final.squared_error / count)
+    share = final.inliers / jnp.maximum(jnp.sum(current.valid[0].astype(jnp.int32)), 1).astype(jnp.float32)
+    translation, rotation = motion_size(T)
+    lost = (
+        (final.inliers < config.min_inliers)
+        | (share < config.min_inlier_share)
+        | (residual > config.max_residual)
+        | (translation > config.max_translation)
+        | (rotation > config.max_rotation_deg)
+        | ~jnp.all(jnp.isfinite(T))
+    )
+    return TrackResult(T, residual, final.inliers, share, lost)

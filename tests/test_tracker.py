@@ -1,0 +1,120 @@
+"""The host tracker (`mapping.tracking`): accuracy on a generated room along a smooth 30 Hz path, the skip of a
+lost frame, and the TUM trajectory it writes."""
+
+from __future__ import annotations
+
+import functools
+import time
+
+import numpy as np
+import pytest
+
+from fmfusion_jax.io.recordings import quaternion_to_matrix
+from fmfusion_jax.mapping.tracking import Tracker, rotation_to_quaternion, track_depths, write_tum_trajectory
+from fmfusion_jax.types import CameraIntrinsics
+
+WIDTH, HEIGHT = 160, 120
+INTRINSICS = CameraIntrinsics(144.4, 144.4, WIDTH / 2 - 0.5, HEIGHT / 2 - 0.5, WIDTH, HEIGHT)
+NUM_FRAMES = 60
+#: The generator's closed loop drawn over this many frames is a one-minute walk at 30 Hz: 3 mm (9 cm/s) and up to
+#: 1.7 degrees (50 degrees/s) between frames (the loop over a few dozen frames, as the mapping tests draw it, is
+#: far faster).
+LOOP_FRAMES = 1800
+
+
+@functools.cache
+def sequence(stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth `T_world_camera` `(N, 4, 4)` and rendered depth `(N, H, W)` of the first `2 * stride` s of the
+    walk, every `stride`-th frame (30 / stride Hz)."""
+    from fmfusion_jax.simulation.procedural import add_object, camera_trajectory, empty_room
+    from fmfusion_jax.simulation.raycast import raycast_boxes
+
+    room = empty_room((4.0, 4.0, 2.6), seed=3)
+    room = add_object(room, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
+    room = add_object(room, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
+    poses = camera_trajectory(room, LOOP_FRAMES)[: NUM_FRAMES * stride : stride]
+    depths = [raycast_boxes(room.box_arrays(), T, INTRINSICS, enclosure=room.enclosure()).depth for T in poses]
+    return poses, np.stack([np.where(np.isfinite(d), d, 0.0) for d in depths]).astype(np.float32)
+
+
+def ate_rmse(estimated: np.ndarray, truth: np.ndarray) -> float:
+    """RMS distance (m) of the camera centres after putting the first estimated pose on the first true one."""
+    aligned = truth[0] @ np.linalg.inv(estimated[0]) @ estimated
+    return float(np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - truth[:, :3, 3]) ** 2, axis=1))))
+
+
+@pytest.mark.parametrize(("stride", "max_ate"), [(1, 0.002), (4, 0.02)])
+def test_a_smooth_walk_is_tracked_within_a_few_millimetres(stride, max_ate):
+    """At 30 Hz (3 mm and up to 1.9 degrees between frames) and at 7.5 Hz (12 mm, up to 7.5 degrees)."""
+    truth, depths = sequence(stride)
+    steps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
+    assert 0.002 * stride < steps.mean() < 0.004 * stride
+    frames = track_depths(depths, INTRINSICS)
+    assert not any(f.lost for f in frames)
+    estimated = np.stack([f.T_world_camera for f in frames])
+    np.testing.assert_array_equal(estimated[0], np.eye(4))
+    assert ate_rmse(estimated, truth) < max_ate  # measured: 0.41 mm at 30 Hz, 5.9 mm at 7.5 Hz over the 60 frames
+    assert max(f.residual for f in frames) < 1e-3
+
+
+def test_a_given_first_pose_starts_the_chain():
+    truth, depths = sequence()
+    frames = track_depths(depths[:10], INTRINSICS, T_world_first=truth[0])
+    estimated = np.stack([f.T_world_camera for f in frames])
+    assert np.abs(estimated[:, :3, 3] - truth[:10, :3, 3]).max() < 2e-3
+
+
+def test_a_lost_frame_keeps_the_last_pose_and_the_next_one_tracks_against_the_last_good_frame(caplog):
+    truth, depths = sequence()
+    broken = depths[:12].copy()
+    broken[6] = 0.0  # a frame without depth: nothing to track
+    tracker = Tracker(INTRINSICS)
+    with caplog.at_level("WARNING"):
+        frames = [tracker.track(d) for d in broken]
+    assert [f.lost for f in frames] == [i == 6 for i in range(12)]
+    assert "tracking lost at frame 6" in caplog.text
+    np.testing.assert_array_equal(frames[6].T_world_camera, frames[5].T_world_camera)
+    assert tracker.frames_lost == 1 and tracker.frames_tracked == 11
+    estimated = np.stack([f.T_world_camera for i, f in enumerate(frames) if i != 6])
+    assert ate_rmse(estimated, np.delete(truth[:12], 6, axis=0)) < 2e-3  # frame 7 tracked against frame 5
+
+
+def test_the_wrong_image_size_is_refused():
+    with pytest.raises(ValueError, match="the camera is 160x120"):
+        Tracker(INTRINSICS).track(np.zeros((10, 10), np.float32))
+
+
+def test_the_tum_trajectory_reads_back(tmp_path):
+    truth, _ = sequence()
+    rng = np.random.default_rng(0)
+    poses = list(truth[:5])
+    for _ in range(20):  # rotations of every kind, also near 180 degrees (the quaternion's other branches)
+        q = rng.normal(size=4)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = quaternion_to_matrix(q / np.linalg.norm(q)), rng.normal(size=3)
+        poses.append(T)
+    for axis in np.eye(3):
+        T = np.eye(4)
+        T[:3, :3] = 2 * np.outer(axis, axis) - np.eye(3)  # 180 degrees about an axis
+        poses.append(T)
+    stamps = 1000.0 + np.arange(len(poses)) / 30
+    path = write_tum_trajectory(tmp_path / "trajectory_tum.txt", stamps, poses)
+    rows = np.loadtxt(path)
+    assert rows.shape == (len(poses), 8)
+    np.testing.assert_allclose(rows[:, 0], stamps, atol=1e-6)
+    for row, T in zip(rows, poses):
+        np.testing.assert_allclose(row[1:4], T[:3, 3], atol=1e-6)
+        np.testing.assert_allclose(quaternion_to_matrix(row[4:]), T[:3, :3], atol=1e-6)
+    np.testing.assert_allclose(rotation_to_quaternion(np.eye(3)), [0, 0, 0, 1])
+
+
+@pytest.mark.slow
+def test_tracking_time_per_frame():
+    """Warm ms per frame at 160x120 (printed; run with -s): maps of the frame plus the ICP, host sync included."""
+    truth, depths = sequence()
+    track_depths(depths[:3], INTRINSICS)  # compile
+    start = time.perf_counter()
+    track_depths(depths, INTRINSICS)
+    ms = (time.perf_counter() - start) / (len(depths) - 1) * 1e3
+    print(f"tracking {WIDTH}x{HEIGHT}: {ms:.1f} ms per frame over {len(depths)} frames")
+    assert ms < 1000

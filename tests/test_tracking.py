@@ -1,0 +1,142 @@
+"""The tracking kernel (`engine.tracking`): SE(3) maps, one Gauss-Newton step against a NumPy oracle, the
+recovery of known motions on rendered depth of a generated room, and the failure signal."""
+
+from __future__ import annotations
+
+import functools
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from oracles import reference_tracking as R
+
+from fmfusion_jax.engine import tracking as tk
+from fmfusion_jax.types import CameraIntrinsics
+
+WIDTH, HEIGHT = 160, 120
+INTRINSICS = CameraIntrinsics(144.4, 144.4, WIDTH / 2 - 0.5, HEIGHT / 2 - 0.5, WIDTH, HEIGHT)
+K = jnp.array([INTRINSICS.fx, INTRINSICS.fy, INTRINSICS.cx, INTRINSICS.cy], jnp.float32)
+CONFIG = tk.TrackingConfig()
+
+finite = functools.partial(st.floats, allow_nan=False, allow_infinity=False)
+
+
+@functools.cache
+def room():
+    from fmfusion_jax.simulation.procedural import add_object, empty_room
+
+    scene = empty_room((4.0, 4.0, 2.6), seed=3)
+    scene = add_object(scene, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
+    return add_object(scene, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
+
+
+def render(T_world_camera: np.ndarray, intrinsics: CameraIntrinsics = INTRINSICS) -> np.ndarray:
+    """float32 `(H, W)` depth (m, 0 where nothing is hit) of the room seen from `T_world_camera`."""
+    from fmfusion_jax.simulation.raycast import raycast_boxes
+
+    scene = room()
+    depth = raycast_boxes(scene.box_arrays(), T_world_camera, intrinsics, enclosure=scene.enclosure()).depth
+    return np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+
+
+def start_pose() -> np.ndarray:
+    from fmfusion_jax.simulation.procedural import look_pose
+
+    return look_pose((2.6, 1.2, 1.45), np.radians(150), np.radians(-30))
+
+
+def twist_strategy(max_rho: float, max_phi: float):
+    return st.tuples(*[finite(-max_rho, max_rho)] * 3, *[finite(-max_phi, max_phi)] * 3).map(np.array)
+
+
+@settings(max_examples=60, deadline=None)
+@given(twist_strategy(2.0, 1.6))
+def test_exp_matches_the_series_and_log_inverts_it(xi):
+    T = np.asarray(tk.se3_exp(jnp.asarray(xi, jnp.float32)), np.float64)
+    np.testing.assert_allclose(T, R.exp_se3(xi), atol=2e-5)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(tk.se3_log(jnp.asarray(T, jnp.float32))), xi, atol=2e-4)
+
+
+def test_exp_and_log_near_zero():
+    for scale in (0.0, 1e-7, 1e-4):
+        xi = np.array([0.1, -0.2, 0.3, 1.0, -2.0, 0.5]) * scale
+        T = np.asarray(tk.se3_exp(jnp.asarray(xi, jnp.float32)))
+        np.testing.assert_allclose(T, R.exp_se3(xi), atol=1e-7)
+        np.testing.assert_allclose(np.asarray(tk.se3_log(jnp.asarray(T))), xi, atol=1e-6)
+
+
+def test_normals_face_the_camera_and_are_missing_at_edges():
+    depth = render(start_pose())
+    maps = tk.frame_maps(depth, K, CONFIG)
+    assert [v.shape for v in maps.vertices] == [(120, 160, 3), (60, 80, 3), (30, 40, 3)]
+    n, v, ok = (np.asarray(x) for x in (maps.normals[0], maps.vertices[0], maps.valid[0]))
+    assert 0.8 < ok.mean() < 1.0  # the box edges and the image border have no normal
+    np.testing.assert_allclose(np.linalg.norm(n[ok], axis=-1), 1.0, atol=1e-5)
+    assert (np.sum(n[ok] * v[ok], axis=-1) < 0).all()
+    assert not ok[0].any() and not ok[:, -1].any()
+
+
+def test_one_gauss_newton_step_matches_the_numpy_oracle():
+    """On the coarsest level of two rendered frames 3 cm / 2 degrees apart, from the identity."""
+    T_world_ref = start_pose()
+    motion = R.exp_se3(np.array([0.02, -0.01, 0.02, 0.01, 0.03, -0.01]))
+    T_world_cur = T_world_ref @ motion
+    level = 2
+    maps = [tk.frame_maps(render(T), K, CONFIG) for T in (T_world_ref, T_world_cur)]
+    args = [np.asarray(x[level], np.float64) for m in maps for x in (m.vertices, m.normals)]
+    ref_v, ref_n, cur_v, cur_n = args
+    ref_ok, cur_ok = (np.asarray(m.valid[level]) for m in maps)
+    Kl = np.asarray(tk.level_intrinsics(K, level), np.float64)
+    T0 = np.eye(4)
+    A, b, inliers, T1 = R.gauss_newton_step(
+        ref_v, ref_n, ref_ok, cur_v, cur_n, cur_ok, Kl, T0, CONFIG.max_distance, CONFIG.max_normal_angle_deg, CONFIG.damping
+    )
+    system = tk.normal_equations(
+        *(maps[0].vertices[level], maps[0].normals[level], maps[0].valid[level]),
+        *(maps[1].vertices[level], maps[1].normals[level], maps[1].valid[level]),
+        jnp.asarray(Kl, jnp.float32),
+        jnp.eye(4),
+        CONFIG,
+    )
+    assert abs(int(system.inliers) - inliers) <= 2 and inliers > 500  # pixel-rounding ties may differ
+    np.testing.assert_allclose(np.asarray(system.A), A, rtol=5e-3, atol=1e-2 * np.abs(A).max() / 100)
+    np.testing.assert_allclose(np.asarray(system.b), b, atol=2e-3 * np.abs(b).max())
+    step = np.asarray(tk.gauss_newton_update(system, jnp.eye(4), CONFIG.damping))
+    np.testing.assert_allclose(step, T1, atol=1e-4)
+    # the step goes towards the true motion
+    assert np.linalg.norm(T1[:3, 3] - motion[:3, 3]) < np.linalg.norm(motion[:3, 3])
+
+
+@settings(max_examples=12, deadline=None)
+@given(twist_strategy(0.03, 0.04))
+def test_a_small_rigid_motion_is_recovered(xi):
+    """Up to 3 cm per axis and 2.3 degrees per axis (beyond a 30 Hz hand-held step), from the identity."""
+    T_world_ref = start_pose()
+    motion = R.exp_se3(xi)
+    maps = [tk.frame_maps(render(T), K, CONFIG) for T in (T_world_ref, T_world_ref @ motion)]
+    result = tk.track_frame(maps[0], maps[1], K, jnp.eye(4), CONFIG)
+    assert not bool(result.lost)
+    T = np.asarray(result.T_reference_current, np.float64)
+    assert np.abs(T[:3, 3] - motion[:3, 3]).max() < 2e-3
+    assert np.abs(T[:3, :3] - motion[:3, :3]).max() < 2e-3
+    assert float(result.residual) < 2e-3 and float(result.inlier_share) > 0.8
+
+
+def test_lost_when_the_frames_do_not_overlap():
+    T_world_ref = start_pose()
+    turned = T_world_ref @ R.exp_se3(np.array([0.0, 0.0, 0.0, 0.0, np.pi, 0.0]))  # looking the other way
+    maps = [tk.frame_maps(render(T), K, CONFIG) for T in (T_world_ref, turned)]
+    result = tk.track_frame(maps[0], maps[1], K, jnp.eye(4), CONFIG)
+    assert bool(result.lost)
+    empty = tk.frame_maps(np.zeros((HEIGHT, WIDTH), np.float32), K, CONFIG)
+    result = tk.track_frame(maps[0], empty, K, jnp.eye(4), CONFIG)
+    assert bool(result.lost) and int(result.inliers) == 0
+    np.testing.assert_array_equal(np.asarray(result.T_reference_current), np.eye(4))
+
+
+def test_the_config_is_checked():
+    with pytest.raises(ValueError, match="iteration count per level"):
+        tk.TrackingConfig(levels=2)
