@@ -38,6 +38,7 @@ SUBCOMMANDS = (
     "simulate",
     "detect",
     "models",
+    "track",
     "run",
     "batch",
     "query",

@@ -92,6 +92,7 @@ class Recording:
       pose: `PoseSource` (a non-finite pose is returned as it is; the caller skips the frame).
       intrinsics: reads the depth camera (called once the poses have been read).
       depth_scale: the format's raw depth units per metre.
+      stamps: per frame, its time stamp in seconds where the format has them (TUM), else None.
     """
 
     layout: str
@@ -101,6 +102,7 @@ class Recording:
     pose: PoseSource
     intrinsics: Callable[[], CameraIntrinsics]
     depth_scale: float
+    stamps: np.ndarray | None = None
 
 
 def recording_layouts(root: Path) -> list[str]:
@@ -303,18 +305,24 @@ def _read_tum(root: Path, stride: int, max_time_difference: float) -> Recording:
     check_files_exist([depth_paths[i] for i in picked])
     stamps = rgb_stamps[[i for i, _ in pairs]]
     pose = _tum_pose_source(root, stamps, max_time_difference)
-    return Recording("tum", names, color_paths, depth_paths, pose, lambda: tum_intrinsics(root, depth_paths[0]), TUM_DEPTH_SCALE)
+    camera = lambda: tum_intrinsics(root, depth_paths[0])  # noqa: E731
+    return Recording("tum", names, color_paths, depth_paths, pose, camera, TUM_DEPTH_SCALE, stamps)
 
 
 def _tum_pose_source(root: Path, frame_stamps: np.ndarray, max_time_difference: float) -> PoseSource:
     """Poses interpolated at the frames' stamps from groundtruth.txt (else trajectory.txt, e.g. a SLAM
     system's output in TUM's format)."""
     path = next((root / name for name in ("groundtruth.txt", "trajectory.txt") if (root / name).is_file()), None)
-    if path is None:
-        raise DataError(
-            f"{root / 'groundtruth.txt'}: file missing; a TUM recording needs its camera poses (groundtruth.txt "
-            "or trajectory.txt, lines 'timestamp tx ty tz qx qy qz qw'); tracking without poses is not supported yet"
-        )
+    if path is None:  # an error once a pose is asked for: the frames can still be listed (`fmfusion track`)
+
+        def missing(i: int) -> tuple[np.ndarray | None, str]:
+            raise DataError(
+                f"{root / 'groundtruth.txt'}: file missing; a TUM recording needs its camera poses (groundtruth.txt "
+                "or trajectory.txt, lines 'timestamp tx ty tz qx qy qz qw'); `fmfusion track "
+                f"{root}` estimates them into {root / 'trajectory.txt'}"
+            )
+
+        return missing
     rows = _read_rows(path)
     table = np.array([_floats(path, line, row, 8) for line, row in rows]).reshape(-1, 8)
     if len(table) == 0:
@@ -423,7 +431,7 @@ def _read_redwood(root: Path, stride: int) -> Recording:
     if log_path is None:
         raise DataError(
             f"{root / 'trajectory.log'}: file missing (nor scene/trajectory.log); the recording needs its camera poses "
-            "(Open3D's reconstruction system writes them); tracking without poses is not supported yet"
+            "(Open3D's reconstruction system writes them); `fmfusion track` estimates poses for TUM folders only, today"
         )
     trajectory = read_trajectory_log(log_path)
     if len(trajectory) != len(stems):

@@ -1,0 +1,34 @@
+"""`fmfusion track REC`: camera poses for a recording without them (frame-to-frame tracking of its depth)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from fmfusion_jax.cli import options
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "track",
+        help="estimate the camera poses of a recording without them",
+        description="Estimates the camera poses of a TUM RGB-D folder that has none (no groundtruth.txt) by "
+        "frame-to-frame tracking of its depth (projective point-to-plane ICP, coarse to fine) and writes them as "
+        "its trajectory.txt, which `fmfusion run REC` then reads. Frame-to-frame tracking drifts and needs small "
+        "motions between frames (30 Hz video): docs/your-own-data.md, 'Without poses'.",
+    )
+    parser.add_argument("recording", type=Path, help="a TUM RGB-D folder (rgb.txt, depth.txt)")
+    parser.add_argument(
+        "--out", type=Path, help="trajectory file to write (default: the recording's trajectory.txt, read by `fmfusion run`)"
+    )
+    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    options.add_depth_max(parser)
+    options.add_no_progress(parser)
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fmfusion_jax.apps.track import track_recording  # lazy: the command's work loads only when it runs
+
+    track_recording(args.recording, args.out, depth_max=args.depth_max, overwrite=args.overwrite, progress=not args.no_progress)
+    return 0

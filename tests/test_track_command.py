@@ -1,0 +1,52 @@
+"""`fmfusion track REC`: a TUM folder without poses gets its trajectory.txt by tracking, and then reads as a posed
+scene (`fmfusion run REC` fuses it); refusals are one-line errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_recordings import Frames, write_tum
+from test_tracker import INTRINSICS, sequence
+
+import fmfusion_jax.cli as cli
+from fmfusion_jax.errors import DataError
+from fmfusion_jax.io.scene import open_scene
+
+
+def _tum_without_poses(tmp_path):
+    truth, depths = sequence(1)
+    frames = Frames(
+        colors=np.full((*depths.shape, 3), 128, np.uint8),
+        depths_mm=np.round(depths * 1000).astype(np.uint16),
+        poses=truth,
+        intrinsics=INTRINSICS,
+    )
+    root = write_tum(frames, tmp_path / "walk")
+    (root / "groundtruth.txt").unlink()
+    return root, truth
+
+
+def test_track_writes_the_trajectory_that_run_reads(tmp_path, capsys):
+    root, truth = _tum_without_poses(tmp_path)
+    with pytest.raises(DataError, match="fmfusion track"):  # without poses: the error says what to do
+        open_scene(root)
+    assert cli.main(["track", str(root), "--no-progress"]) == 0
+    assert "60 frames tracked" in capsys.readouterr().out and (root / "trajectory.txt").is_file()
+    scene = open_scene(root)
+    assert scene.layout == "tum" and len(scene) == len(truth)
+    estimated = scene.poses()
+    np.testing.assert_allclose(estimated[0], np.eye(4), atol=1e-9)
+    aligned = truth[0] @ np.linalg.inv(estimated[0]) @ estimated
+    ate = np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - truth[:, :3, 3]) ** 2, axis=1)))
+    assert ate < 0.005  # the walk at 30 Hz, millimetre depth (measured: ~1 mm)
+    # an existing trajectory is never replaced without --overwrite
+    assert cli.main(["track", str(root), "--no-progress"]) == 2
+    assert "exists" in capsys.readouterr().err
+
+
+def test_track_refuses_what_it_cannot_read(tmp_path, capsys):
+    assert cli.main(["track", str(tmp_path / "absent")]) == 2
+    assert "not found" in capsys.readouterr().err
+    (tmp_path / "redwood").mkdir()
+    assert cli.main(["track", str(tmp_path / "redwood")]) == 2
+    assert "TUM" in capsys.readouterr().err
