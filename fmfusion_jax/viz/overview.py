@@ -333,27 +333,26 @@ def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: s
             if not len(pts):
                 continue
             xy = pts[:, :2] @ rotation.T
-            us.append(np.round((xy[:, 0] - lo[0]) * scale + pad).astype(np.int64))
-            vs.append(np.round((hi[1] - xy[:, 1]) * scale + pad).astype(np.int64))
+            # int32 pixels and int8 radii (a panel is at most 1600 x 1600 pixels): the same picture in less memory
+            us.append(np.round((xy[:, 0] - lo[0]) * scale + pad).astype(np.int32))
+            vs.append(np.round((hi[1] - xy[:, 1]) * scale + pad).astype(np.int32))
             zs.append(pts[:, 2].astype(np.float64) + layer.z_bias)
             cs.append(colors)
             radius = int(max(1, min(6, round(0.6 * spacing * scale))))
-            rs.append(np.full(len(pts), radius, np.int64))
-        if us:
-            image, covered = _rasterize(
-                (panel_height, panel_width),
-                np.concatenate(us),
-                np.concatenate(vs),
-                np.concatenate(zs),
-                np.concatenate(cs),
-                np.concatenate(rs),
-            )
+            rs.append(np.full(len(pts), radius, np.int8))
+            del pts, colors, xy, visible
+        drawn = bool(us)
+        if drawn:
+            splats = [np.concatenate(parts) for parts in (us, vs, zs, cs, rs)]
+            us, vs, zs, cs, rs = [], [], [], [], []  # the layers' arrays go before the z-buffer's own
+            image, covered = _rasterize((panel_height, panel_width), *splats)
+            del splats
         else:
             image = np.zeros((panel_height, panel_width, 3), np.uint8)
             covered = np.zeros((panel_height, panel_width), bool)
         image[~covered] = _PANEL_BACKGROUND
         image = np.ascontiguousarray(image[..., ::-1])  # RGB -> BGR
-        if not us:
+        if not drawn:
             cv2.putText(image, "empty", (panel_width // 2 - 30, panel_height // 2), _FONT, 0.8, (90, 90, 90), 2, cv2.LINE_AA)
         images.append(image)
 
