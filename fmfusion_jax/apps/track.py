@@ -1,9 +1,11 @@
 """`fmfusion track REC`: camera poses for a recording without them, by frame-to-frame tracking of its depth
-(`mapping.tracking.Tracker`), written as the recording's TUM trajectory so that `fmfusion run REC` fuses with them.
+(`mapping.tracking.Tracker`), written as the recording's own trajectory file (TUM: trajectory.txt; Open3D /
+Redwood: trajectory.log) so that `fmfusion run REC` fuses with them.
 
 Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): the
 pyramid's finest level then costs ~15-60 ms a frame on a 2-core CPU instead of seconds. TUM folders today (the
-format whose frames are listed without poses: rgb.txt, depth.txt).
+formats whose frames are listed without poses: rgb.txt and depth.txt; color/, depth/ and camera_intrinsic.json, as
+Open3D's RealSense and Azure Kinect recorders write them).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.io.recordings import read_recording, recording_layouts
+from fmfusion_jax.io.recordings import read_recording, recording_layouts, write_trajectory_log
 from fmfusion_jax.io.scene import read_depth_image
 from fmfusion_jax.mapping.tracking import Tracker, write_tum_trajectory
 from fmfusion_jax.types import CameraIntrinsics
@@ -26,6 +28,8 @@ log = logging.getLogger(__name__)
 
 #: Widest image tracked (pixels): larger depth images are subsampled by an integer step down to it.
 TRACK_WIDTH = 320
+#: The trajectory file each format's reader reads (`io.recordings`), which `track` writes.
+TRAJECTORY_FILES = {"tum": "trajectory.txt", "redwood": "trajectory.log"}
 
 
 def subsampled_camera(intrinsics: CameraIntrinsics, step: int) -> CameraIntrinsics:
@@ -44,18 +48,23 @@ def subsampled_camera(intrinsics: CameraIntrinsics, step: int) -> CameraIntrinsi
 def track_recording(
     path: str | Path, out: str | Path | None = None, depth_max: float = 4.0, overwrite: bool = False, progress: bool = True
 ) -> Path:
-    """Tracks the recording at `path` (a TUM folder) and writes its trajectory to `out` (default: the recording's
-    trajectory.txt, which the TUM reader reads when there is no groundtruth.txt); returns the file written."""
+    """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder) and writes its trajectory to `out`
+    (default: the file the recording's reader reads when it has no other poses: TUM's trajectory.txt, Redwood's
+    trajectory.log); returns the file written."""
     root = Path(path)
     if not root.is_dir():
         raise UserError(f"{root}: recording folder not found")
-    if "tum" not in recording_layouts(root):
-        raise UserError(f"{root}: not a TUM RGB-D folder (rgb.txt, depth.txt): `fmfusion track` reads TUM folders today")
-    target = Path(out) if out is not None else root / "trajectory.txt"
+    layouts = [layout for layout in recording_layouts(root) if layout in TRAJECTORY_FILES]
+    if len(layouts) != 1:
+        raise UserError(
+            f"{root}: not a TUM RGB-D folder (rgb.txt, depth.txt) nor an Open3D / Redwood one (color/, depth/, "
+            "camera_intrinsic.json): `fmfusion track` reads these two formats today"
+        )
+    layout = layouts[0]
+    target = Path(out) if out is not None else root / TRAJECTORY_FILES[layout]
     if target.exists() and not overwrite:
         raise UserError(f"{target}: exists; pass --overwrite to replace it, or --out another file")
-    recording = read_recording("tum", root, stride=1)
-    assert recording.stamps is not None  # the TUM reader gives them
+    recording = read_recording(layout, root, stride=1)
     camera = recording.intrinsics()
     step = max(1, -(-camera.width // TRACK_WIDTH))
     tracker = Tracker(subsampled_camera(camera, step))
@@ -66,7 +75,10 @@ def track_recording(
         poses.append(tracker.track(np.ascontiguousarray(depth)).T_world_camera)
     seconds = time.perf_counter() - start
     target.parent.mkdir(parents=True, exist_ok=True)
-    write_tum_trajectory(target, [float(t) for t in recording.stamps], poses)
+    if recording.stamps is not None:  # TUM
+        write_tum_trajectory(target, [float(t) for t in recording.stamps], poses)
+    else:
+        write_trajectory_log(target, poses)
     print(
         f"{root.name}: {len(poses)} frames tracked at {camera.width // step}x{camera.height // step} in {seconds:.1f} s "
         f"({1000 * seconds / max(len(poses), 1):.0f} ms a frame, reading included), {tracker.frames_lost} lost "

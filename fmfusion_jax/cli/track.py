@@ -12,14 +12,18 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "track",
         help="estimate the camera poses of a recording without them",
-        description="Estimates the camera poses of a TUM RGB-D folder that has none (no groundtruth.txt) by "
-        "frame-to-frame tracking of its depth (projective point-to-plane ICP, coarse to fine) and writes them as "
-        "its trajectory.txt, which `fmfusion run REC` then reads. Frame-to-frame tracking drifts and needs small "
-        "motions between frames (30 Hz video): docs/your-own-data.md, 'Without poses'.",
+        description="Estimates the camera poses of a recording that has none by frame-to-frame tracking of its "
+        "depth (projective point-to-plane ICP, coarse to fine) and writes them where its reader looks: a TUM RGB-D "
+        "folder's trajectory.txt, an Open3D / Redwood folder's trajectory.log (as Open3D's RealSense and Azure Kinect "
+        "recorders leave them: color/, depth/, camera_intrinsic.json). `fmfusion run REC` then fuses with them. "
+        "Frame-to-frame tracking drifts and needs small motions between frames (30 Hz video): "
+        "docs/your-own-data.md, 'Without poses'.",
     )
-    parser.add_argument("recording", type=Path, help="a TUM RGB-D folder (rgb.txt, depth.txt)")
+    parser.add_argument("recording", type=Path, help="a TUM RGB-D folder (rgb.txt, depth.txt) or an Open3D / Redwood one")
     parser.add_argument(
-        "--out", type=Path, help="trajectory file to write (default: the recording's trajectory.txt, read by `fmfusion run`)"
+        "--out",
+        type=Path,
+        help="trajectory file to write (default: the recording's trajectory.txt or trajectory.log, read by `fmfusion run`)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     options.add_depth_max(parser)

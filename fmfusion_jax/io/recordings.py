@@ -152,6 +152,16 @@ def read_trajectory_log(path: Path) -> np.ndarray:
     return np.asarray(rows, np.float64).reshape(-1, 4, 4)
 
 
+def write_trajectory_log(path: Path, poses: list[np.ndarray]) -> Path:
+    """Writes camera-to-world poses as a Redwood `trajectory.log` (`read_trajectory_log` reads it back)."""
+    blocks = [
+        f"{i} {i} {len(poses)}\n" + "\n".join(" ".join(repr(float(x)) for x in row) for row in np.asarray(pose, np.float64))
+        for i, pose in enumerate(poses)
+    ]
+    path.write_text("\n".join(blocks) + "\n")
+    return path
+
+
 def check_files_exist(paths: list[Path]) -> None:
     """`DataError` naming the first missing file (one listing per folder, not one stat per file)."""
     listings: dict[Path, set[str]] = {}
@@ -428,19 +438,23 @@ def _read_redwood(root: Path, stride: int) -> Recording:
         example = depth_dir / (missing[0] + ".png")
         raise DataError(f"{example}: file missing ({len(missing)} of {len(stems)} depth images missing)")
     log_path = next((p for p in (root / "trajectory.log", root / "scene" / "trajectory.log") if p.is_file()), None)
-    if log_path is None:
-        raise DataError(
-            f"{root / 'trajectory.log'}: file missing (nor scene/trajectory.log); the recording needs its camera poses "
-            "(Open3D's reconstruction system writes them); `fmfusion track` estimates poses for TUM folders only, today"
-        )
-    trajectory = read_trajectory_log(log_path)
-    if len(trajectory) != len(stems):
-        raise DataError(f"{log_path}: {len(trajectory)} poses for {len(stems)} images; cannot pair them")
     json_path = next((root / name for name in _OPEN3D_INTRINSICS if (root / name).is_file()), root / _OPEN3D_INTRINSICS[0])
+    if log_path is None:  # an error once a pose is asked for: the frames can still be listed (`fmfusion track`)
 
-    def pose(i: int) -> tuple[np.ndarray | None, str]:
-        where = f"{log_path.name} block {i}"
-        return _checked(trajectory[i], log_path, where), where
+        def pose(i: int) -> tuple[np.ndarray | None, str]:
+            raise DataError(
+                f"{root / 'trajectory.log'}: file missing (nor scene/trajectory.log); the recording needs its camera "
+                f"poses (Open3D's reconstruction system writes them); `fmfusion track {root}` estimates them"
+            )
+
+    else:
+        trajectory = read_trajectory_log(log_path)
+        if len(trajectory) != len(stems):
+            raise DataError(f"{log_path}: {len(trajectory)} poses for {len(stems)} images; cannot pair them")
+
+        def pose(i: int) -> tuple[np.ndarray | None, str]:
+            where = f"{log_path.name} block {i}"
+            return _checked(trajectory[i], log_path, where), where
 
     return Recording(
         "redwood",
