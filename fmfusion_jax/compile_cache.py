@@ -35,8 +35,12 @@ def compile_cache_dir() -> Path | None:
         return None
     if setting:
         return Path(setting).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "fmfusion-jax" / "xla"
+    return user_cache_dir() / "xla"
+
+
+def user_cache_dir() -> Path:
+    """The project's cache folder of this user: `$XDG_CACHE_HOME/fmfusion-jax` (default `~/.cache/fmfusion-jax`)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fmfusion-jax"
 
 
 def enable_compile_cache(path: str | Path | None = None) -> Path | None:
@@ -73,4 +77,4 @@ def use_compile_cache() -> None:
         enable_compile_cache()
 
 
-__all__ = ["ENV", "compile_cache_dir", "enable_compile_cache", "use_compile_cache"]
+__all__ = ["ENV", "compile_cache_dir", "enable_compile_cache", "use_compile_cache", "user_cache_dir"]

@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from fmfusion_jax.io.recordings import quaternion_to_matrix
-from fmfusion_jax.mapping.tracking import Tracker, rotation_to_quaternion, track_depths, write_tum_trajectory
+from fmfusion_jax.io.recordings import quaternion_to_matrix, rotation_to_quaternion, write_tum_trajectory
+from fmfusion_jax.mapping.tracking import Tracker, track_depths
 from fmfusion_jax.types import CameraIntrinsics
 
 WIDTH, HEIGHT = 160, 120

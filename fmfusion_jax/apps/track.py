@@ -3,9 +3,9 @@
 Redwood: trajectory.log) so that `fmfusion run REC` fuses with them.
 
 Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): the
-pyramid's finest level then costs ~15-60 ms a frame on a 2-core CPU instead of seconds. TUM folders today (the
-formats whose frames are listed without poses: rgb.txt and depth.txt; color/, depth/ and camera_intrinsic.json, as
-Open3D's RealSense and Azure Kinect recorders write them).
+pyramid's finest level then costs ~15-60 ms a frame on a 2-core CPU instead of seconds. Reads the formats whose
+frames are listed without poses: TUM (rgb.txt and depth.txt) and Open3D / Redwood (color/, depth/ and
+camera_intrinsic.json, as Open3D's RealSense and Azure Kinect recorders write them).
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import numpy as np
 from tqdm import tqdm
 
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.io.recordings import read_recording, recording_layouts, write_trajectory_log
+from fmfusion_jax.io.recordings import read_recording, recording_layouts, write_trajectory_log, write_tum_trajectory
 from fmfusion_jax.io.scene import read_depth_image
-from fmfusion_jax.mapping.tracking import Tracker, write_tum_trajectory
+from fmfusion_jax.mapping.tracking import Tracker
 from fmfusion_jax.types import CameraIntrinsics
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,8 @@ def track_recording(
     recording = read_recording(layout, root, stride=1)
     camera = recording.intrinsics()
     step = max(1, -(-camera.width // TRACK_WIDTH))
-    tracker = Tracker(subsampled_camera(camera, step))
+    tracked = subsampled_camera(camera, step)
+    tracker = Tracker(tracked)
     poses, start = [], time.perf_counter()
     frames = tqdm(recording.depth_paths, desc=f"tracking {root.name}", unit="frame", disable=not progress)
     for depth_path in frames:
@@ -80,7 +81,7 @@ def track_recording(
     else:
         write_trajectory_log(target, poses)
     print(
-        f"{root.name}: {len(poses)} frames tracked at {camera.width // step}x{camera.height // step} in {seconds:.1f} s "
+        f"{root.name}: {len(poses)} frames tracked at {tracked.width}x{tracked.height} in {seconds:.1f} s "
         f"({1000 * seconds / max(len(poses), 1):.0f} ms a frame, reading included), {tracker.frames_lost} lost "
         f"(they keep the last good pose)\ntrajectory written to {target}"
     )

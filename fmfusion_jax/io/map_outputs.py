@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +26,37 @@ def instance_colors(num: int, seed: int = 7) -> np.ndarray:
     return (np.clip(rgb, 0, 1) * 200 + 40).astype(np.uint8)
 
 
+#: A PLY property: `(name, NumPy type, PLY type, values)`.
+PlyColumn = tuple[str, Any, str, Any]
+
+
+def _ply_columns(points: np.ndarray, colors: np.ndarray | None, channels: tuple[str, ...]) -> list[PlyColumn]:
+    """x, y, z as float32, then `channels` of `colors` (uint8; a fourth channel without colour values is opaque)."""
+    columns: list[PlyColumn] = [(axis, "<f4", "float", np.asarray(points, np.float32)[:, i]) for i, axis in enumerate("xyz")]
+    if colors is not None:
+        rgb = np.asarray(colors, np.uint8)
+        columns += [(c, "u1", "uchar", rgb[:, i] if i < rgb.shape[1] else 255) for i, c in enumerate(channels)]
+    return columns
+
+
+def _write_ply(path: Path, comment: str, elements: list[tuple[str, int, list[PlyColumn]]]) -> None:
+    """A binary little-endian PLY of `(element name, count, columns)`; a PLY type `list uchar int` is a list property
+    (its NumPy type holds the count and the items)."""
+    header = ["ply", "format binary_little_endian 1.0", f"comment {comment}"]
+    blocks = []
+    for element, count, columns in elements:
+        header.append(f"element {element} {count}")
+        header += [f"property {ply_type} {name}" for name, _, ply_type, _ in columns]
+        block = np.empty(count, np.dtype([(name, code) for name, code, _, _ in columns]))
+        for name, _, _, values in columns:
+            block[name] = values
+        blocks.append(block.tobytes())
+    with open(path, "wb") as stream:
+        stream.write(("\n".join([*header, "end_header"]) + "\n").encode("ascii"))
+        for block_bytes in blocks:
+            stream.write(block_bytes)
+
+
 def write_point_cloud(
     path: Path, points: np.ndarray, colors: np.ndarray, label: np.ndarray | None = None, instance: np.ndarray | None = None
 ) -> None:
@@ -37,76 +69,26 @@ def write_point_cloud(
         `*_vh_clean_2.labels.ply`.
       instance: optional `(N,)` instance ids, written as an `int instance` vertex property.
     """
-    columns: list[tuple[str, str, str, np.ndarray]] = [
-        (axis, "<f4", "float", np.asarray(points, np.float32)[:, i]) for i, axis in enumerate("xyz")
-    ]
-    columns += [
-        (channel, "u1", "uchar", np.asarray(colors, np.uint8)[:, i]) for i, channel in enumerate(("red", "green", "blue"))
-    ]
+    columns = _ply_columns(points, colors, ("red", "green", "blue"))
     if label is not None:
         columns.append(("label", "<u2", "ushort", label))
     if instance is not None:
         columns.append(("instance", "<i4", "int", instance))
-    vertex = np.empty(len(points), np.dtype([(name, code) for name, code, _, _ in columns]))
-    for name, _, _, values in columns:
-        vertex[name] = values
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        "comment written by fmfusion-jax",
-        f"element vertex {len(points)}",
-        *(f"property {ply_type} {name}" for name, _, ply_type, _ in columns),
-        "end_header",
-    ]
-    path.write_bytes(("\n".join(header) + "\n").encode("ascii") + vertex.tobytes())
+    _write_ply(path, "written by fmfusion-jax", [("vertex", len(points), columns)])
 
 
 def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
-    """A binary PLY triangle mesh; an empty mesh is written as a valid PLY with no vertex and no face."""
+    """A binary PLY triangle mesh, vertex colours RGBA; an empty mesh is written as a valid PLY with no vertex and no
+    face."""
+    comment = "written by fmfusion-jax"
     if len(vertices) == 0 or len(faces) == 0:
-        header = [
-            "ply",
-            "format binary_little_endian 1.0",
-            "comment written by fmfusion-jax (empty mesh)",
-            "element vertex 0",
-            "property float x",
-            "property float y",
-            "property float z",
-            "element face 0",
-            "property list uchar int vertex_indices",
-            "end_header",
-        ]
-        path.write_bytes(("\n".join(header) + "\n").encode("ascii"))
-        return
-    vertex_fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    properties = ["property float x", "property float y", "property float z"]
-    if colors is not None:
-        vertex_fields += [(channel, "u1") for channel in ("red", "green", "blue", "alpha")]
-        properties += [f"property uchar {channel}" for channel in ("red", "green", "blue", "alpha")]
-    vertex = np.empty(len(vertices), np.dtype(vertex_fields))
-    for i, axis in enumerate("xyz"):
-        vertex[axis] = np.asarray(vertices, np.float32)[:, i]
-    if colors is not None:
-        for i, channel in enumerate(("red", "green", "blue")):
-            vertex[channel] = np.asarray(colors, np.uint8)[:, i]
-        vertex["alpha"] = 255
-    face = np.empty(len(faces), np.dtype([("count", "u1"), ("vertex_indices", "<i4", (3,))]))
-    face["count"] = 3
-    face["vertex_indices"] = faces
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        "comment written by fmfusion-jax",
-        f"element vertex {len(vertices)}",
-        *properties,
-        f"element face {len(faces)}",
-        "property list uchar int vertex_indices",
-        "end_header",
-    ]
-    with open(path, "wb") as stream:
-        stream.write(("\n".join(header) + "\n").encode("ascii"))
-        stream.write(vertex.tobytes())
-        stream.write(face.tobytes())
+        vertices, faces, colors, comment = np.zeros((0, 3)), np.zeros((0, 3), np.int32), None, comment + " (empty mesh)"
+    face_type = np.dtype([("count", "u1"), ("items", "<i4", (3,))])  # a PLY list: its length, then its items
+    face_lists = np.empty(len(faces), face_type)
+    face_lists["count"], face_lists["items"] = 3, faces
+    vertex_columns = _ply_columns(vertices, colors, ("red", "green", "blue", "alpha"))
+    face_columns: list[PlyColumn] = [("vertex_indices", face_type, "list uchar int", face_lists)]
+    _write_ply(path, comment, [("vertex", len(vertices), vertex_columns), ("face", len(faces), face_columns)])
 
 
 def write_labelled_points(out_dir: Path, points: np.ndarray, colors: np.ndarray, label: np.ndarray, instance: np.ndarray) -> None:

@@ -23,12 +23,11 @@ is decoded once, not on every run.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import logging
-import os
-import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from fmfusion_jax.compile_cache import user_cache_dir
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.recordings import Recording, pair_streams, pose_at, quaternion_to_matrix
 from fmfusion_jax.types import CameraIntrinsics, pose_problem
@@ -77,8 +77,8 @@ def is_ros_bag(path: Path) -> bool:
 
 
 def cache_root() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "fmfusion-jax" / "recordings"
+    """Where extracted bags are kept: the project's user cache folder's recordings/."""
+    return user_cache_dir() / "recordings"
 
 
 def read_bag(path: Path, max_time_difference: float, topics: BagTopics | None = None) -> Recording:
@@ -165,26 +165,26 @@ def _extracted(path: Path, topics: BagTopics) -> Path:
         reader.open()
     except Exception as error:  # rosbags raises its own errors, and OSError, struct or yaml errors on a broken bag
         raise DataError(f"{path}: not a readable ROS bag ({type(error).__name__}: {error})") from None
-    try:
-        folder.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=folder.name + ".", dir=folder.parent))
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    staging_dir = tempfile.TemporaryDirectory(prefix=folder.name + ".", dir=folder.parent, ignore_cleanup_errors=True)
+    with contextlib.closing(reader), staging_dir as staging:
+        _extract_into(path, reader, topics, Path(staging))
         try:
-            try:
-                _extract(path, reader, topics, staging)
-            except (DataError, UserError):
+            Path(staging).rename(folder)
+        except OSError:  # another process made it meanwhile: theirs is the same
+            if not (folder / "manifest.json").is_file():
                 raise
-            except Exception as error:  # a message rosbags cannot read, an image cv2 cannot decode: name the bag
-                raise DataError(f"{path}: reading the bag failed ({type(error).__name__}: {error})") from None
-            try:
-                staging.rename(folder)
-            except OSError:  # another process made it meanwhile: theirs is the same
-                if not (folder / "manifest.json").is_file():
-                    raise
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
-    finally:
-        reader.close()
     return folder
+
+
+def _extract_into(path: Path, reader: Any, topics: BagTopics, out: Path) -> None:
+    """`_extract`, its failures named by the bag: a message rosbags cannot read, an image cv2 cannot decode."""
+    try:
+        _extract(path, reader, topics, out)
+    except (DataError, UserError):
+        raise
+    except Exception as error:  # noqa: BLE001 - any decoding failure of a user's bag is a DataError naming it
+        raise DataError(f"{path}: reading the bag failed ({type(error).__name__}: {error})") from None
 
 
 def _topic_table(reader: Any) -> str:

@@ -7,15 +7,15 @@ does not become the reference, so the next frame is tried against the last good 
 re-localisation that recovers from a single bad frame, not from a long gap). Frame-to-frame tracking drifts:
 the error grows with the path.
 
-`write_tum_trajectory` writes the poses as a TUM RGB-D trajectory (`timestamp tx ty tz qx qy qz qw`).
+The trajectory files are written beside their readers: `io.recordings.write_tum_trajectory` (TUM),
+`io.recordings.write_trajectory_log` (Redwood).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Iterable, Sequence
-from pathlib import Path
+from collections.abc import Iterable
 
 import jax.numpy as jnp
 import numpy as np
@@ -91,37 +91,3 @@ def track_depths(
     """`Tracker.track` over a sequence of depth frames."""
     tracker = Tracker(intrinsics, config, T_world_first)
     return [tracker.track(depth) for depth in depths]
-
-
-def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """`(qx, qy, qz, qw)` (qw >= 0) of a `(3, 3)` rotation matrix."""
-    m = np.asarray(R, np.float64)
-    trace = np.trace(m)
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = np.zeros(4)
-        q[i] = 0.25 * s
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[k] = (m[k, i] + m[i, k]) / s
-        q[3] = (m[k, j] - m[j, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def write_tum_trajectory(path: str | Path, timestamps: Sequence[float], poses: Sequence[np.ndarray]) -> Path:
-    """Writes `T_world_camera` poses as a TUM RGB-D trajectory: one `timestamp tx ty tz qx qy qz qw` line a frame."""
-    if len(timestamps) != len(poses):
-        raise ValueError(f"{len(timestamps)} timestamps for {len(poses)} poses")
-    lines = ["# timestamp tx ty tz qx qy qz qw (T_world_camera, estimated by frame-to-frame tracking)"]
-    for stamp, T in zip(timestamps, poses):
-        T = np.asarray(T, np.float64)
-        values = [*T[:3, 3], *rotation_to_quaternion(T[:3, :3])]
-        lines.append(f"{float(stamp):.6f} " + " ".join(f"{v:.7f}" for v in values))
-    path = Path(path)
-    path.write_text("\n".join(lines) + "\n")
-    return path
