@@ -4,7 +4,7 @@
 
 Each case runs in a process of its own and reports its peak resident memory (RSS) and the map state's
 device bytes: (a) a growing `Mapper` fed the first N frames, (b) the same frames into the Mapper `fmfusion run`
-makes (`run.scene_fusion.mapper_for_scene`: the whole scene's bounds, the pool sized from a sample of its depth), (c) the
+makes (`Mapper.for_scene`: the whole scene's bounds, the pool sized from a sample of its depth), (c) the
 growing Mapper over every frame of the scene. No detections: geometry only (the instance table is small either way).
 """
 
@@ -19,14 +19,13 @@ import sys
 
 def measure(scene_dir: str, frames: int | None, sized: bool, config: str) -> dict:
     from fmfusion_jax import Mapper, load_config, open_scene
-    from fmfusion_jax.run.scene_fusion import mapper_for_scene
 
     pipeline_config = load_config(config)
     dataset = pipeline_config.dataset
     scene = open_scene(scene_dir, layout=dataset.layout, depth_max=dataset.depth_max, max_frames=frames)
     if sized:  # sized from the whole scene, fed its first frames
         whole = open_scene(scene_dir, layout=dataset.layout, depth_max=dataset.depth_max)
-        mapper = mapper_for_scene(whole, pipeline_config)
+        mapper = Mapper.for_scene(whole, pipeline_config)
     else:
         mapper = Mapper(config)
     for frame in scene.frames():

@@ -109,7 +109,7 @@ class SceneFusion:
             sample = scene.sample_depth(max_frames=60)
             check_depth_units(scene, sample)
             warn_static_trajectory(scene)
-            self.mapper = mapper_for_scene(scene, config, sample, time_stages=time_stages)
+            self.mapper = Mapper.for_scene(scene, config, sample=sample, time_stages=time_stages)
 
     #: Frames read, decoded and prepared (`Mapper.prepare`) ahead per reader thread, while the current one is fused.
     READ_AHEAD = 2
@@ -282,14 +282,6 @@ def read_ahead(read: Callable[[Any], T], items: Iterable[Any], reader: concurren
             yield pending.popleft().result()
     while pending:
         yield pending.popleft().result()
-
-
-def mapper_for_scene(
-    scene: Scene, config: PipelineConfig, sample: DepthSample | None = None, time_stages: bool = False, **hooks: Any
-):
-    """The `Mapper` `fmfusion run` fuses `scene` into (`Mapper.for_scene`). `hooks`: the Mapper's `timer` and
-    `fuse_detections` (the benchmark's)."""
-    return Mapper.for_scene(scene, config, sample=sample, time_stages=time_stages, **hooks)
 
 
 def fuse_scene(

@@ -25,7 +25,7 @@ from fmfusion_jax.apps.bench import harness, worker
 from fmfusion_jax.apps.bench.scenes import BenchScene, prepare_real_scene
 from fmfusion_jax.compile_cache import enable_compile_cache
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.run.scene_fusion import mapper_for_scene
+from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.xla_options import enable_gpu_command_buffers
 
 
@@ -36,7 +36,7 @@ def as_run_passes(scene: BenchScene, passes: int, frames: int | None = None, say
     sample = opened.sample_depth(max_frames=60)
     rows = []
     for number in range(passes):
-        mapper = mapper_for_scene(opened, config, sample)
+        mapper = Mapper.for_scene(opened, config, sample=sample)
         start = time.perf_counter()
         measured, _ = worker._as_run_pass(mapper, opened, folder, config, False, scene)
         wall = time.perf_counter() - start

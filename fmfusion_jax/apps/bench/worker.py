@@ -49,7 +49,7 @@ from fmfusion_jax.apps.bench.sweep import RUNNERS as SWEEP_RUNNERS
 from fmfusion_jax.compile_cache import enable_compile_cache
 from fmfusion_jax.labels import load_label_sets, load_likelihood
 from fmfusion_jax.mapping.mapper import Mapper
-from fmfusion_jax.run.scene_fusion import SceneFusion, mapper_for_scene, read_ahead
+from fmfusion_jax.run.scene_fusion import SceneFusion, read_ahead
 
 
 def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dict | None = None) -> dict:
@@ -57,7 +57,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
     `tsdf`, `refine`, `geometry_fusion`), then the staged pass (`stage_frames`: `stages.FUSION_STAGES`), then the
     pass as run, without timers (`run_frames`: `call`, the wall time of each `Mapper.integrate`).
 
-    The map is `fmfusion run`'s (`run.scene_fusion.mapper_for_scene`): sized from a depth sample, growing (pool, table) by
+    The map is `fmfusion run`'s (`Mapper.for_scene`): sized from a depth sample, growing (pool, table) by
     doubling when a frame might not fit; the calls that recompiled after a growth are left out of the figures."""
     from fmfusion_jax.apps.bench.stages import FrameTimer
 
@@ -77,7 +77,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
     def fuse(staged: bool) -> tuple[Mapper, FrameTimer, dict]:
         timer = FrameTimer()
         step_hook = {"fuse_detections": staged_fuse_detections(timer)} if staged else {}
-        mapper = mapper_for_scene(opened, config, sample, timer=timer, **step_hook)
+        mapper = Mapper.for_scene(opened, config, sample=sample, timer=timer, **step_hook)
         counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
         for frame, detections in frames_with_detections(
             opened, folder, config, progress, f"ours {'staged' if staged else 'fused'} {scene.name}"
@@ -129,7 +129,7 @@ def run_ours(scene: BenchScene, frames: int | None, progress: bool, profile: dic
     result.update(stage_frames=staged_timer.frames, stage_compiled=staged_timer.compiled)
     result["compile_ms"].update({f"stage:{k}": v for k, v in _compile_ms(staged_timer).items() if k in FUSION_STAGES})
     del staged_mapper
-    run_mapper = mapper_for_scene(opened, config, sample)
+    run_mapper = Mapper.for_scene(opened, config, sample=sample)
     run_frames, run_left_out = _as_run_pass(run_mapper, opened, folder, config, progress, scene, profile)
     if profile:
         result["profile"] = profile
