@@ -81,14 +81,15 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float)
 
 
 def _packed_rows(key: np.ndarray) -> np.ndarray:
-    """`key int64 (N, 3)` as one int64 per row in the same lexicographic order (x first), when the rows' ranges
-    fit in 63 bits (a 1-D unique is ~5x faster than a unique over rows); else `key` itself."""
+    """`key int64 (N, 3)` as one uint64 per row in the same lexicographic order (x first), when the rows' ranges
+    fit in 64 bits (a 1-D unique is ~5x faster than a unique over rows; a room's vertex keys take 64); else
+    `key` itself."""
     low = key.min(axis=0)
     bits = [int(span).bit_length() for span in key.max(axis=0) - low]
-    if sum(bits) > 63:
+    if sum(bits) > 64:
         return key
-    shifted = key - low
-    return (shifted[:, 0] << (bits[1] + bits[2])) | (shifted[:, 1] << bits[2]) | shifted[:, 2]
+    shifted = (key - low).astype(np.uint64)
+    return (shifted[:, 0] << np.uint64(bits[1] + bits[2])) | (shifted[:, 1] << np.uint64(bits[2])) | shifted[:, 2]
 
 
 def _block_view(volume: np.ndarray, blocks: int, bs: int) -> np.ndarray:
@@ -161,22 +162,22 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
             continue
         if len(f) == 0:
             continue
-        colors.append(_sample_linear(color, v))
+        # narrowed per chunk (the same values as narrowing at the end): a room's mesh is a million vertices
+        colors.append(np.clip(np.round(_sample_linear(color, v)), 0, 255).astype(np.uint8))
         verts.append(v + origin)
-        faces.append(f + offset)
+        faces.append((f + offset).astype(np.int32))
         offset += len(v)
     if not verts:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.uint8)
-    g = np.concatenate(verts)
-    f = np.concatenate(faces)
-    c = np.concatenate(colors)
+    g, f, c = np.concatenate(verts), np.concatenate(faces), np.concatenate(colors)
+    del verts, faces, colors
     # merge the copies of vertices on chunk faces (identical coordinates: same values, same arithmetic)
-    key = np.round(g * 4096).astype(np.int64)
-    packed = _packed_rows(key)
+    packed = _packed_rows(np.round(g * 4096).astype(np.int64))
     _, first, inverse = np.unique(packed, axis=0 if packed.ndim == 2 else None, return_index=True, return_inverse=True)
-    f = inverse.reshape(-1)[f]
-    g, c = g[first], c[first]
-    return _voxel_to_world(g, config), f.astype(np.int32), np.clip(np.round(c), 0, 255).astype(np.uint8)
+    del packed
+    f = inverse.reshape(-1).astype(np.int32)[f]
+    del inverse
+    return _voxel_to_world(g[first], config), f, c[first]
 
 
 def extract_surface_points(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks: int = 8):
