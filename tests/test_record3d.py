@@ -15,13 +15,15 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from test_recordings import Frames, frames_of, tiny_frames
 
 import fmfusion_jax.cli as cli
 from fmfusion_jax.errors import DataError, UserError
-from fmfusion_jax.io.record3d import camera_poses, infer_depth_size
+from fmfusion_jax.io.record3d import camera_poses, depth_camera, infer_depth_size, parse_metadata
 from fmfusion_jax.io.scene import detect_layout, open_scene
 
 liblzfse = pytest.importorskip(
@@ -282,6 +284,27 @@ def test_a_bad_export_is_a_named_error_and_leaves_no_cache(tmp_path, cache_home,
     assert str(raised.value).startswith(f"{export}: ")
     recordings = cache_home / "fmfusion-jax" / "recordings"
     assert not recordings.exists() or not any(recordings.iterdir())
+
+
+_json_values = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.integers(-5, 300), st.floats(), st.text(max_size=8)),
+    lambda children: st.one_of(st.lists(children, max_size=9), st.dictionaries(st.text(max_size=4), children, max_size=3)),
+    max_leaves=30,
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(changes=st.dictionaries(st.sampled_from(["w", "h", "K", "poses", "dw", "dh", "frameTimestamps"]), _json_values))
+def test_fuzzed_metadata_reads_or_is_a_named_error(changes):
+    """Whatever the metadata's values, its reading (and the camera and poses made of it) returns or raises the
+    project's `DataError` naming the file; never another exception."""
+    members = _metadata(r3d_members(tiny_frames(2)), **{key: value for key, value in changes.items() if value is not None})
+    try:
+        meta = parse_metadata(members["metadata"], "REC.r3d: metadata")
+        depth_camera(meta.K, meta.color_size, meta.depth_size or meta.color_size, "REC.r3d: metadata")
+        camera_poses(meta.poses, "REC.r3d: metadata")
+    except DataError as error:
+        assert str(error).startswith("REC.r3d: metadata: "), error
 
 
 def test_a_file_that_is_no_zip_and_a_forced_layout(tmp_path):

@@ -48,7 +48,7 @@ import re
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import cv2
 import numpy as np
@@ -207,9 +207,13 @@ def _frame_name(i: int) -> str:
 
 def _size(meta: dict[str, Any], width_key: str, height_key: str, where: str) -> tuple[int, int]:
     width, height = meta.get(width_key), meta.get(height_key)
-    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+    if not (_positive_int(width) and _positive_int(height)):
         raise DataError(f'{where}: "{width_key}" and "{height_key}" must be positive integers, found {width!r}, {height!r}')
     return width, height
+
+
+def _positive_int(value: Any) -> TypeGuard[int]:
+    return isinstance(value, int) and not isinstance(value, bool) and value > 0
 
 
 def _array(value: Any, where: str, key: str, expected: str) -> np.ndarray:
