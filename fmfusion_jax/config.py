@@ -45,7 +45,7 @@ class _Section(BaseModel):
 
 
 class DatasetConfig(_Section):
-    layout: Literal["auto", "scannet", "scenenn", "tum", "replica", "redwood", "rosbag"] = knob(
+    layout: Literal["auto", "scannet", "scenenn", "tum", "replica", "redwood", "rosbag", "record3d"] = knob(
         "auto", "folder layout (auto: detected from the folder; docs/your-own-data.md)"
     )
     depth_scale: Float | None = knob(
@@ -71,6 +71,13 @@ class DatasetConfig(_Section):
         None, "ROS bags: the camera poses, a PoseStamped or Odometry topic or /tf (null: /tf when it reaches the camera)"
     )
     pose_frame: str | None = knob(None, "ROS bags: the tf frame whose pose is the camera's (null: the camera info's frame_id)")
+    min_depth_confidence: Int = knob(
+        1,
+        "Record3D: LiDAR depth pixels of lower ARKit confidence are dropped (0 keeps all, 1 drops the low ones, "
+        "2 keeps the high ones only)",
+        ge=0,
+        le=2,
+    )
 
 
 class TSDFConfig(_Section):

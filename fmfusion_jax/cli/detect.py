@@ -21,7 +21,10 @@ def register(subparsers) -> None:
         formatter_class=HelpFormatter,
     )
     parser.add_argument(
-        "scene", type=Path, help="scene folder (ScanNet or SceneNN layout, or a TUM, Replica or Redwood recording)"
+        "scene",
+        type=Path,
+        help="scene folder (ScanNet or SceneNN layout, or a TUM, Replica or Redwood recording), a ROS bag or a "
+        "Record3D .r3d export",
     )
     parser.add_argument(
         "--models",

@@ -1,5 +1,6 @@
 """Readers of the recording formats beside ScanNet and SceneNN: TUM RGB-D, Replica (NICE-SLAM) and Open3D /
-Redwood. `io.scene.open_scene` detects them (`recording_layouts`) and reads them through `read_recording`;
+Redwood (ROS bags are read by `io.ros_bags`, Record3D ``.r3d`` exports by `io.record3d`, both into a `Recording`
+too). `io.scene.open_scene` detects them (`recording_layouts`) and reads them through `read_recording`;
 docs/your-own-data.md says how to make each. Every reader returns a `Recording`: the frames of the whole
 sequence in order (names, colour and depth paths, a pose per frame or the reason it has none), the depth
 camera and the format's own depth scale.

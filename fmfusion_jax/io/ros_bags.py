@@ -14,36 +14,39 @@ resized to the depth size as for the other layouts. A colour image pairs with th
 time within ``dataset.max_time_difference`` (TUM's rule, `recordings.associate`) and its pose is interpolated at
 its stamp (`recordings.pose_at`). Frames are named ``frame-000000`` by the colour message's position in its topic.
 
-The bag is read once and its frames extracted into a cache folder,
-``$XDG_CACHE_HOME/fmfusion-jax/recordings/<hash of path, size, mtime, topics>/`` (colour as the bag holds it, a
-compressed image's bytes unchanged, raw ones as PNG; depth as millimetre PNGs), written atomically and reused by
-the next open: the `Scene` then reads files as for every other layout (reader threads, random access) and a bag
-is decoded once, not on every run.
+The bag is read once and its frames extracted into a cache folder (`io.recording_cache`; the key: the bag's
+path, size, mtime and the topics), colour as the bag holds it (a compressed image's bytes unchanged, raw ones as
+PNG), depth as millimetre PNGs, written atomically and reused by the next open: the `Scene` then reads files as for
+every other layout (reader threads, random access) and a bag is decoded once, not on every run.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import json
 import logging
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from fmfusion_jax.compile_cache import user_cache_dir
 from fmfusion_jax.errors import DataError, UserError
+from fmfusion_jax.io.recording_cache import (
+    EXTRACTED_DEPTH_SCALE,
+    MANIFEST,
+    cache_folder,
+    extract_once,
+    file_stats,
+    is_extracted,
+    millimetres,
+)
 from fmfusion_jax.io.recordings import Recording, pair_streams, pose_at, quaternion_to_matrix
 from fmfusion_jax.types import CameraIntrinsics, pose_problem
 
 logger = logging.getLogger(__name__)
 
-#: Raw depth units per metre of the extracted depth PNGs (16UC1 is millimetres; 32FC1 metres are rounded to them).
-BAG_DEPTH_SCALE = 1000.0
 #: Bump when the cache folder's content changes: older folders are then not reused.
 CACHE_FORMAT = 1
 IMAGE, COMPRESSED, CAMERA_INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
@@ -76,17 +79,12 @@ def is_ros_bag(path: Path) -> bool:
     return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and is_ros2_bag(path))
 
 
-def cache_root() -> Path:
-    """Where extracted bags are kept: the project's user cache folder's recordings/."""
-    return user_cache_dir() / "recordings"
-
-
 def read_bag(path: Path, max_time_difference: float, topics: BagTopics | None = None) -> Recording:
     """The frames of the bag `path` (a `Recording` of layout ``rosbag`` whose files lie in the cache folder);
     `UserError` without rosbags or for a topic override the bag lacks, `DataError` for a bag that lacks a stream."""
     topics = topics or BagTopics()
     folder = _extracted(path, topics)
-    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest = json.loads((folder / MANIFEST).read_text())
     arrays = np.load(folder / "stamps.npz")
     color_stamps, depth_stamps = arrays["color"], arrays["depth"]
     of_color, of_depth = f" of {manifest['color_topic']}", f" of {manifest['depth_topic']}"
@@ -126,7 +124,7 @@ def read_bag(path: Path, max_time_difference: float, topics: BagTopics | None = 
         [folder / depths[j] for _, j in pairs],
         pose,
         intrinsics,
-        BAG_DEPTH_SCALE,
+        EXTRACTED_DEPTH_SCALE,  # 16UC1 is millimetres; 32FC1 metres are rounded to them
     )
 
 
@@ -153,10 +151,8 @@ def _extracted(path: Path, topics: BagTopics) -> Path:
     """The cache folder of the bag's frames (made now unless an earlier open made it)."""
     highlevel, typesys = _rosbags()
     files = sorted(path.iterdir()) if path.is_dir() else [path]
-    stats = [(str(f.resolve()), f.stat().st_size, f.stat().st_mtime_ns) for f in files if f.is_file()]
-    key = json.dumps([CACHE_FORMAT, stats, dataclasses.astuple(topics)])
-    folder = cache_root() / hashlib.sha256(key.encode()).hexdigest()[:20]
-    if (folder / "manifest.json").is_file():
+    folder = cache_folder([CACHE_FORMAT, file_stats(files), dataclasses.astuple(topics)])
+    if is_extracted(folder):
         logger.info("%s: frames read from the cache %s", path.name, folder)
         return folder
     store = typesys.get_typestore(typesys.Stores.ROS1_NOETIC if path.is_file() else typesys.Stores.ROS2_HUMBLE)
@@ -165,16 +161,8 @@ def _extracted(path: Path, topics: BagTopics) -> Path:
         reader.open()
     except Exception as error:  # rosbags raises its own errors, and OSError, struct or yaml errors on a broken bag
         raise DataError(f"{path}: not a readable ROS bag ({type(error).__name__}: {error})") from None
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    staging_dir = tempfile.TemporaryDirectory(prefix=folder.name + ".", dir=folder.parent, ignore_cleanup_errors=True)
-    with contextlib.closing(reader), staging_dir as staging:
-        _extract_into(path, reader, topics, Path(staging))
-        try:
-            Path(staging).rename(folder)
-        except OSError:  # another process made it meanwhile: theirs is the same
-            if not (folder / "manifest.json").is_file():
-                raise
-    return folder
+    with contextlib.closing(reader):
+        return extract_once(folder, lambda staging: _extract_into(path, reader, topics, staging))
 
 
 def _extract_into(path: Path, reader: Any, topics: BagTopics, out: Path) -> None:
@@ -333,7 +321,7 @@ def _extract(path: Path, reader: Any, topics: BagTopics, out: Path) -> None:
         "depth_files": depth_files,
         "pose_chain": manifest_chain,
     }
-    (out / "manifest.json").write_text(json.dumps(manifest))  # last: its presence marks a complete folder
+    (out / MANIFEST).write_text(json.dumps(manifest))  # last: its presence marks a complete folder
     logger.info("%s: %d colour and %d depth images extracted into %s", path.name, len(color_files), len(depth_files), out)
 
 
@@ -435,14 +423,9 @@ def _write_depth(path: Path, conn: Any, message: Any, file: Path) -> None:
         if message.format.startswith("32FC1"):  # inverse depth quantised: depth = a / (v - b)
             a, b = np.frombuffer(data[4:12], "<f4")
             metres = np.where(raw > 0, a / np.maximum(raw.astype(np.float32) - b, 1e-6), 0)
-            raw = _millimetres(metres)
+            raw = millimetres(metres)
     elif message.encoding == "32FC1":
-        raw = _millimetres(_pixels(message, np.float32, 1))
+        raw = millimetres(_pixels(message, np.float32, 1))
     else:
         raw = _pixels(message, np.uint16, 1)
     cv2.imwrite(str(file), raw.astype(np.uint16))
-
-
-def _millimetres(metres: np.ndarray) -> np.ndarray:
-    mm = np.where(np.isfinite(metres) & (metres > 0), np.round(np.nan_to_num(metres) * BAG_DEPTH_SCALE), 0)
-    return np.where(mm <= 65535, mm, 0).astype(np.uint16)

@@ -1,6 +1,7 @@
 """Readers for posed RGB-D scenes: the ScanNet and SceneNN folder layouts here, TUM RGB-D, Replica (NICE-SLAM)
-and Open3D / Redwood recordings in `io.recordings`; `open_scene` detects which one a folder is and reads
-each into the same `Scene` (docs/your-own-data.md says how to bring one's own recording).
+and Open3D / Redwood recordings in `io.recordings`, ROS bags in `io.ros_bags`, Record3D exports (iPhone / iPad
+LiDAR, ``.r3d``) in `io.record3d`; `open_scene` detects which one a path is and reads each into the same `Scene`
+(docs/your-own-data.md says how to bring one's own recording).
 
 ScanNet (as exported for FM-Fusion; SensReader's plain numeric stems ``0.jpg`` also work)::
 
@@ -17,7 +18,9 @@ SceneNN (as converted by the authors)::
 
 TUM RGB-D (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``; depth_scale 5000), Replica (``results/``,
 ``traj.txt``; 6553.5) and Open3D / Redwood (``color/``, ``depth/``, ``camera_intrinsic.json``,
-``trajectory.log``; 1000): see `io.recordings`. A recording's own depth scale is used unless one is given.
+``trajectory.log``; 1000): see `io.recordings`. ROS bags (``.bag`` or a ROS 2 folder) and Record3D exports
+(``.r3d``) are extracted once into the user cache (`io.recording_cache`; depth 1000). A recording's own depth
+scale is used unless one is given.
 
 A frame is named by its colour image's stem (``frame-000000`` or ``image00000``): the authors' detection
 files are keyed by that name. Frames whose pose holds NaN or inf (ScanNet marks lost tracking so) are
@@ -41,6 +44,7 @@ from tqdm import tqdm
 
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
+from fmfusion_jax.io.record3d import DEFAULT_MIN_CONFIDENCE, is_record3d, read_record3d
 from fmfusion_jax.io.recordings import (
     MAX_TIME_DIFFERENCE,
     RECORDING_MARKERS,
@@ -60,7 +64,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 #: Every layout `open_scene` reads (the recording formats of `io.recordings` after ScanNet and SceneNN).
-LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS, "rosbag")
+LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS, "rosbag", "record3d")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +102,8 @@ def detect_layout(path: str | Path) -> str:
     root = Path(path)
     if is_ros_bag(root):
         return "rosbag"
+    if is_record3d(root):
+        return "record3d"
     if not root.is_dir():
         raise UserError(f"{root}: scene folder not found")
     matches = [name for name, layout in _LAYOUTS.items() if all((root / d).is_dir() for d in layout.required_dirs)]
@@ -108,6 +114,7 @@ def detect_layout(path: str | Path) -> str:
         [f"{name}: {', '.join(d + '/' for d in layout.required_dirs)}" for name, layout in _LAYOUTS.items()]
         + [f"{name}: {', '.join(markers)}" for name, markers in RECORDING_MARKERS.items()]
         + ["rosbag: metadata.yaml and a .db3 or .mcap (ROS 2), or a .bag file (ROS 1)"]
+        + ["record3d: a .r3d file (Record3D's export), or the folder it unzips to (metadata, rgbd/)"]
     )
     if not matches:
         present = sorted(p.name + "/" for p in root.iterdir() if p.is_dir())
@@ -455,11 +462,12 @@ def open_scene(
     max_frames: int | None = None,
     max_time_difference: float = MAX_TIME_DIFFERENCE,
     topics: BagTopics | None = None,
+    min_depth_confidence: int = DEFAULT_MIN_CONFIDENCE,
 ) -> Scene:
     """Opens a scene folder: lists its frames, reads the intrinsics and the poses, checks every file exists.
 
     Args:
-      path: the scene folder (or a ROS 1 ``.bag`` file).
+      path: the scene folder (or a ROS 1 ``.bag`` file, a Record3D ``.r3d`` file).
       layout: ``"auto"`` or one of `LAYOUTS`.
       stride: keep every `stride`-th frame of the sequence (counted before skipping bad poses).
       depth_max: metres; farther depth reads as 0.
@@ -469,6 +477,7 @@ def open_scene(
       max_time_difference: seconds; a TUM recording's or a ROS bag's colour image pairs with a depth image (and
         a pose) this close in time.
       topics: a ROS bag's topics, when not the ones chosen automatically (`io.ros_bags`).
+      min_depth_confidence: a Record3D export's depth pixels of lower ARKit confidence (0, 1, 2) are dropped.
 
     Raises:
       UserError: bad arguments or an unknown layout.
@@ -481,7 +490,9 @@ def open_scene(
         raise UserError(f"layout {layout!r}: expected 'auto' or one of {list(LAYOUTS)}")
     elif layout != "rosbag" and is_ros_bag(root):
         raise UserError(f"{root}: a ROS bag, but the layout asked for is {layout!r} (use auto or rosbag)")
-    elif not (root.is_dir() or (layout == "rosbag" and root.is_file())):
+    elif layout != "record3d" and is_record3d(root):
+        raise UserError(f"{root}: a Record3D export, but the layout asked for is {layout!r} (use auto or record3d)")
+    elif not (root.is_dir() or (layout in ("rosbag", "record3d") and root.is_file())):
         raise UserError(f"{root}: scene folder not found")
     if not (isinstance(stride, int) and stride >= 1):
         raise UserError(f"stride must be a positive integer, got {stride!r}")
@@ -495,6 +506,8 @@ def open_scene(
         recording = _read_folder_layout(root, _LAYOUTS[layout], stride)
     elif layout == "rosbag":
         recording = read_bag(root, max_time_difference, topics)
+    elif layout == "record3d":
+        recording = read_record3d(root, min_depth_confidence)
     else:
         recording = read_recording(layout, root, stride, max_time_difference)
 
@@ -535,7 +548,7 @@ def open_scene(
 
 def open_dataset_scene(path: str | Path, dataset: "DatasetConfig") -> Scene:
     """`open_scene` with the reading options of a config's `dataset` section (layout, stride, depth range,
-    depth scale, frame limit, time tolerance, a ROS bag's topics)."""
+    depth scale, frame limit, time tolerance, a ROS bag's topics, a Record3D export's depth confidence)."""
     return open_scene(
         path,
         layout=dataset.layout,
@@ -547,6 +560,7 @@ def open_dataset_scene(path: str | Path, dataset: "DatasetConfig") -> Scene:
         topics=BagTopics(
             dataset.color_topic, dataset.depth_topic, dataset.camera_info_topic, dataset.pose_topic, dataset.pose_frame
         ),
+        min_depth_confidence=dataset.min_depth_confidence,
     )
 
 
