@@ -150,7 +150,12 @@ def parse_metadata(data: bytes, where: str) -> Record3DMetadata:
     if poses.ndim != 2 or poses.shape[1] != 7 or len(poses) == 0:
         raise DataError(f'{where}: "poses" must be a non-empty list of [qx, qy, qz, qw, tx, ty, tz], found shape {poses.shape}')
     stamps = meta.get("frameTimestamps")
-    stamps = np.asarray(stamps, np.float64) if isinstance(stamps, list) and len(stamps) == len(poses) else None
+    if isinstance(stamps, list) and len(stamps) == len(poses):
+        stamps = _array(stamps, where, "frameTimestamps", "a number per frame")
+        if stamps.ndim != 1:
+            raise DataError(f'{where}: "frameTimestamps" must be a number per frame, found shape {stamps.shape}')
+    else:
+        stamps = None
     return Record3DMetadata(color_size, depth_size, K.reshape(3, 3).T, poses, stamps)
 
 
