@@ -347,3 +347,23 @@ def test_without_pyrealsense2_the_error_says_how_to_install(tmp_path, monkeypatc
         UserError, match=r'room.db3: a RealSense SDK recording; reading it needs pyrealsense2: pip install -e "\.\[realsense\]"'
     ):
         open_scene(recording)
+
+
+@requires_pyrealsense2
+def test_fmfusion_track_writes_the_trajectory_the_reader_reads(tmp_path, capsys):
+    """A RealSense recording holds no poses: `fmfusion track REC` writes REC's trajectory beside it (TUM format, at
+    the colour frames' stamps), `fmfusion run REC` then reads it; it is never replaced without --overwrite."""
+    from test_track_command import _ate, _walk
+
+    walk, truth = _walk()
+    recording = record_room(walk, tmp_path / "walk.bag")
+    assert cli.main(["track", str(recording), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{len(truth)} frames tracked" in printed and f"trajectory written to {trajectory_path(recording)}" in printed
+    scene = open_scene(recording)
+    assert scene.layout == "realsense" and len(scene) == len(truth)
+    np.testing.assert_allclose(scene.poses()[0], np.eye(4), atol=1e-6)
+    assert _ate(scene.poses(), truth) < 0.005  # measured: 0.38 mm (0.35 mm from the TUM copy)
+    assert cli.main(["track", str(recording), "--no-progress"]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert cli.main(["track", str(recording), "--no-progress", "--overwrite"]) == 0
