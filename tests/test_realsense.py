@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import struct
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 from test_recordings import HEIGHT, NUM_FRAMES, WIDTH, Frames, frames_of
 
 import fmfusion_jax.cli as cli
@@ -147,6 +149,112 @@ def write_realsense(
     return path
 
 
+def write_legacy_bag(
+    path: Path,
+    colors: np.ndarray,
+    color_camera: CameraIntrinsics,
+    depths: np.ndarray,
+    depth_camera: CameraIntrinsics,
+    *,
+    depth_units: float,
+    depth_to_color: np.ndarray,
+) -> Path:
+    """`write_realsense`'s recording as SDK 2.57 and before wrote it (a ROS 1 bag, file format 4), written with
+    rosbags after librealsense's ros_writer: the device's static description first (file version, sensor and
+    stream info, camera info, the Depth Units option, each stream's extrinsics to the depth stream), then per
+    frame a sensor_msgs/Image (header.seq the frame number, stamp the time stamp, frame_id the format version
+    "1", and librealsense's extra trailing float32, the depth units) and its metadata."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg("uint32 fps\nstring encoding\nbool is_recommended", "realsense_msgs/msg/StreamInfo"))
+    T = store.types
+    messages: list[tuple[int, str, str, bytes]] = []  # (bag time ns, topic, type, serialized)
+
+    def add(t: int, topic: str, msgtype: str, message, trailer: bytes = b"") -> None:
+        messages.append((t, topic, msgtype, bytes(store.serialize_ros1(message, msgtype)) + trailer))
+
+    def header(seq: int, seconds: float, frame_id: str = ""):
+        stamp = T["builtin_interfaces/msg/Time"](sec=int(seconds), nanosec=int(round((seconds % 1) * 1e9)))
+        return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame_id)
+
+    streams = {"sensor_0/Depth_0": (depth_camera, "mono16", depths), "sensor_1/Color_0": (color_camera, "rgb8", colors)}
+    add(1, "/file_version", "std_msgs/msg/UInt32", T["std_msgs/msg/UInt32"](data=4))
+    for sensor, name in (("sensor_0", "Stereo Module"), ("sensor_1", "RGB Camera")):
+        add(
+            1,
+            f"/device_0/{sensor}/info",
+            "diagnostic_msgs/msg/KeyValue",
+            T["diagnostic_msgs/msg/KeyValue"](key="Name", value=name),
+        )
+    for stream, (camera, encoding, _) in streams.items():
+        add(
+            1,
+            f"/device_0/{stream}/info",
+            "realsense_msgs/msg/StreamInfo",
+            T["realsense_msgs/msg/StreamInfo"](fps=30, encoding=encoding, is_recommended=False),
+        )
+        K = np.array([camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1], np.float64)
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        info = T["sensor_msgs/msg/CameraInfo"](
+            header=header(0, 0.0),
+            height=camera.height,
+            width=camera.width,
+            distortion_model="None",
+            D=np.zeros(5),
+            K=K,
+            R=np.zeros(9),
+            P=np.zeros(12),
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+        )
+        add(1, f"/device_0/{stream}/info/camera_info", "sensor_msgs/msg/CameraInfo", info)
+    add(1, "/device_0/sensor_0/option/Depth_Units/value", "std_msgs/msg/Float32", T["std_msgs/msg/Float32"](data=depth_units))
+    add(
+        1,
+        "/device_0/sensor_0/option/Depth_Units/description",
+        "std_msgs/msg/String",
+        T["std_msgs/msg/String"](data="Depth Units"),
+    )
+    for stream, extrinsics in (("sensor_0/Depth_0", np.eye(4)), ("sensor_1/Color_0", depth_to_color)):
+        qx, qy, qz, qw = Rotation.from_matrix(extrinsics[:3, :3]).as_quat()
+        transform = T["geometry_msgs/msg/Transform"](
+            translation=T["geometry_msgs/msg/Vector3"](x=extrinsics[0, 3], y=extrinsics[1, 3], z=extrinsics[2, 3]),
+            rotation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+        )
+        add(1, f"/device_0/{stream}/tf/1", "geometry_msgs/msg/Transform", transform)
+    for k in range(len(colors)):
+        seconds, bag_time = (T0_MS + k * PERIOD_MS) / 1000, 1_000_000 + int(k * PERIOD_MS * 1e6)
+        for stream, (camera, encoding, images) in streams.items():
+            pixels = np.ascontiguousarray(images[k])
+            image = T["sensor_msgs/msg/Image"](
+                header=header(k, seconds, "1"),
+                height=camera.height,
+                width=camera.width,
+                encoding=encoding,
+                is_bigendian=0,
+                step=pixels.strides[0],
+                data=pixels.reshape(-1).view(np.uint8),
+            )
+            add(bag_time, f"/device_0/{stream}/image/data", "sensor_msgs/msg/Image", image, struct.pack("<f", depth_units))
+            for key, value in (("system_time", "0.000000"), ("timestamp_domain", "Hardware Clock")):
+                add(
+                    bag_time,
+                    f"/device_0/{stream}/image/metadata",
+                    "diagnostic_msgs/msg/KeyValue",
+                    T["diagnostic_msgs/msg/KeyValue"](key=key, value=value),
+                )
+    with Writer(path) as writer:
+        connections: dict[str, object] = {}
+        for t, topic, msgtype, raw in messages:
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
+            writer.write(connections[topic], t, raw)
+    return path
+
+
 def record_room(frames: Frames, path: Path, **options) -> Path:
     """The room's frames recorded with the depth camera the colour camera (as `rs.align` then leaves them)."""
     return write_realsense(path, frames.colors, frames.intrinsics, frames.depths_mm, frames.intrinsics, **options)
@@ -202,10 +310,13 @@ def test_a_recording_reads_back_as_the_scannet_scene(room, frames, tmp_path, cac
 
 
 @requires_pyrealsense2
-def test_depth_is_aligned_to_the_colour_camera(tmp_path):
+@pytest.mark.parametrize("writer", ["librealsense", "legacy bag"])
+def test_depth_is_aligned_to_the_colour_camera(tmp_path, writer):
     """A depth camera of another size, focal length and position (5 cm beside the colour camera, 1 cm below) sees
     a 20 cm square at 1.5 m before a wall at 3 m: aligned, the square's centre lies at the colour pixel its 3D
-    point projects to, with its depth; the depth units (0.5 mm) give the scale."""
+    point projects to, with its depth; the depth units (0.5 mm) give the scale. Recorded by librealsense (what
+    the SDK installed writes: a .db3 since 2.58) and as a ROS 1 .bag as SDK 2.57 and before wrote it (the
+    recordings most people have; librealsense 2.58 on still plays them)."""
     color_camera = CameraIntrinsics(120.0, 120.0, 79.5, 59.5, 160, 120)
     depth_camera = CameraIntrinsics(200.0, 200.0, 128.0, 100.0, 256, 200)
     depth_to_color = np.eye(4)
@@ -218,9 +329,13 @@ def test_depth_is_aligned_to_the_colour_camera(tmp_path):
     depth = np.where(inside, centre[2], 3.0) / units
     colors = np.full((2, color_camera.height, color_camera.width, 3), 90, np.uint8)
     depths = np.stack([np.round(depth).astype(np.uint16)] * 2)
-    recording = write_realsense(
+    if writer == "legacy bag":
+        pytest.importorskip("rosbags", reason='the legacy .bag is written with rosbags (the ros extra: pip install -e ".[ros]")')
+    write = write_realsense if writer == "librealsense" else write_legacy_bag
+    recording = write(
         tmp_path / "offset.bag", colors, color_camera, depths, depth_camera, depth_units=units, depth_to_color=depth_to_color
     )
+    assert detect_layout(recording) == "realsense"  # a legacy .bag: by the /device_0/ topics in its index
     write_poses(recording, np.stack([np.eye(4)] * 2))
     scene = open_scene(recording, depth_max=10.0)
     assert scene.depth_scale == 2000.0 and scene.intrinsics == color_camera
