@@ -53,8 +53,11 @@ CACHE_FORMAT = 1
 TRAJECTORY_SUFFIX = ".trajectory.txt"
 #: What marks a ROS 1 bag as RealSense's: its topics (every one under /device_N/) or message package.
 _REALSENSE_MARKERS = (b"topic=/device_0/", b"type=realsense_msgs/")
-#: Bytes of a ROS 1 bag's index section read to find its topics (connection records are ~200 bytes each).
+#: Bytes of a ROS 1 bag's index section read to find its topics (connection records are ~200 bytes each), and of
+#: its start read instead when the index is lost (a recording cut short; its first chunk, unless compressed).
 _INDEX_BYTES = 1 << 20
+#: The files of RealSense SDK recordings.
+REALSENSE_SUFFIXES = (".bag", ".db3")
 #: Depth frames kept before the first colour frame arrives (only the last few can pair with it).
 _EARLY_DEPTH_FRAMES = 4
 #: Seconds without a new frame after which a playback that has not ended counts as stuck.
@@ -167,17 +170,16 @@ def _log_dropped(path: Path, stream: str, numbers: list[int]) -> None:
 
 def _ros1_index(path: Path) -> bytes:
     """The start of a ROS 1 bag's index section (its connection records: topics and message types), found
-    through the file header's ``index_pos``; b"" when the file is no ROS 1 bag or its index is missing (a
-    recording cut short)."""
+    through the file header's ``index_pos``; the bag's start when the index is missing (a recording cut short:
+    its first chunk's records, unless compressed); b"" when the file is no ROS 1 bag."""
     try:
         with path.open("rb") as file:
             if file.read(13) != b"#ROSBAG V2.0\n":
                 return b""
             (length,) = struct.unpack("<I", file.read(4))
             index_pos = _record_fields(file.read(length)).get(b"index_pos", b"")
-            if len(index_pos) != 8 or not (position := struct.unpack("<Q", index_pos)[0]):
-                return b""
-            file.seek(position)
+            position = struct.unpack("<Q", index_pos)[0] if len(index_pos) == 8 else 0
+            file.seek(position if 0 < position < path.stat().st_size else 0)
             return file.read(_INDEX_BYTES)
     except (OSError, struct.error):
         return b""

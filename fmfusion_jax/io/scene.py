@@ -45,7 +45,7 @@ from tqdm import tqdm
 
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
-from fmfusion_jax.io.realsense import is_realsense_recording, read_realsense
+from fmfusion_jax.io.realsense import REALSENSE_SUFFIXES, is_realsense_recording, read_realsense
 from fmfusion_jax.io.record3d import DEFAULT_MIN_CONFIDENCE, is_record3d, read_record3d
 from fmfusion_jax.io.recordings import (
     MAX_TIME_DIFFERENCE,
@@ -494,8 +494,8 @@ def open_scene(
         layout = detect_layout(root)
     elif layout not in LAYOUTS:
         raise UserError(f"layout {layout!r}: expected 'auto' or one of {list(LAYOUTS)}")
-    elif layout == "realsense" and not is_realsense_recording(root):
-        raise UserError(f"{root}: not a RealSense SDK recording (a .bag file with /device_0/ topics, or a .db3 file)")
+    elif layout == "realsense" and not (root.is_file() and root.suffix in REALSENSE_SUFFIXES):
+        raise UserError(f"{root}: not a RealSense SDK recording (a .bag or .db3 file)")
     elif layout not in ("rosbag", "realsense") and is_ros_bag(root):
         raise UserError(f"{root}: a ROS bag, but the layout asked for is {layout!r} (use auto or rosbag)")
     elif layout != "record3d" and is_record3d(root):
