@@ -11,8 +11,8 @@ camera poses.
 
 Depth is aligned to the colour camera by librealsense (`rs.align`: every depth pixel is projected into the
 colour image, its value kept; the depth camera's z, as librealsense leaves it), so that a frame is the colour
-image, its aligned depth and the colour camera's intrinsics (its distortion ignored: RealSense colour
-streams are rectified). A colour frame pairs with the depth frame closest in time within
+image, its aligned depth and the colour camera's intrinsics (its lens distortion not modelled; a warning
+says when the recording gives non-zero coefficients). A colour frame pairs with the depth frame closest in time within
 ``dataset.max_time_difference`` (`recordings.pair_streams`). Frames are named ``frame-000123`` by the colour
 frame's number; gaps in the numbering (frames the camera or the recorder dropped) are logged.
 
@@ -75,7 +75,8 @@ _COLOR_CONVERSIONS = {
 
 def is_realsense_recording(path: Path) -> bool:
     """A RealSense SDK recording: a ``.db3`` file (what the SDK records since 2.58; a ROS 2 bag is a folder), or
-    a ``.bag`` file whose topics are RealSense's (found in the bag's index, which is never compressed)."""
+    a ``.bag`` file whose topics are RealSense's (found in the bag's index, which is never compressed, or in its
+    first chunk when the index is lost)."""
     if not path.is_file():
         return False
     if path.suffix == ".db3":
@@ -103,7 +104,7 @@ def read_realsense(path: Path, max_time_difference: float) -> Recording:
         _log_dropped(path, stream, manifest[stream]["numbers"])
     numbers = [color["numbers"][i] for i, _ in pairs]
     names = [f"frame-{n:06d}" for n in numbers]
-    if len(set(names)) != len(names):  # the numbering restarted (the SDK does on some errors): name by position
+    if len(set(names)) != len(names):  # the camera restarted its counter: name the frames by position
         logger.info("%s: colour frame numbers repeat; frames named by their position instead", path.name)
         names = [f"frame-{k:06d}" for k in range(len(pairs))]
     stamps = color_stamps[[i for i, _ in pairs]]
@@ -230,7 +231,7 @@ def _extract(path: Path, out: Path) -> None:
     except RuntimeError as error:
         raise DataError(f"{path}: no extrinsics from the depth to the colour stream ({error}); depth cannot be aligned") from None
     intrin = color[1].as_video_stream_profile().get_intrinsics()
-    if str(intrin.model) != "distortion.none" and any(abs(c) > 1e-6 for c in intrin.coeffs):
+    if intrin.model != rs.distortion.none and any(abs(c) > 1e-6 for c in intrin.coeffs):
         logger.warning(
             "%s: the colour stream has lens distortion %s %s; frames are used as pinhole", path.name, intrin.model, intrin.coeffs
         )
