@@ -45,7 +45,7 @@ class _Section(BaseModel):
 
 
 class DatasetConfig(_Section):
-    layout: Literal["auto", "scannet", "scenenn", "tum", "replica", "redwood", "rosbag", "record3d"] = knob(
+    layout: Literal["auto", "scannet", "scenenn", "tum", "replica", "redwood", "rosbag", "record3d", "realsense"] = knob(
         "auto", "folder layout (auto: detected from the folder; docs/your-own-data.md)"
     )
     depth_scale: Float | None = knob(

@@ -1,11 +1,13 @@
 """`fmfusion track REC`: camera poses for a recording without them, by frame-to-frame tracking of its depth
 (`mapping.tracking.Tracker`), written as the recording's own trajectory file (TUM: trajectory.txt; Open3D /
-Redwood: trajectory.log) so that `fmfusion run REC` fuses with them.
+Redwood: trajectory.log; a RealSense SDK recording REC.bag: REC.bag.trajectory.txt beside it) so that
+`fmfusion run REC` fuses with them.
 
 Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): the
 pyramid's finest level then costs ~15-60 ms a frame on a 2-core CPU instead of seconds. Reads the formats whose
-frames are listed without poses: TUM (rgb.txt and depth.txt) and Open3D / Redwood (color/, depth/ and
-camera_intrinsic.json, as Open3D's RealSense and Azure Kinect recorders write them).
+frames are listed without poses: TUM (rgb.txt and depth.txt), Open3D / Redwood (color/, depth/ and
+camera_intrinsic.json, as Open3D's RealSense and Azure Kinect recorders write them) and RealSense SDK
+recordings (.bag, .db3: `io.realsense`, which never hold poses).
 """
 
 from __future__ import annotations
@@ -13,13 +15,23 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.io.recordings import read_recording, recording_layouts, write_trajectory_log, write_tum_trajectory
+from fmfusion_jax.io.realsense import is_realsense_recording, read_realsense
+from fmfusion_jax.io.realsense import trajectory_path as realsense_trajectory
+from fmfusion_jax.io.recordings import (
+    MAX_TIME_DIFFERENCE,
+    Recording,
+    read_recording,
+    recording_layouts,
+    write_trajectory_log,
+    write_tum_trajectory,
+)
 from fmfusion_jax.io.scene import read_depth_image
 from fmfusion_jax.mapping.tracking import Tracker
 from fmfusion_jax.types import CameraIntrinsics
@@ -48,23 +60,16 @@ def subsampled_camera(intrinsics: CameraIntrinsics, step: int) -> CameraIntrinsi
 def track_recording(
     path: str | Path, out: str | Path | None = None, depth_max: float = 4.0, overwrite: bool = False, progress: bool = True
 ) -> Path:
-    """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder) and writes its trajectory to `out`
-    (default: the file the recording's reader reads when it has no other poses: TUM's trajectory.txt, Redwood's
-    trajectory.log); returns the file written."""
+    """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder, a RealSense SDK recording) and writes
+    its trajectory to `out` (default: the file the recording's reader reads when it has no other poses: TUM's
+    trajectory.txt, Redwood's trajectory.log, a RealSense recording's REC.bag.trajectory.txt); returns the file
+    written."""
     root = Path(path)
-    if not root.is_dir():
-        raise UserError(f"{root}: recording folder not found")
-    layouts = [layout for layout in recording_layouts(root) if layout in TRAJECTORY_FILES]
-    if len(layouts) != 1:
-        raise UserError(
-            f"{root}: not a TUM RGB-D folder (rgb.txt, depth.txt) nor an Open3D / Redwood one (color/, depth/, "
-            "camera_intrinsic.json): `fmfusion track` reads these two formats today"
-        )
-    layout = layouts[0]
-    target = Path(out) if out is not None else root / TRAJECTORY_FILES[layout]
+    default, read = _trajectory_and_reader(root)
+    target = Path(out) if out is not None else default
     if target.exists() and not overwrite:
         raise UserError(f"{target}: exists; pass --overwrite to replace it, or --out another file")
-    recording = read_recording(layout, root, stride=1)
+    recording = read()
     camera = recording.intrinsics()
     step = max(1, -(-camera.width // TRACK_WIDTH))
     tracked = subsampled_camera(camera, step)
@@ -76,7 +81,7 @@ def track_recording(
         poses.append(tracker.track(np.ascontiguousarray(depth)).T_world_camera)
     seconds = time.perf_counter() - start
     target.parent.mkdir(parents=True, exist_ok=True)
-    if recording.stamps is not None:  # TUM
+    if recording.stamps is not None:  # TUM, RealSense
         write_tum_trajectory(target, [float(t) for t in recording.stamps], poses)
     else:
         write_trajectory_log(target, poses)
@@ -88,3 +93,20 @@ def track_recording(
     if tracker.frames_lost:
         log.warning("%s: tracking was lost on %d of %d frames: check the trajectory", root.name, tracker.frames_lost, len(poses))
     return target
+
+
+def _trajectory_and_reader(root: Path) -> tuple[Path, Callable[[], Recording]]:
+    """The trajectory file the reader of the recording `root` reads when it has no other poses, and that reader
+    (called once the file is known not to exist: extracting a RealSense recording takes a while)."""
+    if is_realsense_recording(root):
+        return realsense_trajectory(root), lambda: read_realsense(root, MAX_TIME_DIFFERENCE)
+    if not root.is_dir():
+        raise UserError(f"{root}: recording folder (or RealSense .bag / .db3 file) not found")
+    layouts = [layout for layout in recording_layouts(root) if layout in TRAJECTORY_FILES]
+    if len(layouts) != 1:
+        raise UserError(
+            f"{root}: not a TUM RGB-D folder (rgb.txt, depth.txt) nor an Open3D / Redwood one (color/, depth/, "
+            "camera_intrinsic.json): `fmfusion track` reads these two formats and RealSense SDK recordings today"
+        )
+    layout = layouts[0]
+    return root / TRAJECTORY_FILES[layout], lambda: read_recording(layout, root, stride=1)

@@ -41,7 +41,7 @@ def add_seed(parser: argparse.ArgumentParser, help: str, default: int | None = 0
 
 
 #: `--layout`'s choices: `io.scene.LAYOUTS` (a test keeps them equal; the parsers do not import the readers).
-LAYOUT_CHOICES = ("auto", "scannet", "scenenn", "tum", "replica", "redwood", "rosbag", "record3d")
+LAYOUT_CHOICES = ("auto", "scannet", "scenenn", "tum", "replica", "redwood", "rosbag", "record3d", "realsense")
 
 
 def add_layout(parser: argparse.ArgumentParser, help: str, choices: tuple[str, ...] = LAYOUT_CHOICES) -> None:

@@ -15,15 +15,21 @@ def register(subparsers) -> None:
         description="Estimates the camera poses of a recording that has none by frame-to-frame tracking of its "
         "depth (projective point-to-plane ICP, coarse to fine) and writes them where its reader looks: a TUM RGB-D "
         "folder's trajectory.txt, an Open3D / Redwood folder's trajectory.log (as Open3D's RealSense and Azure Kinect "
-        "recorders leave them: color/, depth/, camera_intrinsic.json). `fmfusion run REC` then fuses with them. "
+        "recorders leave them: color/, depth/, camera_intrinsic.json), a RealSense SDK recording's REC.bag.trajectory.txt "
+        "beside it. `fmfusion run REC` then fuses with them. "
         "Frame-to-frame tracking drifts and needs small motions between frames (30 Hz video): "
         "docs/your-own-data.md, 'Without poses'.",
     )
-    parser.add_argument("recording", type=Path, help="a TUM RGB-D folder (rgb.txt, depth.txt) or an Open3D / Redwood one")
+    parser.add_argument(
+        "recording",
+        type=Path,
+        help="a TUM RGB-D folder (rgb.txt, depth.txt), an Open3D / Redwood one, or a RealSense .bag / .db3 file",
+    )
     parser.add_argument(
         "--out",
         type=Path,
-        help="trajectory file to write (default: the recording's trajectory.txt or trajectory.log, read by `fmfusion run`)",
+        help="trajectory file to write (default: the recording's trajectory.txt or trajectory.log, or REC.bag.trajectory.txt, "
+        "read by `fmfusion run`)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     options.add_depth_max(parser)

@@ -368,6 +368,13 @@ def _tum_pose_source(root: Path, frame_stamps: np.ndarray, max_time_difference: 
             )
 
         return missing
+    return tum_trajectory_poses(path, frame_stamps, max_time_difference)
+
+
+def tum_trajectory_poses(path: Path, frame_stamps: np.ndarray, max_time_difference: float) -> PoseSource:
+    """The poses of the frames stamped `frame_stamps` `(N,)` (seconds), interpolated (`pose_at`) from the TUM
+    trajectory file `path` (lines 'timestamp tx ty tz qx qy qz qw'); `DataError` for a malformed file or one
+    whose time span holds no frame."""
     rows = _read_rows(path)
     table = np.array([_floats(path, line, row, 8) for line, row in rows]).reshape(-1, 8)
     if len(table) == 0:

@@ -19,7 +19,8 @@ SceneNN (as converted by the authors)::
 TUM RGB-D (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``; depth_scale 5000), Replica (``results/``,
 ``traj.txt``; 6553.5) and Open3D / Redwood (``color/``, ``depth/``, ``camera_intrinsic.json``,
 ``trajectory.log``; 1000): see `io.recordings`. ROS bags (``.bag`` or a ROS 2 folder) and Record3D exports
-(``.r3d``) are extracted once into the user cache (`io.recording_cache`; depth 1000). A recording's own depth
+(``.r3d``) are extracted once into the user cache (`io.recording_cache`; depth 1000), and so are RealSense SDK
+recordings (``.bag``, ``.db3``: `io.realsense`; depth aligned to colour, in the recording's own units). A recording's own depth
 scale is used unless one is given.
 
 A frame is named by its colour image's stem (``frame-000000`` or ``image00000``): the authors' detection
@@ -44,6 +45,7 @@ from tqdm import tqdm
 
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.image_file import read_image
+from fmfusion_jax.io.realsense import REALSENSE_SUFFIXES, is_realsense_recording, read_realsense
 from fmfusion_jax.io.record3d import DEFAULT_MIN_CONFIDENCE, is_record3d, read_record3d
 from fmfusion_jax.io.recordings import (
     MAX_TIME_DIFFERENCE,
@@ -64,7 +66,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 #: Every layout `open_scene` reads (the recording formats of `io.recordings` after ScanNet and SceneNN).
-LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS, "rosbag", "record3d")
+LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS, "rosbag", "record3d", "realsense")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +102,8 @@ _LAYOUTS = {
 def detect_layout(path: str | Path) -> str:
     """The layout of the scene folder `path` (one of `LAYOUTS`); `UserError` when none or several fit."""
     root = Path(path)
+    if is_realsense_recording(root):  # before is_ros_bag: a RealSense .bag is a ROS 1 bag too
+        return "realsense"
     if is_ros_bag(root):
         return "rosbag"
     if is_record3d(root):
@@ -115,6 +119,7 @@ def detect_layout(path: str | Path) -> str:
         + [f"{name}: {', '.join(markers)}" for name, markers in RECORDING_MARKERS.items()]
         + ["rosbag: metadata.yaml and a .db3 or .mcap (ROS 2), or a .bag file (ROS 1)"]
         + ["record3d: a .r3d file (Record3D's export), or the folder it unzips to (metadata, rgbd/)"]
+        + ["realsense: a RealSense SDK recording, a .bag or .db3 file"]
     )
     if not matches:
         present = sorted(p.name + "/" for p in root.iterdir() if p.is_dir())
@@ -467,7 +472,8 @@ def open_scene(
     """Opens a scene folder: lists its frames, reads the intrinsics and the poses, checks every file exists.
 
     Args:
-      path: the scene folder (or a ROS 1 ``.bag`` file, a Record3D ``.r3d`` file).
+      path: the scene folder (or a ROS 1 ``.bag`` file, a Record3D ``.r3d`` file, a RealSense SDK ``.bag`` / ``.db3``
+        recording).
       layout: ``"auto"`` or one of `LAYOUTS`.
       stride: keep every `stride`-th frame of the sequence (counted before skipping bad poses).
       depth_max: metres; farther depth reads as 0.
@@ -488,11 +494,13 @@ def open_scene(
         layout = detect_layout(root)
     elif layout not in LAYOUTS:
         raise UserError(f"layout {layout!r}: expected 'auto' or one of {list(LAYOUTS)}")
-    elif layout != "rosbag" and is_ros_bag(root):
+    elif layout == "realsense" and not (root.is_file() and root.suffix in REALSENSE_SUFFIXES):
+        raise UserError(f"{root}: not a RealSense SDK recording (a .bag or .db3 file)")
+    elif layout not in ("rosbag", "realsense") and is_ros_bag(root):
         raise UserError(f"{root}: a ROS bag, but the layout asked for is {layout!r} (use auto or rosbag)")
     elif layout != "record3d" and is_record3d(root):
         raise UserError(f"{root}: a Record3D export, but the layout asked for is {layout!r} (use auto or record3d)")
-    elif not (root.is_dir() or (layout in ("rosbag", "record3d") and root.is_file())):
+    elif not (root.is_dir() or (layout in ("rosbag", "record3d", "realsense") and root.is_file())):
         raise UserError(f"{root}: scene folder not found")
     if not (isinstance(stride, int) and stride >= 1):
         raise UserError(f"stride must be a positive integer, got {stride!r}")
@@ -508,6 +516,8 @@ def open_scene(
         recording = read_bag(root, max_time_difference, topics)
     elif layout == "record3d":
         recording = read_record3d(root, min_depth_confidence)
+    elif layout == "realsense":
+        recording = read_realsense(root, max_time_difference)
     else:
         recording = read_recording(layout, root, stride, max_time_difference)
 
