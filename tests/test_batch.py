@@ -131,3 +131,18 @@ def test_scenes_run_together_share_the_device(monkeypatch):
     assert child_environment(1)["PYTHONUNBUFFERED"] == "1"
     monkeypatch.setenv(PREALLOCATE_ENV, "true")
     assert child_environment(4)[PREALLOCATE_ENV] == "true"
+
+
+def test_recording_files_are_scenes_of_a_dataset(dataset, tmp_path):
+    """A folder of recordings lists its bag and Record3D files beside the scene folders; other files are not scenes."""
+    from fmfusion_jax.apps.batch import list_scenes
+
+    folder = tmp_path / "mixed"
+    shutil.copytree(next(p for p in dataset.iterdir() if p.is_dir()), folder / "room")
+    (folder / "walk.bag").write_bytes(b"#ROSBAG V2.0\n")
+    (folder / "kitchen.r3d").write_bytes(b"PK")
+    (folder / "walk.bag.trajectory.txt").write_text("0 0 0 0 0 0 0 1\n")
+    (folder / "README.md").write_text("notes\n")
+    assert [p.name for p in list_scenes(folder)] == ["kitchen.r3d", "room", "walk.bag"]
+    (folder / "split.txt").write_text("walk.bag\nroom\n")
+    assert [p.name for p in list_scenes(folder / "split.txt")] == ["walk.bag", "room"]

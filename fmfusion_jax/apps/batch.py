@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from fmfusion_jax.config import load_config
-from fmfusion_jax.errors import UserError
+from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.evaluation.scannet_benchmark import evaluate_scenes
 from fmfusion_jax.io.atomic import write_atomic
 from fmfusion_jax.io.benchmark_format import read_benchmark_predictions
@@ -76,21 +76,22 @@ class SceneTask:
 
 
 def list_scenes(source: Path, root: Path | None = None) -> list[Path]:
-    """The scene folders of a dataset: the sub-folders of `source` that are scenes (any layout `detect_layout`
-    knows), or the scene ids of a split file (one per line, `#` comments) resolved under `root` (default: the
-    split file's folder). A listed scene that does not exist is a `UserError`."""
+    """The scenes of a dataset: the entries of `source` that are scenes (folders of any layout `detect_layout`
+    knows, and recording files: ROS 1 / RealSense bags, Record3D exports), or the scene ids of a split file (one
+    per line, `#` comments) resolved under `root` (default: the split file's folder). A listed scene that does
+    not exist is a `UserError`."""
     if source.is_dir():
         scenes = []
         for child in sorted(source.iterdir()):
-            if child.is_dir():
-                try:
-                    detect_layout(child)
-                except UserError:
-                    continue
-                scenes.append(child)
+            try:
+                detect_layout(child)
+            except (UserError, DataError, OSError):  # not a scene (a README, a trajectory beside a bag, ...)
+                continue
+            scenes.append(child)
         if not scenes:
             raise UserError(
-                f"{source}: no scene folder inside (ScanNet or SceneNN layout, or a TUM, Replica or Redwood recording)"
+                f"{source}: no scene inside (a ScanNet or SceneNN folder, a TUM, Replica or Redwood recording, a ROS "
+                "bag, a Record3D export or a RealSense recording)"
             )
         return scenes
     if not source.is_file():
@@ -98,7 +99,7 @@ def list_scenes(source: Path, root: Path | None = None) -> list[Path]:
     base = root or source.parent
     ids = [line.split("#")[0].strip() for line in source.read_text().splitlines()]
     scenes = [base / scene_id for scene_id in ids if scene_id]
-    missing = [str(path) for path in scenes if not path.is_dir()]
+    missing = [str(path) for path in scenes if not path.exists()]
     if missing:
         raise UserError(f"{source}: {len(missing)} listed scenes not found under {base} (first: {missing[0]})")
     if not scenes:

@@ -18,7 +18,11 @@ def register(subparsers) -> None:
         "with a per-scene table (OUT/batch.md, batch.csv, batch.json). --resume skips the scenes already done.",
         formatter_class=HelpFormatter,
     )
-    parser.add_argument("dataset", type=Path, help="a folder of scene folders, or a split file of scene ids")
+    parser.add_argument(
+        "dataset",
+        type=Path,
+        help="a folder of scenes (scene folders, recording folders and files: .bag, .db3, .r3d), or a split file of scene ids",
+    )
     parser.add_argument("--root", type=Path, help="folder of the scenes of a split file (default: the file's folder)")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument(
