@@ -1,9 +1,10 @@
-"""`fmfusion track REC`: camera poses for a recording without them, by frame-to-frame tracking of its depth
-(`mapping.tracking.Tracker`), written as the recording's own trajectory file (TUM: trajectory.txt; Open3D /
-Redwood: trajectory.log) so that `fmfusion run REC` fuses with them.
+"""`fmfusion track REC`: camera poses for a recording without them, by tracking its depth frame to model (or frame
+to frame: `--reference frame`; `mapping.tracking.Tracker`), written as the recording's own trajectory file
+(TUM: trajectory.txt; Open3D / Redwood: trajectory.log) so that `fmfusion run REC` fuses with them.
 
 Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): the
-pyramid's finest level then costs ~15-60 ms a frame on a 2-core CPU instead of seconds. Reads the formats whose
+pyramid's finest level then costs ~15-60 ms a frame frame to frame (~50-100 ms frame to model, which also fuses
+and raycasts its TSDF) on a 2-core CPU instead of seconds. Reads the formats whose
 frames are listed without poses: TUM (rgb.txt and depth.txt) and Open3D / Redwood (color/, depth/ and
 camera_intrinsic.json, as Open3D's RealSense and Azure Kinect recorders write them).
 """
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from fmfusion_jax.engine.tracking import TrackingConfig
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.recordings import read_recording, recording_layouts, write_trajectory_log, write_tum_trajectory
 from fmfusion_jax.io.scene import read_depth_image
@@ -46,11 +48,17 @@ def subsampled_camera(intrinsics: CameraIntrinsics, step: int) -> CameraIntrinsi
 
 
 def track_recording(
-    path: str | Path, out: str | Path | None = None, depth_max: float = 4.0, overwrite: bool = False, progress: bool = True
+    path: str | Path,
+    out: str | Path | None = None,
+    depth_max: float = 4.0,
+    overwrite: bool = False,
+    progress: bool = True,
+    reference: str = TrackingConfig.reference,
 ) -> Path:
     """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder) and writes its trajectory to `out`
     (default: the file the recording's reader reads when it has no other poses: TUM's trajectory.txt, Redwood's
-    trajectory.log); returns the file written."""
+    trajectory.log); returns the file written. `reference`: "model" (frame-to-model) or "frame" (frame-to-frame),
+    `TrackingConfig.reference`."""
     root = Path(path)
     if not root.is_dir():
         raise UserError(f"{root}: recording folder not found")
@@ -68,7 +76,7 @@ def track_recording(
     camera = recording.intrinsics()
     step = max(1, -(-camera.width // TRACK_WIDTH))
     tracked = subsampled_camera(camera, step)
-    tracker = Tracker(tracked)
+    tracker = Tracker(tracked, dataclasses.replace(TrackingConfig(), reference=reference))
     poses, start = [], time.perf_counter()
     frames = tqdm(recording.depth_paths, desc=f"tracking {root.name}", unit="frame", disable=not progress)
     for depth_path in frames:
@@ -81,7 +89,8 @@ def track_recording(
     else:
         write_trajectory_log(target, poses)
     print(
-        f"{root.name}: {len(poses)} frames tracked at {tracked.width}x{tracked.height} in {seconds:.1f} s "
+        f"{root.name}: {len(poses)} frames tracked against the {reference} at {tracked.width}x{tracked.height} "
+        f"in {seconds:.1f} s "
         f"({1000 * seconds / max(len(poses), 1):.0f} ms a frame, reading included), {tracker.frames_lost} lost "
         f"(they keep the last good pose)\ntrajectory written to {target}"
     )
