@@ -186,7 +186,8 @@ def _raycast(blocks: VoxelBlocks, T_world_camera, intrinsics, config: MapConfig,
     low, high = t_before - voxel, t_after + voxel
     ok = hit
     for _ in range(2):
-        f, gradient, seen = trilinear_tsdf(blocks, *[origin[a] + depth * direction[a] for a in range(3)], config)
+        q = [origin[a] + depth * direction[a] for a in range(3)]
+        f, gradient, seen = trilinear_tsdf(blocks, q[0], q[1], q[2], config)
         slope = gradient[0] * direction[0] + gradient[1] * direction[1] + gradient[2] * direction[2]  # df / dt
         ok = ok & seen & (slope < 0)
         depth = jnp.clip(depth - f / jnp.where(ok, slope, -1.0), low, high)
