@@ -1,5 +1,5 @@
-"""The host tracker (`mapping.tracking`): accuracy on a generated room along a smooth 30 Hz path, the skip of a
-lost frame, and the TUM trajectory it writes."""
+"""The host tracker (`mapping.tracking`): accuracy on a generated room along a smooth 30 Hz path, frame to frame
+on exact depth and frame to model on noisy depth, the skip of a lost frame, and the TUM trajectory it writes."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from fmfusion_jax.engine.tracking import TrackingConfig
 from fmfusion_jax.io.recordings import quaternion_to_matrix, rotation_to_quaternion, write_tum_trajectory
 from fmfusion_jax.mapping.tracking import Tracker, track_depths
 from fmfusion_jax.types import CameraIntrinsics
@@ -20,6 +21,8 @@ NUM_FRAMES = 60
 #: 1.7 degrees (50 degrees/s) between frames (the loop over a few dozen frames, as the mapping tests draw it, is
 #: far faster).
 LOOP_FRAMES = 1800
+FRAME = TrackingConfig(reference="frame")
+MODEL = TrackingConfig(reference="model")
 
 
 @functools.cache
@@ -49,7 +52,7 @@ def test_a_smooth_walk_is_tracked_within_a_few_millimetres(stride, max_ate):
     truth, depths = sequence(stride)
     steps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
     assert 0.002 * stride < steps.mean() < 0.004 * stride
-    frames = track_depths(depths, INTRINSICS)
+    frames = track_depths(depths, INTRINSICS, FRAME)
     assert not any(f.lost for f in frames)
     estimated = np.stack([f.T_world_camera for f in frames])
     np.testing.assert_array_equal(estimated[0], np.eye(4))
@@ -59,7 +62,7 @@ def test_a_smooth_walk_is_tracked_within_a_few_millimetres(stride, max_ate):
 
 def test_a_given_first_pose_starts_the_chain():
     truth, depths = sequence()
-    frames = track_depths(depths[:10], INTRINSICS, T_world_first=truth[0])
+    frames = track_depths(depths[:10], INTRINSICS, FRAME, T_world_first=truth[0])
     estimated = np.stack([f.T_world_camera for f in frames])
     assert np.abs(estimated[:, :3, 3] - truth[:10, :3, 3]).max() < 2e-3
 
@@ -68,7 +71,7 @@ def test_a_lost_frame_keeps_the_last_pose_and_the_next_one_tracks_against_the_la
     truth, depths = sequence()
     broken = depths[:12].copy()
     broken[6] = 0.0  # a frame without depth: nothing to track
-    tracker = Tracker(INTRINSICS)
+    tracker = Tracker(INTRINSICS, FRAME)
     with caplog.at_level("WARNING"):
         frames = [tracker.track(d) for d in broken]
     assert [f.lost for f in frames] == [i == 6 for i in range(12)]
@@ -77,6 +80,56 @@ def test_a_lost_frame_keeps_the_last_pose_and_the_next_one_tracks_against_the_la
     assert tracker.frames_lost == 1 and tracker.frames_tracked == 11
     estimated = np.stack([f.T_world_camera for i, f in enumerate(frames) if i != 6])
     assert ate_rmse(estimated, np.delete(truth[:12], 6, axis=0)) < 2e-3  # frame 7 tracked against frame 5
+
+
+@functools.cache
+def noisy_sequence(frames: int = 150) -> tuple[np.ndarray, np.ndarray]:
+    """The walk's first `frames` frames (5 s at 30 Hz) with Kinect-like depth noise, holes and dropouts."""
+    from fmfusion_jax.simulation.procedural import add_object, camera_trajectory, empty_room
+    from fmfusion_jax.simulation.scene_views import render_frame
+
+    room = empty_room((4.0, 4.0, 2.6), seed=3)
+    room = add_object(room, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
+    room = add_object(room, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
+    poses = camera_trajectory(room, LOOP_FRAMES)[:frames]
+    depths = [render_frame(room, T, INTRINSICS, rng=np.random.default_rng([3, k])).depth for k, T in enumerate(poses)]
+    return poses, np.stack([np.where(np.isfinite(d), d, 0.0) for d in depths]).astype(np.float32)
+
+
+def test_frame_to_model_drifts_less_than_frame_to_frame_on_a_noisy_walk():
+    truth, depths = noisy_sequence()
+    model = track_depths(depths, INTRINSICS, MODEL, T_world_first=truth[0])
+    frame = track_depths(depths, INTRINSICS, FRAME, T_world_first=truth[0])
+    assert not any(f.lost for f in model)
+    errors = {}
+    for name, frames in (("model", model), ("frame", frame)):
+        estimated = np.stack([f.T_world_camera for f in frames])
+        errors[name] = ate_rmse(estimated, truth)
+    # measured: 150 mm frame to model, 803 mm frame to frame (lost near the end); the 2 cm target is not met here
+    assert errors["model"] < 0.3, errors
+    assert errors["model"] < errors["frame"] / 2, errors
+
+
+def test_a_lost_frame_is_logged_skipped_and_not_fused_by_frame_to_model_tracking(caplog):
+    truth, depths = noisy_sequence()
+    broken = depths[:12].copy()
+    broken[6] = 0.0
+    tracker = Tracker(INTRINSICS, MODEL, T_world_first=truth[0])
+    weights = []
+    with caplog.at_level("WARNING"):
+        frames = []
+        for d in broken:
+            frames.append(tracker.track(d))
+            model = tracker.model
+            assert model is not None
+            weights.append(float(np.asarray(model[0].weight).sum()))
+    assert [f.lost for f in frames] == [i == 6 for i in range(12)]
+    assert "tracking lost at frame 6" in caplog.text and "found again at frame 7 after 1 lost" in caplog.text
+    np.testing.assert_array_equal(frames[6].T_world_camera, frames[5].T_world_camera)
+    assert weights[6] == weights[5] < weights[7]  # the lost frame added nothing to the model
+    estimated = np.stack([f.T_world_camera for i, f in enumerate(frames) if i != 6])
+    # measured 55 mm: over its first frames the model is thin and noisy (the weak point of frame to model here)
+    assert ate_rmse(estimated, np.delete(truth[:12], 6, axis=0)) < 0.1
 
 
 def test_the_wrong_image_size_is_refused():
@@ -112,9 +165,10 @@ def test_the_tum_trajectory_reads_back(tmp_path):
 def test_tracking_time_per_frame():
     """Warm ms per frame at 160x120 (printed; run with -s): maps of the frame plus the ICP, host sync included."""
     truth, depths = sequence()
-    track_depths(depths[:3], INTRINSICS)  # compile
-    start = time.perf_counter()
-    track_depths(depths, INTRINSICS)
-    ms = (time.perf_counter() - start) / (len(depths) - 1) * 1e3
-    print(f"tracking {WIDTH}x{HEIGHT}: {ms:.1f} ms per frame over {len(depths)} frames")
-    assert ms < 1000
+    for config in (FRAME, MODEL):
+        track_depths(depths[:3], INTRINSICS, config)  # compile
+        start = time.perf_counter()
+        track_depths(depths, INTRINSICS, config)
+        ms = (time.perf_counter() - start) / (len(depths) - 1) * 1e3
+        print(f"tracking {WIDTH}x{HEIGHT} against the {config.reference}: {ms:.1f} ms per frame over {len(depths)} frames")
+        assert ms < 1000

@@ -1,13 +1,14 @@
-"""`fmfusion track REC`: camera poses for a recording without them, by frame-to-frame tracking of its depth
-(`mapping.tracking.Tracker`), written as the recording's own trajectory file (TUM: trajectory.txt; Open3D /
-Redwood: trajectory.log; a RealSense SDK recording REC.bag: REC.bag.trajectory.txt beside it) so that
-`fmfusion run REC` fuses with them.
+"""`fmfusion track REC`: camera poses for a recording without them, by tracking its depth frame to model (or frame
+to frame: `--reference frame`; `mapping.tracking.Tracker`), written as the recording's own trajectory file (TUM:
+trajectory.txt; Open3D / Redwood: trajectory.log; a RealSense SDK recording REC.bag: REC.bag.trajectory.txt beside
+it) so that `fmfusion run REC` fuses with them.
 
 Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): the
-pyramid's finest level then costs ~15-60 ms a frame on a 2-core CPU instead of seconds. Reads the formats whose
-frames are listed without poses: TUM (rgb.txt and depth.txt), Open3D / Redwood (color/, depth/ and
-camera_intrinsic.json, as Open3D's RealSense and Azure Kinect recorders write them) and RealSense SDK
-recordings (.bag, .db3: `io.realsense`, which never hold poses).
+pyramid's finest level then costs ~15-60 ms a frame frame to frame (~50-100 ms frame to model, which also fuses
+and raycasts its TSDF) on a 2-core CPU instead of seconds. Reads the formats whose frames are listed without
+poses: TUM (rgb.txt and depth.txt), Open3D / Redwood (color/, depth/ and camera_intrinsic.json, as Open3D's
+RealSense and Azure Kinect recorders write them) and RealSense SDK recordings (.bag, .db3: `io.realsense`, which
+never hold poses).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from fmfusion_jax.engine.tracking import TrackingConfig
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.realsense import is_realsense_recording, read_realsense
 from fmfusion_jax.io.realsense import trajectory_path as realsense_trajectory
@@ -58,12 +60,17 @@ def subsampled_camera(intrinsics: CameraIntrinsics, step: int) -> CameraIntrinsi
 
 
 def track_recording(
-    path: str | Path, out: str | Path | None = None, depth_max: float = 4.0, overwrite: bool = False, progress: bool = True
+    path: str | Path,
+    out: str | Path | None = None,
+    depth_max: float = 4.0,
+    overwrite: bool = False,
+    progress: bool = True,
+    reference: str = TrackingConfig.reference,
 ) -> Path:
     """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder, a RealSense SDK recording) and writes
     its trajectory to `out` (default: the file the recording's reader reads when it has no other poses: TUM's
     trajectory.txt, Redwood's trajectory.log, a RealSense recording's REC.bag.trajectory.txt); returns the file
-    written."""
+    written. `reference`: "model" (frame-to-model) or "frame" (frame-to-frame), `TrackingConfig.reference`."""
     root = Path(path)
     default, read = _trajectory_and_reader(root)
     target = Path(out) if out is not None else default
@@ -73,7 +80,7 @@ def track_recording(
     camera = recording.intrinsics()
     step = max(1, -(-camera.width // TRACK_WIDTH))
     tracked = subsampled_camera(camera, step)
-    tracker = Tracker(tracked)
+    tracker = Tracker(tracked, dataclasses.replace(TrackingConfig(), reference=reference))
     poses, start = [], time.perf_counter()
     frames = tqdm(recording.depth_paths, desc=f"tracking {root.name}", unit="frame", disable=not progress)
     for depth_path in frames:
@@ -86,7 +93,8 @@ def track_recording(
     else:
         write_trajectory_log(target, poses)
     print(
-        f"{root.name}: {len(poses)} frames tracked at {tracked.width}x{tracked.height} in {seconds:.1f} s "
+        f"{root.name}: {len(poses)} frames tracked against the {reference} at {tracked.width}x{tracked.height} "
+        f"in {seconds:.1f} s "
         f"({1000 * seconds / max(len(poses), 1):.0f} ms a frame, reading included), {tracker.frames_lost} lost "
         f"(they keep the last good pose)\ntrajectory written to {target}"
     )

@@ -1,4 +1,5 @@
-"""`fmfusion track REC`: camera poses for a recording without them (frame-to-frame tracking of its depth)."""
+"""`fmfusion track REC`: camera poses for a recording without them (frame-to-model or frame-to-frame tracking of its
+depth)."""
 
 from __future__ import annotations
 
@@ -7,17 +8,23 @@ from pathlib import Path
 
 from fmfusion_jax.cli import options
 
+#: `engine.tracking.REFERENCES` and `TrackingConfig.reference`'s default, spelled here so that the parser does not
+#: import JAX (tests/test_track_command.py checks that they agree)
+REFERENCES = ("model", "frame")
+DEFAULT_REFERENCE = "model"
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "track",
         help="estimate the camera poses of a recording without them",
-        description="Estimates the camera poses of a recording that has none by frame-to-frame tracking of its "
-        "depth (projective point-to-plane ICP, coarse to fine) and writes them where its reader looks: a TUM RGB-D "
+        description="Estimates the camera poses of a recording that has none by tracking its depth against a TSDF "
+        "of the frames tracked so far (frame to model, KinectFusion-style; or frame to frame) by projective "
+        "point-to-plane ICP, coarse to fine, and writes them where its reader looks: a TUM RGB-D "
         "folder's trajectory.txt, an Open3D / Redwood folder's trajectory.log (as Open3D's RealSense and Azure Kinect "
         "recorders leave them: color/, depth/, camera_intrinsic.json), a RealSense SDK recording's REC.bag.trajectory.txt "
         "beside it. `fmfusion run REC` then fuses with them. "
-        "Frame-to-frame tracking drifts and needs small motions between frames (30 Hz video): "
+        "Tracking needs small motions between frames (30 Hz video): "
         "docs/your-own-data.md, 'Without poses'.",
     )
     parser.add_argument(
@@ -32,6 +39,13 @@ def register(subparsers) -> None:
         "read by `fmfusion run`)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    parser.add_argument(
+        "--reference",
+        choices=REFERENCES,
+        default=DEFAULT_REFERENCE,
+        help="what each frame is tracked against: the raycast of a TSDF of the frames so far (model, the default: "
+        "less drift on noisy depth) or the last good frame (frame: faster)",
+    )
     options.add_depth_max(parser)
     options.add_no_progress(parser)
     parser.set_defaults(func=run)
@@ -40,5 +54,12 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from fmfusion_jax.apps.track import track_recording  # lazy: the command's work loads only when it runs
 
-    track_recording(args.recording, args.out, depth_max=args.depth_max, overwrite=args.overwrite, progress=not args.no_progress)
+    track_recording(
+        args.recording,
+        args.out,
+        depth_max=args.depth_max,
+        overwrite=args.overwrite,
+        progress=not args.no_progress,
+        reference=args.reference,
+    )
     return 0

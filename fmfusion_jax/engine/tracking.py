@@ -35,6 +35,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+#: What a frame can be tracked against (`TrackingConfig.reference`).
+REFERENCES = ("model", "frame")
+
 #: A depth step of more than this share of the depth between neighbouring pixels is an edge: no normal there.
 EDGE_STEP = 0.05
 
@@ -58,10 +61,22 @@ class TrackingConfig:
     # level's geometry hardly constrains (a coarse level of a room of planes) is not moved along by noise
     damping: float = 0.01
     crease_cos: float = 0.9  # no normal where the one-sided normals differ by more than acos(this) (a crease)
+    # What each frame is tracked against: "model", the raycast of a TSDF of the frames tracked so far
+    # (`engine.model_tracking`), or "frame", the last well tracked frame (`mapping.tracking` chains the steps)
+    reference: str = "model"
+    # The model (a voxel-block TSDF of the map's kind, `mapping.tracking.model_map_config`): voxel edge and
+    # truncation (m), the half size of the cube around the first camera it covers (m), its pool of blocks ...
+    model_voxel_size: float = 0.02
+    model_sdf_trunc: float = 0.06
+    model_extent: float = 6.0
+    model_block_capacity: int = 16384
+    raycast_steps: int = 64  # ... and the most samples per ray of its raycast (`engine.raycast`)
 
     def __post_init__(self) -> None:
         if self.levels < 1 or len(self.iterations) != self.levels or min(self.iterations) < 0:
             raise ValueError(f"need one non-negative iteration count per level, got {self.iterations} for {self.levels}")
+        if self.reference not in REFERENCES:
+            raise ValueError(f"reference must be one of {REFERENCES}, got {self.reference!r}")
 
 
 class FrameMaps(NamedTuple):

@@ -210,7 +210,7 @@ def write_tum_trajectory(path: str | Path, timestamps: Sequence[float], poses: S
     """Writes `T_world_camera` poses as a TUM RGB-D trajectory: one `timestamp tx ty tz qx qy qz qw` line a frame."""
     if len(timestamps) != len(poses):
         raise ValueError(f"{len(timestamps)} timestamps for {len(poses)} poses")
-    lines = ["# timestamp tx ty tz qx qy qz qw (T_world_camera, estimated by frame-to-frame tracking)"]
+    lines = ["# timestamp tx ty tz qx qy qz qw (T_world_camera, estimated by tracking)"]
     for stamp, T in zip(timestamps, poses):
         T = np.asarray(T, np.float64)
         values = [*T[:3, 3], *rotation_to_quaternion(T[:3, :3])]

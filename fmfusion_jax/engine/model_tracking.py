@@ -1,0 +1,96 @@
+"""Frame-to-model tracking (KinectFusion): each depth frame is tracked against the raycast of a TSDF of the frames
+tracked so far, then fused into it, in one jitted step.
+
+The model is a voxel-block pool of the map's kind (`state.VoxelBlocks`, integrated by `tsdf.integrate_tsdf`, the
+global TSDF's own kernel) at the tracking resolution, with its own `MapConfig` (the host's `mapping.tracking`
+makes it: a cube around the first camera). Per frame (`track_and_fuse`):
+
+1. the frame's vertex/normal pyramid (`tracking.frame_maps`) is tracked by projective point-to-plane ICP
+   (`tracking.track_frame`) against the reference: the model raycast from the last good pose, in that camera's
+   frame, so the result is `T_reference_current` exactly as in frame-to-frame tracking;
+2. unless the frame is lost, its depth is integrated at its pose `T_world_reference @ T_reference_current`;
+   a lost frame leaves the model and the pose as they were (its depth is integrated as empty);
+3. the model is raycast from the new pose (`raycast.raycast_tsdf`): the next frame's reference.
+
+Pass the pool donated (the step does: `donate_argnums=0`), so XLA updates it in place.
+
+Shapes: `(H, W)` the tracked image (= `map_config.image_height, image_width`), intrinsics float32 `(4,)` of it,
+poses float32 `(4, 4)`.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from fmfusion_jax.engine.config import MapConfig
+from fmfusion_jax.engine.raycast import maps_of_raycast, raycast_tsdf_unjitted
+from fmfusion_jax.engine.state import VoxelBlocks
+from fmfusion_jax.engine.tracking import FrameMaps, TrackingConfig, TrackResult, frame_maps, track_frame
+from fmfusion_jax.engine.tsdf import integrate_tsdf_unjitted
+
+
+class ModelStep(NamedTuple):
+    """What one frame-to-model step returns."""
+
+    blocks: VoxelBlocks  # the model with the frame fused (unchanged but for counters where lost)
+    reference: FrameMaps  # the model raycast from `T_world_camera`: the next frame's reference
+    result: TrackResult  # the ICP's estimate against the old reference and its failure signal
+    T_world_camera: jax.Array  # float32[4, 4]: the frame's pose (the reference's where lost)
+
+
+def _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config: TrackingConfig, map_config: MapConfig):
+    h, w = depth.shape
+    color = jnp.zeros((h, w, 3), jnp.uint8)  # the model holds geometry only
+    blocks = integrate_tsdf_unjitted(blocks, depth, color, T_world_camera, intrinsics, map_config)
+    cast = raycast_tsdf_unjitted(blocks, T_world_camera, intrinsics, map_config, h, w, config.raycast_steps)
+    return blocks, maps_of_raycast(cast, config.levels)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "map_config"), donate_argnums=0)
+def start_model(
+    blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: TrackingConfig, map_config: MapConfig
+) -> tuple[VoxelBlocks, FrameMaps]:
+    """The first frame fused at its given pose, and the model raycast from there (the reference of the second).
+
+    Args:
+      blocks: an empty pool of `map_config` (donated).
+      depth: float32 `(H, W)` metres, 0 where invalid.
+      T_world_camera: float32 `(4, 4)`; intrinsics: float32 `(4,)`.
+    """
+    depth = jnp.asarray(depth, jnp.float32)
+    return _fuse_and_raycast(blocks, depth, jnp.asarray(T_world_camera, jnp.float32), intrinsics, config, map_config)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "map_config"), donate_argnums=0)
+def track_and_fuse(
+    blocks: VoxelBlocks,
+    reference: FrameMaps,
+    depth,
+    intrinsics,
+    T_world_reference,
+    config: TrackingConfig,
+    map_config: MapConfig,
+) -> ModelStep:
+    """One frame tracked against the model's raycast `reference` (seen from `T_world_reference`), then fused.
+
+    Args:
+      blocks: the model (donated).
+      reference: `maps_of_raycast` of the model from `T_world_reference` (the last step's `reference`).
+      depth: float32 `(H, W)` metres of the frame, 0 where invalid.
+      intrinsics: float32 `(4,)`; T_world_reference: float32 `(4, 4)`.
+    """
+    depth = jnp.asarray(depth, jnp.float32)
+    T_world_reference = jnp.asarray(T_world_reference, jnp.float32)
+    current = frame_maps(depth, intrinsics, config)
+    result = track_frame(reference, current, intrinsics, jnp.eye(4, dtype=jnp.float32), config)
+    T_world_camera = jnp.where(result.lost, T_world_reference, T_world_reference @ result.T_reference_current)
+    fused = jnp.where(result.lost, 0.0, depth)  # a lost frame adds nothing to the model
+    blocks, reference = _fuse_and_raycast(blocks, fused, T_world_camera, intrinsics, config, map_config)
+    return ModelStep(blocks, reference, result, T_world_camera)
+
+
+__all__ = ["ModelStep", "start_model", "track_and_fuse"]
