@@ -680,19 +680,6 @@ def finalize(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
 
-def lower_refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> jax.stages.Lowered:
-    """`refine`'s executable lowered for `state`'s shapes (arrays, or `jax.ShapeDtypeStruct`s of them): the one
-    `refine` and `finalize` call (`.compile()` it into the persistent compile cache ahead of their first call)."""
-    params = _online_params_on_device(fusion)
-    return _merge_step.lower(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
-
-
-def lower_fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> jax.stages.Lowered:
-    """`fuse_geometry`'s executable lowered for `state`'s shapes (see `lower_refine`); `fusion` as it is called
-    with (`fusion_on_device`)."""
-    return fuse_geometry.lower(state, config, fusion)
-
-
 def class_distribution(state: MapState, fusion: FusionConfig) -> jax.Array:
     """float32[K, C] normalized class distribution of every row (meaningful where `valid`)."""
     return label_fusion.class_distribution(state.instances.label_evidence, fusion.label_mode)

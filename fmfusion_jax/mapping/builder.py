@@ -22,7 +22,6 @@ from fmfusion_jax.engine.frame import fuse_frame
 from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
 from fmfusion_jax.mapping.capacity import CapacityMonitor, MapSizes
-from fmfusion_jax.mapping.compile_ahead import CompileAhead
 from fmfusion_jax.mapping.engine_configs import build_fusion_config
 from fmfusion_jax.mapping.inputs import HostAdapter
 from fmfusion_jax.mapping.telemetry import StageTimer, small_tree_to_host
@@ -163,8 +162,6 @@ class MapBuilder:
         self._pending: tuple[str, Any, int] | None = None  # the last detection frame's unread statistics
         #: the map's sizes after a recent frame, from its statistics (None: none read since the map was built)
         self.sizes_after: MapSizes | None = None
-        #: the merge step and the geometry fusion compiled for this map beside the first frames (when refinement runs)
-        self._ahead = CompileAhead(self.state, self.step_config, self.fusion_config) if config.refinement.enabled and not __import__("os").environ.get("NOAHEAD") else None
 
     #: Frames between two reads of the capacity counters (each read waits for the device).
     CAPACITY_CHECK_EVERY = 16
@@ -213,7 +210,7 @@ class MapBuilder:
             self.fusion_config,
             merge=merge_due,
             geometry=geometry_due,
-            run=self._run_step,
+            run=self.timer.run,
             fuse=self.fuse_detections,
             one_call=self._one_call_per_frame,
         )
@@ -225,12 +222,6 @@ class MapBuilder:
         if self.frames_integrated % self.CAPACITY_CHECK_EVERY == 0:
             self.monitor.check(self.state, self.map_config, self.frames_integrated)
         self.timer.host_since("host", start, recorded_before)  # all of the above but the steps
-
-    def _run_step(self, name: str, fn: Callable[..., Any], *args: Any) -> Any:
-        """`timer.run(name, fn, *args)` once the step, if compiled ahead, is compiled (`compile_ahead`)."""
-        if self._ahead is not None:
-            self._ahead.wait(name)
-        return self.timer.run(name, fn, *args)
 
     def flush(self) -> None:
         """Reads the statistics of the last detection frame (waits for the device): counters and log line."""
@@ -295,8 +286,6 @@ class MapBuilder:
         self.flush()
         self.monitor.check(self.state, self.map_config, self.frames_integrated)
         if self.config.refinement.enabled:
-            if self._ahead is not None:  # finalize runs both
-                self._ahead.wait_all()
             self.state, stats = self.timer.run("finalize", step.finalize, self.state, self.step_config, self.fusion_config)
             self.progress.add_refinement("final", stats)
         return self.snapshot(self.state)
