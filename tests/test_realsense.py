@@ -484,7 +484,7 @@ def test_fmfusion_track_writes_the_trajectory_the_reader_reads(tmp_path, capsys)
 
     walk, truth = _walk()
     recording = record_room(walk, tmp_path / "walk.bag")
-    assert cli.main(["track", str(recording), "--no-progress"]) == 0
+    assert cli.main(["track", str(recording), "--no-progress", "--reference", "frame"]) == 0  # exact depth: frame to frame
     printed = capsys.readouterr().out
     assert f"{len(truth)} frames tracked" in printed and f"trajectory written to {trajectory_path(recording)}" in printed
     scene = open_scene(recording)
