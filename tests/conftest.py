@@ -21,6 +21,13 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_SCANNET = Path(os.environ.get("FMFUSION_SCANNET_DIR", REPO_ROOT.parent / "shared" / "data" / "scannet"))
 
 
+@pytest.fixture
+def cache_home(tmp_path, monkeypatch) -> Path:
+    """The user cache (`XDG_CACHE_HOME`: extracted recordings) in the test's temporary folder, never the user's."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
 @pytest.fixture(scope="session")
 def scannet_root() -> Path:
     """`../shared/data/scannet` (or $FMFUSION_SCANNET_DIR); skips the test when it is absent."""

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-from test_recordings import HEIGHT, NUM_FRAMES, WIDTH, Frames, frames_of
+from test_recordings import HEIGHT, NUM_FRAMES, WIDTH, Frames, bed_and_table_room, frames_of
 
 import fmfusion_jax.cli as cli
 from fmfusion_jax.errors import DataError, UserError
@@ -40,31 +40,12 @@ requires_pyrealsense2 = pytest.mark.skipif(
 T0_MS, PERIOD_MS = 1000.0, 32.0  # ~30 Hz, the stamps exact in the trajectory file's 6 decimals
 
 
-@pytest.fixture(autouse=True)
-def cache_home(tmp_path, monkeypatch):
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    return tmp_path / "cache"
+pytestmark = pytest.mark.usefixtures("cache_home")  # the recording cache in a temporary folder
 
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory) -> Path:
-    """A generated room of 12 frames at 160x120 in the ScanNet layout, with simulated clean detections."""
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.simulation.noise import NoiseModel
-    from fmfusion_jax.simulation.procedural import add_object, empty_room
-    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
-    from fmfusion_jax.simulation.simulate import simulate_scene
-
-    room = empty_room((4.0, 4.0, 2.6), seed=3)
-    room = add_object(room, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
-    room = add_object(room, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
-    root = tmp_path_factory.mktemp("realsense")
-    scene_dir = write_scannet_scene(
-        room, root / "synth0005_00", num_frames=NUM_FRAMES, width=WIDTH, height=HEIGHT, progress=False
-    )
-    noise = NoiseModel.preset("clean", seed=0, min_mask_pixels=10, small_object_pixels=20)
-    simulate_scene(open_scene(scene_dir), load_scannet_ground_truth(scene_dir), root / "detections", noise, progress=False)
-    return scene_dir
+    return bed_and_table_room(tmp_path_factory.mktemp("realsense"), "synth0005_00")
 
 
 @pytest.fixture(scope="module")

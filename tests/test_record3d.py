@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-from test_recordings import Frames, frames_of, tiny_frames
+from test_recordings import HEIGHT, NUM_FRAMES, WIDTH, Frames, bed_and_table_room, frames_of, tiny_frames
 
 import fmfusion_jax.cli as cli
 from fmfusion_jax.errors import DataError, UserError
@@ -30,38 +30,18 @@ liblzfse = pytest.importorskip(
     "liblzfse", reason='pyliblzfse is not installed (the record3d extra: pip install -e ".[record3d]")'
 )
 
-NUM_FRAMES, WIDTH, HEIGHT = 12, 160, 120
 #: Our +z-up world -> ARKit's +y-up world (written here independently of the reader's constants).
 ARKIT_FROM_OURS = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
 #: OpenCV camera axes <-> OpenGL's (its own inverse).
 FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-@pytest.fixture(autouse=True)
-def cache_home(tmp_path, monkeypatch):
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    return tmp_path / "cache"
+pytestmark = pytest.mark.usefixtures("cache_home")  # the recording cache in a temporary folder
 
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory) -> Path:
-    """A generated room of 12 frames at 160x120 in the ScanNet layout, with simulated clean detections beside it."""
-    from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
-    from fmfusion_jax.simulation.noise import NoiseModel
-    from fmfusion_jax.simulation.procedural import add_object, empty_room
-    from fmfusion_jax.simulation.scannet_writer import write_scannet_scene
-    from fmfusion_jax.simulation.simulate import simulate_scene
-
-    room = empty_room((4.0, 4.0, 2.6), seed=3)
-    room = add_object(room, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
-    room = add_object(room, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
-    root = tmp_path_factory.mktemp("record3d")
-    scene_dir = write_scannet_scene(
-        room, root / "synth0005_00", num_frames=NUM_FRAMES, width=WIDTH, height=HEIGHT, progress=False
-    )
-    noise = NoiseModel.preset("clean", seed=0, min_mask_pixels=10, small_object_pixels=20)
-    simulate_scene(open_scene(scene_dir), load_scannet_ground_truth(scene_dir), root / "detections", noise, progress=False)
-    return scene_dir
+    return bed_and_table_room(tmp_path_factory.mktemp("record3d"), "synth0005_00")
 
 
 @pytest.fixture(scope="module")

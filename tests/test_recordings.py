@@ -123,9 +123,10 @@ def tiny_frames(num_frames: int = 6, width: int = 32, height: int = 24) -> Frame
     return Frames(colors, depths, poses, intrinsics)
 
 
-@pytest.fixture(scope="module")
-def room(tmp_path_factory) -> Path:
-    """A generated room of 12 frames at 160x120 in the ScanNet layout, with simulated clean detections."""
+def bed_and_table_room(root: Path, name: str) -> Path:
+    """A generated room (a bed and a table) of `NUM_FRAMES` frames at `WIDTH` x `HEIGHT` written in the ScanNet
+    layout as `root/name`, with simulated clean detections in `root/detections`: the scene every recording format's
+    tests write in their format and compare with."""
     from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
     from fmfusion_jax.simulation.noise import NoiseModel
     from fmfusion_jax.simulation.procedural import add_object, empty_room
@@ -135,13 +136,15 @@ def room(tmp_path_factory) -> Path:
     room = empty_room((4.0, 4.0, 2.6), seed=3)
     room = add_object(room, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
     room = add_object(room, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
-    root = tmp_path_factory.mktemp("recordings")
-    scene_dir = write_scannet_scene(
-        room, root / "synth0003_00", num_frames=NUM_FRAMES, width=WIDTH, height=HEIGHT, progress=False
-    )
+    scene_dir = write_scannet_scene(room, root / name, num_frames=NUM_FRAMES, width=WIDTH, height=HEIGHT, progress=False)
     noise = NoiseModel.preset("clean", seed=0, min_mask_pixels=10, small_object_pixels=20)
     simulate_scene(open_scene(scene_dir), load_scannet_ground_truth(scene_dir), root / "detections", noise, progress=False)
     return scene_dir
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory) -> Path:
+    return bed_and_table_room(tmp_path_factory.mktemp("recordings"), "synth0003_00")
 
 
 # --------------------------------------------------------------------------------------------------

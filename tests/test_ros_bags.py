@@ -30,10 +30,7 @@ MOUNT[:3, :3] = Rotation.from_euler("xyz", (-90, 0, -90), degrees=True).as_matri
 MOUNT[:3, 3] = (0.1, 0.02, 1.2)
 
 
-@pytest.fixture(autouse=True)
-def cache_home(tmp_path, monkeypatch):
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    return tmp_path / "cache"
+pytestmark = pytest.mark.usefixtures("cache_home")  # the recording cache in a temporary folder
 
 
 @pytest.fixture(scope="module")
