@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from oracles import reference as ref
 
 from fmfusion_jax.engine import instance_volume as iv
@@ -171,3 +173,24 @@ def test_instance_points_with_a_slot_share_drop_weak_second_slots():
     shared = extract_instance_points(state, SPHERE_CONFIG, min_share=0.5)
     assert len(every[1]) == 12 * n and len(shared[1]) == 4 * n
     assert len(shared[0]) == len(every[0]) == ids.shape[1] * n
+
+
+@given(
+    spans=st.tuples(*[st.integers(0, 22)] * 3),
+    rows=st.integers(1, 60),
+    seed=st.integers(0, 2**31 - 1),
+)
+@settings(max_examples=60, deadline=None)
+def test_packed_rows_keep_the_rows_order_and_equality(spans, rows, seed):
+    """One packed key per row (up to 64 bits: a room's vertex keys take all of them) sorts as the rows do and is
+    equal exactly where the rows are."""
+    from fmfusion_jax.engine.extraction import _packed_rows
+
+    rng = np.random.default_rng(seed)
+    low = rng.integers(-(2**30), 2**30, 3)
+    key = np.stack([rng.integers(0, 2**bits, rows) for bits in spans], axis=1) + low
+    key[rng.integers(0, rows, rows // 3)] = key[rng.integers(0, rows, rows // 3)]  # some rows repeat
+    packed = _packed_rows(key)
+    assert packed.ndim == (2 if sum(int(s).bit_length() for s in np.ptp(key, axis=0)) > 64 else 1)
+    if packed.ndim == 1:
+        np.testing.assert_array_equal(np.unique(packed, return_inverse=True)[1], np.unique(key, axis=0, return_inverse=True)[1])
