@@ -47,7 +47,10 @@ class TrackingConfig:
     """Static parameters of the tracker (hashable: a static argument of the jitted functions)."""
 
     levels: int = 3  # pyramid levels, each subsampled 2x from the one above
-    iterations: tuple[int, ...] = (10, 5, 4)  # Gauss-Newton iterations per level, finest level first
+    iterations: tuple[int, ...] = (10, 5, 4)  # Gauss-Newton iterations per level at most, finest level first ...
+    # ... a level ends early once a step moves no entry of the pose by more than this (metres, or radians-ish for
+    # the rotation's entries): at 30 Hz most frames converge in a few steps
+    converged_step: float = 1e-5
     depth_min: float = 0.1  # depth readings below this (m) are ignored
     depth_max: float = 4.0  # ... and above this
     max_distance: float = 0.1  # correspondences further apart than this (m) are outliers
@@ -300,10 +303,16 @@ def track_frame(
             current.valid[level],
         )
 
-        def body(_, T, maps=maps, K=K):
-            return gauss_newton_update(normal_equations(*maps, K, T, config), T, config.damping)
+        def body(carry, maps=maps, K=K):
+            i, T, _ = carry
+            T_next = gauss_newton_update(normal_equations(*maps, K, T, config), T, config.damping)
+            return i + 1, T_next, jnp.max(jnp.abs(T_next - T)) <= config.converged_step
 
-        T = jax.lax.fori_loop(0, config.iterations[level], body, T)
+        def cond(carry, level=level):
+            i, _, converged = carry
+            return (i < config.iterations[level]) & ~converged
+
+        _, T, _ = jax.lax.while_loop(cond, body, (jnp.int32(0), T, jnp.bool_(False)))
     final = normal_equations(
         reference.vertices[0],
         reference.normals[0],
