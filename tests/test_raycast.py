@@ -13,7 +13,7 @@ from oracles import reference_raycast as R
 from oracles import reference_tracking as RT
 
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.raycast import maps_of_raycast, raycast_tsdf
+from fmfusion_jax.engine.raycast import raycast_tsdf
 from fmfusion_jax.engine.state import init_voxel_blocks, voxel_offsets
 
 WIDTH, HEIGHT = 32, 24
@@ -86,8 +86,6 @@ def compare(T_world_camera: np.ndarray) -> None:
     points = np.asarray(cast.vertices)[valid] @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
     assert np.abs(surface_sdf(points)).max() < 5e-3
     np.testing.assert_allclose(np.asarray(cast.vertices)[..., 2], depth)
-    maps = maps_of_raycast(cast, 3)
-    assert [v.shape for v in maps.vertices] == [(24, 32, 3), (12, 16, 3), (6, 8, 3)]
 
 
 def test_the_raycast_matches_the_oracle_from_the_volume_camera():

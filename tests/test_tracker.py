@@ -105,8 +105,9 @@ def test_frame_to_model_drifts_less_than_frame_to_frame_on_a_noisy_walk():
     for name, frames in (("model", model), ("frame", frame)):
         estimated = np.stack([f.T_world_camera for f in frames])
         errors[name] = ate_rmse(estimated, truth)
-    # measured: 150 mm frame to model, 803 mm frame to frame (lost near the end); the 2 cm target is not met here
-    assert errors["model"] < 0.3, errors
+    # measured: 41 mm frame to model (150 mm with the TSDF gradient's normals), 803 mm frame to frame (lost near the
+    # end); the 2 cm target is not met on this small room's walk
+    assert errors["model"] < 0.1, errors
     assert errors["model"] < errors["frame"] / 2, errors
 
 
@@ -128,8 +129,8 @@ def test_a_lost_frame_is_logged_skipped_and_not_fused_by_frame_to_model_tracking
     np.testing.assert_array_equal(frames[6].T_world_camera, frames[5].T_world_camera)
     assert weights[6] == weights[5] < weights[7]  # the lost frame added nothing to the model
     estimated = np.stack([f.T_world_camera for i, f in enumerate(frames) if i != 6])
-    # measured 55 mm: over its first frames the model is thin and noisy (the weak point of frame to model here)
-    assert ate_rmse(estimated, np.delete(truth[:12], 6, axis=0)) < 0.1
+    # measured 14 mm (55 mm with the TSDF gradient's normals): over its first frames the model is thin and noisy
+    assert ate_rmse(estimated, np.delete(truth[:12], 6, axis=0)) < 0.05
 
 
 def test_the_wrong_image_size_is_refused():

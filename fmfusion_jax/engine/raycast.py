@@ -24,7 +24,9 @@ invalid.
 
 Shapes: `(H, W)` the image given by the static `height, width`; intrinsics float32 `(4,) = (fx, fy, cx, cy)` of
 that image; poses float32 `(4, 4)` `T_world_camera`. The outputs are in the camera frame, as
-`engine.tracking.frame_maps` gives them, so `maps_of_raycast` makes a `FrameMaps` for `track_frame`.
+`engine.tracking.frame_maps` gives them. Frame-to-model tracking (`engine.model_tracking`) takes the depth alone
+(`with_normals=False`: no gradient samples) and makes its reference with `frame_maps`, normals from the depth map
+as for a frame.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import jax.numpy as jnp
 from fmfusion_jax.engine import _geometry as geo
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import VoxelBlocks
-from fmfusion_jax.engine.tracking import EDGE_STEP, FrameMaps
+from fmfusion_jax.engine.tracking import EDGE_STEP
 
 #: Share of the distance the TSDF promises that a step in front of the surface moves.
 SAFE_STEP = 0.8
@@ -164,7 +166,16 @@ def _march(blocks: VoxelBlocks, origin, direction, config: MapConfig, steps: int
     return t_before, t_after, f_before, f_after, hit
 
 
-def _raycast(blocks: VoxelBlocks, T_world_camera, intrinsics, config: MapConfig, height: int, width: int, steps: int) -> Raycast:
+def _raycast(
+    blocks: VoxelBlocks,
+    T_world_camera,
+    intrinsics,
+    config: MapConfig,
+    height: int,
+    width: int,
+    steps: int,
+    with_normals: bool = True,
+) -> Raycast:
     T = geo.as_pose(T_world_camera)
     K = geo.as_intrinsics(intrinsics)
     vs = config.voxel_size
@@ -193,23 +204,27 @@ def _raycast(blocks: VoxelBlocks, T_world_camera, intrinsics, config: MapConfig,
         depth = jnp.clip(depth - f / jnp.where(ok, slope, -1.0), low, high)
     # the last Newton step started near the surface (else the ray left the bracket: an edge, a thin part)
     ok = ok & (jnp.abs(f) * config.sdf_trunc <= NEAR_SURFACE_VOXELS * config.voxel_size)
-    # the normal: central differences of the trilinear TSDF one voxel apart (the gradient inside one cell is
-    # noisier: 2.8 degrees off the rendered normals against 1.1 after five frames, and the ICP slid on it)
-    q = [origin[a] + depth * direction[a] for a in range(3)]
-    gradient = []
-    for a in range(3):
-        f_ahead, _, ok_ahead = trilinear_tsdf(blocks, q[0] + (a == 0), q[1] + (a == 1), q[2] + (a == 2), config)
-        f_behind, _, ok_behind = trilinear_tsdf(blocks, q[0] - (a == 0), q[1] - (a == 1), q[2] - (a == 2), config)
-        gradient.append(f_ahead - f_behind)
-        ok = ok & ok_ahead & ok_behind
-    normal_world = jnp.stack(gradient, axis=-1)
-    norm = jnp.linalg.norm(normal_world, axis=-1)
-    ok = ok & (norm > 1e-6)
+    if with_normals:
+        # the normal: central differences of the trilinear TSDF one voxel apart (the gradient inside one cell is
+        # noisier: 2.8 degrees off the rendered normals against 1.1 after five frames)
+        q = [origin[a] + depth * direction[a] for a in range(3)]
+        gradient = []
+        for a in range(3):
+            f_ahead, _, ok_ahead = trilinear_tsdf(blocks, q[0] + (a == 0), q[1] + (a == 1), q[2] + (a == 2), config)
+            f_behind, _, ok_behind = trilinear_tsdf(blocks, q[0] - (a == 0), q[1] - (a == 1), q[2] - (a == 2), config)
+            gradient.append(f_ahead - f_behind)
+            ok = ok & ok_ahead & ok_behind
+        normal_world = jnp.stack(gradient, axis=-1)
+        norm = jnp.linalg.norm(normal_world, axis=-1)
+        ok = ok & (norm > 1e-6)
+        normal_world = normal_world / jnp.where(ok, norm, 1.0)[:, None]
     depth = jnp.where(ok, depth, 0.0)
-    normal_world = normal_world / jnp.where(ok, norm, 1.0)[:, None]
-    normal = normal_world @ T[:3, :3]  # R^T n, row-wise
     vertex = jnp.stack([xn * depth, yn * depth, depth], axis=-1)
-    normal = jnp.where(jnp.sum(normal * vertex, axis=-1, keepdims=True) > 0, -normal, normal)
+    if with_normals:
+        normal = normal_world @ T[:3, :3]  # R^T n, row-wise
+        normal = jnp.where(jnp.sum(normal * vertex, axis=-1, keepdims=True) > 0, -normal, normal)
+    else:
+        normal = jnp.zeros_like(vertex)
     # no vertex at a depth edge, as `frame_maps` has none there: a silhouette's voxels blur it by a voxel or two
     depth = depth.reshape(height, width)
     padded = jnp.pad(depth, 1)
@@ -241,17 +256,6 @@ def raycast_tsdf(
     return _raycast(blocks, T_world_camera, intrinsics, config, height, width, steps)
 
 
-def maps_of_raycast(cast: Raycast, levels: int) -> FrameMaps:
-    """A `FrameMaps` pyramid of a raycast (each level every other pixel of the one above, as `frame_maps`)."""
-    vertices, normals, valid = [], [], []
-    for level in range(levels):
-        step = 1 << level
-        vertices.append(cast.vertices[::step, ::step])
-        normals.append(cast.normals[::step, ::step])
-        valid.append(cast.valid[::step, ::step])
-    return FrameMaps(tuple(vertices), tuple(normals), tuple(valid))
-
-
 raycast_tsdf_unjitted = _raycast  # the same function, for composing into a larger jitted step
 
-__all__ = ["Raycast", "raycast_tsdf", "raycast_tsdf_unjitted", "maps_of_raycast", "trilinear_tsdf", "voxel_values"]
+__all__ = ["Raycast", "raycast_tsdf", "raycast_tsdf_unjitted", "trilinear_tsdf", "voxel_values"]
