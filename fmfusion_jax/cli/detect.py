@@ -23,8 +23,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "scene",
         type=Path,
-        help="scene folder (ScanNet or SceneNN layout, or a TUM, Replica or Redwood recording), a ROS bag or a "
-        "Record3D .r3d export",
+        help="scene folder (ScanNet or SceneNN layout, or a TUM, Replica or Redwood recording), a ROS bag, a "
+        "Record3D .r3d export or a RealSense .bag / .db3 recording",
     )
     parser.add_argument(
         "--models",

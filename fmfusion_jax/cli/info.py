@@ -14,14 +14,16 @@ def register(subparsers) -> None:
         "info",
         help="summarize a scene folder (and a detection folder)",
         description="Summarizes a scene folder (ScanNet or SceneNN layout, or a TUM, Replica or Open3D/Redwood "
-        "recording), a ROS bag or a Record3D .r3d export (docs/your-own-data.md): frames, camera, depth range, world bounds, "
+        "recording), a ROS bag, a Record3D .r3d export or a RealSense recording "
+        "(docs/your-own-data.md): frames, camera, depth range, world bounds, "
         "trajectory, ground-truth files; with --detections, the detection files. Reads the poses and "
         f"{SAMPLED_FRAMES} depth images, so it takes a few seconds at most.",
     )
     parser.add_argument(
         "scene",
         type=Path,
-        help="scene folder (ScanNet color/ depth/ pose/ intrinsic/, SceneNN, TUM, Replica, Redwood), ROS bag or .r3d file",
+        help="scene folder (ScanNet color/ depth/ pose/ intrinsic/, SceneNN, TUM, Replica, Redwood), ROS bag, .r3d "
+        "or RealSense .bag / .db3 file",
     )
     options.add_layout(parser, help="default: auto")
     options.add_stride(parser, help="use every N-th frame (default 1)")

@@ -14,7 +14,8 @@ def register(subparsers) -> None:
         "run",
         help="fuse a scene and its detections into an instance map",
         description="Fuses an RGB-D scene (ScanNet or SceneNN layout, a TUM, Replica or Open3D/Redwood "
-        "recording, a ROS bag or a Record3D .r3d export: docs/your-own-data.md) and its open-set detections (authors' "
+        "recording, a ROS bag, a Record3D .r3d export or a RealSense recording: "
+        "docs/your-own-data.md) and its open-set detections (authors' "
         "file format) into a map of 3D instances, then writes the map into --out. With ground truth (the scene's "
         "_vh_clean_2.ply mesh), it also scores the map (report.json). Without --detections or --models it builds the "
         "geometry alone: every frame into the TSDF, no instance (mesh.ply, map_state.npz, an empty instances.json).",

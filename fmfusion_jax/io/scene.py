@@ -67,6 +67,8 @@ logger = logging.getLogger(__name__)
 
 #: Every layout `open_scene` reads (the recording formats of `io.recordings` after ScanNet and SceneNN).
 LAYOUTS = ("scannet", "scenenn", *RECORDING_MARKERS, "rosbag", "record3d", "realsense")
+#: The layouts whose recording may be one file (a ROS 1 bag, a Record3D export, a RealSense recording).
+FILE_LAYOUTS = ("rosbag", "record3d", "realsense")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -500,7 +502,7 @@ def open_scene(
         raise UserError(f"{root}: a ROS bag, but the layout asked for is {layout!r} (use auto or rosbag)")
     elif layout != "record3d" and is_record3d(root):
         raise UserError(f"{root}: a Record3D export, but the layout asked for is {layout!r} (use auto or record3d)")
-    elif not (root.is_dir() or (layout in ("rosbag", "record3d", "realsense") and root.is_file())):
+    elif not (root.is_dir() or (layout in FILE_LAYOUTS and root.is_file())):
         raise UserError(f"{root}: scene folder not found")
     if not (isinstance(stride, int) and stride >= 1):
         raise UserError(f"stride must be a positive integer, got {stride!r}")
