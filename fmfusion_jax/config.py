@@ -242,6 +242,13 @@ class ExportConfig(_Section):
         ge=0,
     )
     min_existence: Float = knob(0.3, "instances of a lower existence are not exported (0: every instance)", ge=0, le=1)
+    alternative_class_probability: Float = knob(
+        0.1,
+        "benchmark: an instance is also submitted under each other class it has at least this probability of, "
+        "at confidence probability x existence, as the benchmark ranks class hypotheses (1: its most likely class only)",
+        ge=0,
+        le=1,
+    )
     planar_thickness: Float = knob(
         1.3,
         "voxels; an instance of a volumetric class at most this thick is a sheet (of wall, floor or "

@@ -79,7 +79,13 @@ def _evaluate(
         else:
             gt_ids = _load_ground_truth_ids(source, labels_tsv)
         preds = read_benchmark_predictions(pred_path, num_vertices=len(gt_ids))
-        log.info("%s: %d predictions vs ground truth %s", pred_path, preds.num_instances, source.path)
+        log.info(
+            "%s: %d predictions (%d instances) vs ground truth %s",
+            pred_path,
+            preds.num_predictions,
+            preds.num_instances,
+            source.path,
+        )
         scenes.append((gt_ids, preds))
         names.append(pred_path.stem)
     result = evaluate_scenes(scenes, scene_names=names)
@@ -123,8 +129,9 @@ def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) ->
 
     print("error analysis (objects by status | predictions by kind; docs/error-analysis.md):")
     found: dict[int, bool] = {}
-    for (gt_ids, preds), name, mesh in zip(scenes, names, meshes):
+    for (gt_ids, predictions), name, mesh in zip(scenes, names, meshes):
         vertices, faces = mesh if mesh is not None else (None, None)
+        preds = predictions.primary()  # each instance once: the alternative class hypotheses are not instances
         explanation = explain_scene(gt_ids, preds, vertices, scene_name=name)
         found |= {g.gt_id: g.status == "found" for g in explanation.ground_truth}
         out_dir = explain_dir if len(scenes) == 1 else explain_dir / name

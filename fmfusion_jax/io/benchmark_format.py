@@ -1,11 +1,13 @@
 """The ScanNet instance benchmark's prediction format.
 
-A scene's predictions are `<out>/<scene>.txt`, one line per instance::
+A scene's predictions are `<out>/<scene>.txt`, one line per prediction::
 
     pred_mask/<scene>_<k>.txt <nyu40 id> <confidence>
 
 where the mask path is relative to the folder of `<scene>.txt` and each mask file holds one `0`/`1` per
-line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex order.
+line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex order. A mask may be listed again
+under another class: an *alternative* class hypothesis of the same instance (the benchmark scores each line on
+its own, per class); the first line that lists a mask is its instance's most likely class.
 """
 
 from __future__ import annotations
@@ -40,14 +42,17 @@ class InstancePredictions:
     """Predicted instances of one scene, on the vertices of its evaluation mesh.
 
     Attributes:
-      masks: `(P, V)` bool, one vertex mask per instance.
-      nyu40_ids: `(P,)` int64 nyu40 class of each instance.
-      confidences: `(P,)` float64 confidence of each instance.
+      masks: `(P, V)` bool, one vertex mask per prediction.
+      nyu40_ids: `(P,)` int64 nyu40 class of each prediction.
+      confidences: `(P,)` float64 confidence of each prediction.
+      alternative: `(P,)` bool, true for an alternative class hypothesis: the same mask as an earlier
+        prediction (its instance's most likely class), under another class. None: no alternatives.
     """
 
     masks: np.ndarray
     nyu40_ids: np.ndarray
     confidences: np.ndarray
+    alternative: np.ndarray = None  # type: ignore[assignment]  # None: no alternatives; normalised to (P,) bool
 
     def __post_init__(self) -> None:
         masks = np.asarray(self.masks, bool)
@@ -55,16 +60,35 @@ class InstancePredictions:
             raise ValueError(f"masks must be (P, V), got shape {masks.shape}")
         ids = np.asarray(self.nyu40_ids).astype(np.int64).reshape(-1)
         confidences = np.asarray(self.confidences, np.float64).reshape(-1)
-        if ids.shape[0] != masks.shape[0] or confidences.shape[0] != masks.shape[0]:
-            raise ValueError(f"{masks.shape[0]} masks but {ids.shape[0]} nyu40 ids and {confidences.shape[0]} confidences")
+        alternative = np.zeros(len(masks), bool) if self.alternative is None else np.asarray(self.alternative, bool).reshape(-1)
+        if ids.shape[0] != masks.shape[0] or confidences.shape[0] != masks.shape[0] or alternative.shape[0] != masks.shape[0]:
+            raise ValueError(
+                f"{masks.shape[0]} masks but {ids.shape[0]} nyu40 ids, {confidences.shape[0]} confidences and "
+                f"{alternative.shape[0]} alternative flags"
+            )
         # Normalised copies on a frozen dataclass.
         object.__setattr__(self, "masks", masks)
         object.__setattr__(self, "nyu40_ids", ids)
         object.__setattr__(self, "confidences", confidences)
+        object.__setattr__(self, "alternative", alternative)
 
     @property
     def num_instances(self) -> int:
+        """The predicted instances: the predictions less the alternative class hypotheses."""
+        return int(np.count_nonzero(~self.alternative))
+
+    @property
+    def num_predictions(self) -> int:
+        """Every prediction (line of `<scene>.txt`), alternative class hypotheses included."""
         return int(self.masks.shape[0])
+
+    def primary(self) -> "InstancePredictions":
+        """Each instance once, under its most likely class (the alternatives left out): what an error analysis
+        counts as the map's instances."""
+        if not self.alternative.any():
+            return self
+        keep = ~self.alternative
+        return InstancePredictions(self.masks[keep], self.nyu40_ids[keep], self.confidences[keep])
 
     @property
     def num_vertices(self) -> int:
@@ -76,7 +100,9 @@ class InstancePredictions:
 
 
 def write_benchmark_predictions(out_dir: str | Path, scene_name: str, preds: InstancePredictions) -> Path:
-    """Writes `<out_dir>/<scene_name>.txt` and its masks `<out_dir>/pred_mask/<scene_name>_<k>.txt`.
+    """Writes `<out_dir>/<scene_name>.txt` and its masks `<out_dir>/pred_mask/<scene_name>_<k>.txt`, one mask
+    file per instance: an alternative class hypothesis lists the file of its instance (the latest earlier
+    prediction with the same mask) again.
 
     Mask files of an earlier run with more instances are not removed: only those listed count.
 
@@ -86,13 +112,21 @@ def write_benchmark_predictions(out_dir: str | Path, scene_name: str, preds: Ins
     out_dir = Path(out_dir)
     (out_dir / MASK_FOLDER).mkdir(parents=True, exist_ok=True)
     lines = []
-    for k in range(preds.num_instances):
-        relative = f"{MASK_FOLDER}/{scene_name}_{k}.txt"
-        # One byte '0'/'1' then '\n' per vertex, built as a (V, 2) byte array: fast for 10^5 vertices.
-        rows = np.empty((preds.num_vertices, 2), np.uint8)
-        rows[:, 0] = preds.masks[k].astype(np.uint8) + ord("0")
-        rows[:, 1] = ord("\n")
-        (out_dir / relative).write_bytes(rows.tobytes())
+    written: dict[bytes, str] = {}  # a packed mask -> its latest file, for the alternatives that follow it
+    files = 0
+    for k in range(preds.num_predictions):
+        packed = np.packbits(preds.masks[k]).tobytes()
+        if preds.alternative[k] and packed in written:
+            relative = written[packed]
+        else:
+            relative = f"{MASK_FOLDER}/{scene_name}_{files}.txt"
+            files += 1
+            # One byte '0'/'1' then '\n' per vertex, built as a (V, 2) byte array: fast for 10^5 vertices.
+            rows = np.empty((preds.num_vertices, 2), np.uint8)
+            rows[:, 0] = preds.masks[k].astype(np.uint8) + ord("0")
+            rows[:, 1] = ord("\n")
+            (out_dir / relative).write_bytes(rows.tobytes())
+            written[packed] = relative
         # repr: the shortest text that reads back to the same float, so confidence ties and order survive.
         lines.append(f"{relative} {int(preds.nyu40_ids[k])} {float(preds.confidences[k])!r}")
     txt_path = out_dir / f"{scene_name}.txt"
@@ -110,7 +144,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
 
     Raises:
       DataError: naming the file and line of a malformed entry, a missing mask file, a mask whose length is
-        not `num_vertices` or whose values are not 0/1, or a mask file listed twice.
+        not `num_vertices` or whose values are not 0/1, or a mask file listed twice with one class. A mask
+        listed again with another class is an alternative class hypothesis (`InstancePredictions.alternative`).
     """
     txt_path = Path(txt_path)
     try:
@@ -119,8 +154,9 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         raise DataError(f"{txt_path}: prediction file not found") from None
     except (OSError, UnicodeDecodeError) as error:
         raise DataError(f"{txt_path}: cannot read the prediction file ({error})") from error
-    masks, ids, confidences = [], [], []
-    seen: dict[Path, int] = {}
+    masks, ids, confidences, alternative = [], [], [], []
+    seen: dict[tuple[Path, int], int] = {}  # (mask, class) -> line
+    masks_read: dict[Path, np.ndarray] = {}
     resolved_folder = txt_path.parent.resolve()
     for number, line in enumerate(text.splitlines(), 1):
         if not line.strip():
@@ -141,12 +177,20 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         if not math.isfinite(confidence):
             raise DataError(f"{where}: confidence {confidence_text!r} is not finite")
         mask_path = _mask_path_inside(txt_path.parent, resolved_folder, relative, where)
-        if mask_path in seen:
-            raise DataError(f"{where}: mask {relative} is already listed on line {seen[mask_path]}")
-        seen[mask_path] = number
-        mask = read_mask_file(
-            mask_path, where, max_bytes=_MAX_MASK_BYTES if num_vertices is None else _MASK_BYTES_PER_VERTEX * num_vertices + 64
-        )
+        if (mask_path, nyu40) in seen:
+            raise DataError(f"{where}: mask {relative} is already listed with class {nyu40} on line {seen[mask_path, nyu40]}")
+        seen[mask_path, nyu40] = number
+        if mask_path in masks_read:  # listed again under another class: an alternative class hypothesis
+            mask = masks_read[mask_path]
+            alternative.append(True)
+        else:
+            mask = read_mask_file(
+                mask_path,
+                where,
+                max_bytes=_MAX_MASK_BYTES if num_vertices is None else _MASK_BYTES_PER_VERTEX * num_vertices + 64,
+            )
+            masks_read[mask_path] = mask
+            alternative.append(False)
         if num_vertices is None:
             num_vertices = mask.shape[0]
         if mask.shape[0] != num_vertices:
@@ -168,7 +212,9 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         )
     if not masks:
         return InstancePredictions.empty(num_vertices or 0)
-    return InstancePredictions(np.stack(masks), np.asarray(ids, np.int64), np.asarray(confidences, np.float64))
+    return InstancePredictions(
+        np.stack(masks), np.asarray(ids, np.int64), np.asarray(confidences, np.float64), np.asarray(alternative, bool)
+    )
 
 
 def _mask_path_inside(folder: Path, resolved_folder: Path, relative: str, where: str) -> Path:

@@ -238,8 +238,13 @@ def benchmark_predictions(
     structure_claims_vertices: bool = False,
     neighbours: int = 1,
     floor_vertices: np.ndarray | None = None,
+    alternative_class_probability: float = 1.0,
 ) -> InstancePredictions:
     """Instances transferred to mesh vertices by radius search, with nyu40 ids and confidences.
+
+    Each instance is one prediction under its most likely class (confidence `MapInstance.confidence`), then,
+    after all of those, one more under each other benchmark class it has at least
+    `alternative_class_probability` of (`alternative_class_hypotheses`).
 
     Wall and floor are not benchmark classes and are left out of the predictions. With
     `structure_claims_vertices` they first take part in the transfer (each vertex goes to its nearest
@@ -259,11 +264,39 @@ def benchmark_predictions(
     ]
     if floor_vertices is not None:
         masks &= ~np.asarray(floor_vertices, bool)[None, :]
+    rows, classes, confidences = alternative_class_hypotheses(keep, label_sets, alternative_class_probability)
     return InstancePredictions(
-        masks=masks,
-        nyu40_ids=np.array([label_sets.nyu40_ids[i.class_index] for i in keep], np.int32),
-        confidences=np.array([i.confidence for i in keep], np.float64),
+        masks=np.concatenate([masks, masks[rows]]),
+        nyu40_ids=np.concatenate([[label_sets.nyu40_ids[i.class_index] for i in keep], label_sets.nyu40_ids[classes]]),
+        confidences=np.concatenate([[i.confidence for i in keep], confidences]),
+        alternative=np.arange(len(keep) + len(rows)) >= len(keep),
     )
+
+
+def alternative_class_hypotheses(
+    instances: list[MapInstance], label_sets: LabelSets, min_probability: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`(rows (A,), classes (A,), confidences (A,))`: for each instance (row of `instances`), each class other than
+    its most likely one, not wall or floor, of probability at least `min_probability` in its distribution; the
+    confidence is that probability times the instance's existence (as `MapInstance.confidence` is for the most
+    likely class). In instance order, then by falling probability.
+
+    Why: the benchmark ranks every (mask, class) hypothesis per class. An instance whose fused distribution is
+    split between two classes (a cabinet or a counter, a desk or a table) is the object of one of them; submitted
+    under both, it counts for the right one at a confidence below the sure instances of that class."""
+    structure = {label_sets.class_index(name) for name in STRUCTURE_CLASSES if name in label_sets.class_names}
+    rows, classes, confidences = [], [], []
+    for row, inst in enumerate(instances):
+        top = inst.class_index
+        for c in np.argsort(-inst.distribution, kind="stable"):
+            p = float(inst.distribution[c])
+            if p < min_probability or p <= 0.0:
+                break
+            if c != top and c not in structure:
+                rows.append(row)
+                classes.append(int(c))
+                confidences.append(p * float(inst.existence))
+    return np.array(rows, np.int64), np.array(classes, np.int64), np.array(confidences, np.float64)
 
 
 # ---------------------------------------------------------------------------------------------------

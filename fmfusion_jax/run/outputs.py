@@ -183,6 +183,7 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
         config.export.structure_claims_vertices,
         config.export.transfer_neighbours,
         on_floor,
+        config.export.alternative_class_probability,
     )
     gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
     return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
@@ -339,8 +340,9 @@ def _write_explain(context: OutputContext) -> None:
     gt = context.ground_truth
     gt_ids, predictions, _ = context.scored
     start = time.perf_counter()
-    explanation = explain_scene(gt_ids, predictions, gt.vertices, scene_name=context.scene.name)
-    write_explanation(context.out_dir, explanation, gt_ids, predictions, gt.vertices, gt.faces)
+    instances = predictions.primary()  # each instance once: the alternative class hypotheses are not instances
+    explanation = explain_scene(gt_ids, instances, gt.vertices, scene_name=context.scene.name)
+    write_explanation(context.out_dir, explanation, gt_ids, instances, gt.vertices, gt.faces)
     context.benchmark["explain"] = {
         "objects": explanation.status_counts(),
         "predictions": explanation.kind_counts(),
@@ -470,7 +472,8 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         "benchmark",
         ("benchmark/",),
         "ScanNet benchmark prediction files (`<scene>.txt`, `pred_mask/`) over the scene's `_vh_clean_2.ply` "
-        "vertices, when the scene has ground truth",
+        "vertices, when the scene has ground truth: each instance under its most likely class, then under each "
+        "other class of at least 10 % (`export.alternative_class_probability`; a mask file per instance)",
         _write_benchmark,
         uses=("scored",),
         lap="benchmark",
