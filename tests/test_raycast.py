@@ -80,7 +80,10 @@ def compare(T_world_camera: np.ndarray) -> None:
     assert hit.mean() > 0.9
     assert not (valid & ~hit).any()  # nothing the oracle does not see
     assert valid.sum() > 0.6 * hit.sum()  # depth edges (the sphere's outline, the image border) are dropped
-    np.testing.assert_allclose(depth[valid], want_depth[valid], atol=1e-3)
+    # within 1 mm but for a grazing pixel of the sphere's outline now and then, where the two Newton steps and the
+    # oracle's tenth-of-a-voxel march differ by up to 3 mm (poses found by hypothesis)
+    error = np.abs(depth[valid] - want_depth[valid])
+    assert (error <= 1e-3).mean() >= 0.99 and error.max() < 5e-3
     assert np.sum(normals[valid] * want_normals[valid], axis=-1).min() > 0.995
     # and the surface itself: the vertices lie on it to a few millimetres
     points = np.asarray(cast.vertices)[valid] @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
@@ -106,3 +109,56 @@ def test_nothing_is_seen_from_outside_the_model():
     cast = raycast_tsdf(blocks, jnp.asarray(away, jnp.float32), jnp.asarray(K, jnp.float32), config, HEIGHT, WIDTH)
     assert not np.asarray(cast.valid).any()
     assert not np.asarray(cast.depth).any()
+
+
+def test_a_guided_raycast_finds_the_surface_near_its_guide_only():
+    """Guided by a depth near the surface (as the frame just fused is: here the oracle's depth, 3 cm off), the rays
+    find what the full cast finds; rays without a guide are not cast (`unguided` false) or cast whole (true)."""
+    import jax
+
+    from fmfusion_jax.engine.raycast import raycast_tsdf_unjitted
+
+    config, blocks, (values, observed), origin_voxels = volume()
+    K_ = jnp.asarray(K, jnp.float32)
+    pose = jnp.eye(4, dtype=jnp.float32)
+    full = raycast_tsdf(blocks, pose, K_, config, HEIGHT, WIDTH)
+    depth, full_valid = np.asarray(full.depth), np.asarray(full.valid)
+    guided = jax.jit(
+        lambda guide, unguided: raycast_tsdf_unjitted(blocks, pose, K_, config, HEIGHT, WIDTH, 96, True, guide, unguided)
+    )
+    truth, _ = R.raycast(
+        values, observed, origin_voxels, config.voxel_size, np.eye(4), K, HEIGHT, WIDTH, config.depth_min, config.depth_max
+    )
+    guide = np.where(truth > 0, truth + 0.03, 0.0).astype(np.float32)
+
+    def check(cast, where):
+        """On `where`: every pixel the full cast finds, at its depth; the guided rays may find more (a grazing
+        pixel the full march steps over), and what they find lies on the surface."""
+        got, valid = np.asarray(cast.depth), np.asarray(cast.valid)
+        assert not (full_valid & where & ~valid).any()
+        both = full_valid & valid & where
+        np.testing.assert_allclose(got[both], depth[both], atol=1e-5)
+        extra = valid & where & ~full_valid
+        assert extra.sum() <= 0.05 * both.sum()
+        rays = np.stack(
+            [
+                (np.arange(WIDTH)[None, :] - K[2]) / K[0] + 0 * got,
+                (np.arange(HEIGHT)[:, None] - K[3]) / K[1] + 0 * got,
+                1 + 0 * got,
+            ],
+            -1,
+        )
+        assert np.abs(surface_sdf((rays * got[..., None])[extra])).max(initial=0.0) < 5e-3
+        return valid
+
+    check(guided(jnp.asarray(guide), jnp.bool_(False)), np.ones_like(full_valid))
+    guide[:, : WIDTH // 2] = 0.0  # no guide on the left half
+    right = np.zeros_like(full_valid)
+    right[:, WIDTH // 2 + 1 :] = True  # the column at the cut is a depth edge without the left half
+    for unguided in (False, True):
+        valid = check(guided(jnp.asarray(guide), jnp.bool_(unguided)), right | unguided)
+        if not unguided:
+            assert not valid[:, : WIDTH // 2].any()
+    # a guide far behind every surface finds nothing (the ray starts 1.5 truncation distances in front of it)
+    far = guided(jnp.asarray(np.where(truth > 0, truth + 0.5, 0.0).astype(np.float32)), jnp.bool_(False))
+    assert not np.asarray(far.valid).any()

@@ -13,6 +13,11 @@ gather):
   distance; a step of less than the truncation distance cannot pass through the negative band behind it);
 - an allocated voxel that was never observed (weight 0) moves `SAFE_STEP` of the truncation distance.
 
+A *guided* raycast (`guide_depth`, frame-to-model tracking's: the depth just fused) marches each ray only from
+`GUIDE_BEFORE` truncation distances in front of its guide to one behind it, and casts the rays without a guide
+whole when `unguided` is true and not at all otherwise: the loop then ends after a few samples instead of the
+march of the slowest ray through the model.
+
 A ray stops at the first sign change from an observed positive voxel to an observed negative one (a back face,
 unobserved space into negative, is passed). The crossing is first placed linearly between the two nearest-voxel
 samples, then by two Newton steps along the ray on the trilinear TSDF (kept within a voxel of the bracket; the
@@ -50,6 +55,8 @@ MIN_STEP_VOXELS = 0.5
 MIN_OBSERVED_WEIGHT = 0.5
 #: A crossing is kept when the last Newton step started at most this many voxels (of TSDF) from the surface.
 NEAR_SURFACE_VOXELS = 0.5
+#: A guided ray (`guide_depth`) starts this many truncation distances in front of its guide.
+GUIDE_BEFORE = 1.5
 
 
 class Raycast(NamedTuple):
@@ -114,18 +121,28 @@ def trilinear_tsdf(blocks: VoxelBlocks, qx, qy, qz, config: MapConfig):
     return value, gradient, observed
 
 
-def _march(blocks: VoxelBlocks, origin, direction, config: MapConfig, steps: int):
+def _march(blocks: VoxelBlocks, origin, direction, config: MapConfig, steps: int, guide=None, unguided=None):
     """The bracket `(t_before, t_after, f_before, f_after, hit)` of each ray's first positive-to-negative crossing:
     `t` in depth units, `f` the nearest voxels' tsdf there.
 
     `origin` (3 scalars) and `direction` (3 arrays `(N,)`, z-depth units: the point at depth `t` is `origin + t *
-    direction`) are in index-voxel coordinates."""
+    direction`) are in index-voxel coordinates. `guide` `(N,)`: where positive, a depth the ray's surface is
+    near (the frame just fused there): the ray is marched from `GUIDE_BEFORE` truncation distances in front of it
+    to one behind it only; where 0, it is marched from `depth_min` to `depth_max` when `unguided` (bool scalar)
+    and not at all otherwise (no crossing)."""
     vs, bs = config.voxel_size, config.block_size
     length = jnp.sqrt(direction[0] ** 2 + direction[1] ** 2 + direction[2] ** 2)  # voxels per unit of depth
-    t_max = config.depth_max
+    n = direction[0].shape[0]
+    t0 = jnp.full((n,), config.depth_min, jnp.float32)
+    t_max = jnp.full((n,), config.depth_max, jnp.float32)
+    active0 = jnp.ones((n,), bool)
+    if guide is not None:
+        guided = guide > 0
+        t0 = jnp.where(guided, jnp.maximum(config.depth_min, guide - GUIDE_BEFORE * config.sdf_trunc), t0)
+        t_max = jnp.where(guided, jnp.minimum(config.depth_max, guide + config.sdf_trunc), t_max)
+        active0 = guided | unguided
     trunc_voxels = config.sdf_trunc / vs
     inverse = [jnp.where(jnp.abs(d) > 1e-9, 1.0 / jnp.where(jnp.abs(d) > 1e-9, d, 1.0), jnp.inf) for d in direction]
-    n = direction[0].shape[0]
 
     def sample(t):
         q = [origin[a] + t * direction[a] for a in range(3)]
@@ -159,9 +176,8 @@ def _march(blocks: VoxelBlocks, origin, direction, config: MapConfig, steps: int
         f_prev = jnp.where(active, f, f_prev)
         return i + 1, t_next, t_prev, f_prev, jnp.where(active, seen, seen_prev), active, hit, f_hit
 
-    t0 = jnp.full((n,), config.depth_min, jnp.float32)
     ones, no = jnp.ones((n,), jnp.float32), jnp.zeros((n,), bool)
-    init = (jnp.int32(0), t0, t0, ones, no, jnp.ones((n,), bool), no, ones)
+    init = (jnp.int32(0), t0, t0, ones, no, active0, no, ones)
     _, t_after, t_before, f_before, _, _, hit, f_after = jax.lax.while_loop(cond, body, init)
     return t_before, t_after, f_before, f_after, hit
 
@@ -175,6 +191,8 @@ def _raycast(
     width: int,
     steps: int,
     with_normals: bool = True,
+    guide_depth=None,
+    unguided=True,
 ) -> Raycast:
     T = geo.as_pose(T_world_camera)
     K = geo.as_intrinsics(intrinsics)
@@ -187,7 +205,8 @@ def _raycast(
     direction = [(T[a, 0] * xn + T[a, 1] * yn + T[a, 2] * one) / vs for a in range(3)]
     base = _origin_voxels(blocks, config)
     origin = [T[a, 3] / vs - base[a] for a in range(3)]
-    t_before, t_after, f_before, f_after, hit = _march(blocks, origin, direction, config, steps)
+    guide = None if guide_depth is None else jnp.asarray(guide_depth, jnp.float32).reshape(-1)
+    t_before, t_after, f_before, f_after, hit = _march(blocks, origin, direction, config, steps, guide, unguided)
 
     # the crossing between the nearest voxels' samples, then two Newton steps along the ray on the trilinear TSDF
     # (the nearest samples place it to about half a voxel); the normal is the trilinear gradient at the last one

@@ -75,6 +75,9 @@ class TrackingConfig:
     model_extent: float = 6.0
     model_block_capacity: int = 16384
     raycast_steps: int = 64  # ... and the most samples per ray of its raycast (`engine.raycast`)
+    # ... cast near the depth just fused only (a few samples a ray; the rays without depth not cast), not from
+    # depth_min through the whole model
+    raycast_guided: bool = True
 
     def __post_init__(self) -> None:
         if self.levels < 1 or len(self.iterations) != self.levels or min(self.iterations) < 0:
