@@ -57,6 +57,8 @@ MIN_OBSERVED_WEIGHT = 0.5
 NEAR_SURFACE_VOXELS = 0.5
 #: A guided ray (`guide_depth`) starts this many truncation distances in front of its guide.
 GUIDE_BEFORE = 1.5
+#: Newton steps along the ray on the trilinear TSDF that place the crossing found between two samples.
+NEWTON_STEPS = 2
 
 
 class Raycast(NamedTuple):
@@ -215,7 +217,7 @@ def _raycast(
     voxel = 1.0 / jnp.sqrt(direction[0] ** 2 + direction[1] ** 2 + direction[2] ** 2)
     low, high = t_before - voxel, t_after + voxel
     ok = hit
-    for _ in range(2):
+    for _ in range(NEWTON_STEPS):
         q = [origin[a] + depth * direction[a] for a in range(3)]
         f, gradient, seen = trilinear_tsdf(blocks, q[0], q[1], q[2], config)
         slope = gradient[0] * direction[0] + gradient[1] * direction[1] + gradient[2] * direction[2]  # df / dt
