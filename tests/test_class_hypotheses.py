@@ -64,7 +64,7 @@ def test_threshold_one_is_the_most_likely_class_only():
     assert len(rows) == len(classes) == len(confidences) == 0
 
 
-def test_files_list_each_instance_mask_once_and_read_back_the_alternatives(tmp_path):
+def test_files_give_each_line_its_own_mask_and_read_back_the_alternatives(tmp_path):
     vertices = np.stack(np.meshgrid(np.arange(0, 2, 0.05), np.arange(0, 1, 0.05), [0.0]), -1).reshape(-1, 3)
     split = np.full(20, 0.01)
     split[LABELS.class_index("cabinet")], split[LABELS.class_index("counter")] = 0.5, 0.3
@@ -83,28 +83,30 @@ def test_files_list_each_instance_mask_once_and_read_back_the_alternatives(tmp_p
 
     txt = write_benchmark_predictions(tmp_path, "s", preds)
     lines = txt.read_text().splitlines()
-    assert len(lines) == 4 and lines[3].split()[0] == lines[0].split()[0]  # the counter lists the cabinet's mask
-    assert sorted(p.name for p in (tmp_path / "pred_mask").iterdir()) == ["s_0.txt", "s_1.txt", "s_2.txt"]
+    # a mask file per line: the official script keys the predictions by mask file (a file listed twice keeps its
+    # last line only), so the counter has a copy of the cabinet's mask
+    assert len(lines) == 4 and len({line.split()[0] for line in lines}) == 4
+    assert (tmp_path / lines[3].split()[0]).read_bytes() == (tmp_path / lines[0].split()[0]).read_bytes()
     back = read_benchmark_predictions(txt, len(vertices))
     assert back.alternative.tolist() == preds.alternative.tolist()
     assert np.array_equal(back.masks, preds.masks) and np.array_equal(back.nyu40_ids, preds.nyu40_ids)
     assert back.primary().num_predictions == 3 and not back.primary().alternative.any()
 
-    # The same mask twice under one class is a mistake, named.
-    txt.write_text(txt.read_text() + lines[0] + "\n")
-    with pytest.raises(DataError, match="already listed with class"):
+    # A mask file listed twice is refused, named (the official script would keep its last line only).
+    txt.write_text(txt.read_text() + lines[0].split()[0] + " 5 0.1\n")
+    with pytest.raises(DataError, match="already listed on line 1"):
         read_benchmark_predictions(txt, len(vertices))
 
 
-def test_two_instances_with_equal_masks_keep_their_own_files(tmp_path):
-    """Files are shared only by an alternative and its instance: two instances that cover the same vertices
-    (an empty mask, say) are two files, so that reading back keeps them two instances."""
-    masks = np.zeros((3, 10), bool)
-    masks[2, :4] = True
-    preds = InstancePredictions(masks, [3, 4, 5], [0.9, 0.8, 0.7])
-    txt = write_benchmark_predictions(tmp_path, "s", preds)
-    assert len({line.split()[0] for line in txt.read_text().splitlines()}) == 3
-    assert read_benchmark_predictions(txt).num_instances == 3
+def test_equal_masks_read_back_as_alternatives_only_under_another_class(tmp_path):
+    """Read back, a line is an alternative when an earlier line has the same vertices under another class; the
+    same vertices under the same class are another instance, and an empty mask is never an alternative."""
+    masks = np.zeros((5, 10), bool)
+    masks[0, :4] = masks[1, :4] = masks[2, :4] = True
+    preds = InstancePredictions(masks, [3, 3, 4, 5, 6], [0.9, 0.8, 0.3, 0.7, 0.6])
+    back = read_benchmark_predictions(write_benchmark_predictions(tmp_path, "s", preds))
+    assert back.alternative.tolist() == [False, False, True, False, False]
+    assert back.num_instances == 4
 
 
 def gt_scene(num_vertices: int = 400):

@@ -5,9 +5,10 @@ A scene's predictions are `<out>/<scene>.txt`, one line per prediction::
     pred_mask/<scene>_<k>.txt <nyu40 id> <confidence>
 
 where the mask path is relative to the folder of `<scene>.txt` and each mask file holds one `0`/`1` per
-line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex order. A mask may be listed again
-under another class: an *alternative* class hypothesis of the same instance (the benchmark scores each line on
-its own, per class); the first line that lists a mask is its instance's most likely class.
+line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex order. Each line has a mask file of
+its own: the official script keys the predictions by mask file. An instance may come again under another class,
+an *alternative* class hypothesis (the benchmark scores each line on its own, per class), with a copy of its mask:
+read back, a line whose mask equals an earlier line's and whose class differs is such an alternative.
 """
 
 from __future__ import annotations
@@ -100,9 +101,9 @@ class InstancePredictions:
 
 
 def write_benchmark_predictions(out_dir: str | Path, scene_name: str, preds: InstancePredictions) -> Path:
-    """Writes `<out_dir>/<scene_name>.txt` and its masks `<out_dir>/pred_mask/<scene_name>_<k>.txt`, one mask
-    file per instance: an alternative class hypothesis lists the file of its instance (the latest earlier
-    prediction with the same mask) again.
+    """Writes `<out_dir>/<scene_name>.txt` and its masks `<out_dir>/pred_mask/<scene_name>_<k>.txt`, one mask file
+    per line: the official evaluation script keys the predictions by mask file, so an alternative class hypothesis
+    has a copy of its instance's mask of its own (a file listed twice would keep only its last line).
 
     Mask files of an earlier run with more instances are not removed: only those listed count.
 
@@ -112,21 +113,13 @@ def write_benchmark_predictions(out_dir: str | Path, scene_name: str, preds: Ins
     out_dir = Path(out_dir)
     (out_dir / MASK_FOLDER).mkdir(parents=True, exist_ok=True)
     lines = []
-    written: dict[bytes, str] = {}  # a packed mask -> its latest file, for the alternatives that follow it
-    files = 0
     for k in range(preds.num_predictions):
-        packed = np.packbits(preds.masks[k]).tobytes()
-        if preds.alternative[k] and packed in written:
-            relative = written[packed]
-        else:
-            relative = f"{MASK_FOLDER}/{scene_name}_{files}.txt"
-            files += 1
-            # One byte '0'/'1' then '\n' per vertex, built as a (V, 2) byte array: fast for 10^5 vertices.
-            rows = np.empty((preds.num_vertices, 2), np.uint8)
-            rows[:, 0] = preds.masks[k].astype(np.uint8) + ord("0")
-            rows[:, 1] = ord("\n")
-            (out_dir / relative).write_bytes(rows.tobytes())
-            written[packed] = relative
+        relative = f"{MASK_FOLDER}/{scene_name}_{k}.txt"
+        # One byte '0'/'1' then '\n' per vertex, built as a (V, 2) byte array: fast for 10^5 vertices.
+        rows = np.empty((preds.num_vertices, 2), np.uint8)
+        rows[:, 0] = preds.masks[k].astype(np.uint8) + ord("0")
+        rows[:, 1] = ord("\n")
+        (out_dir / relative).write_bytes(rows.tobytes())
         # repr: the shortest text that reads back to the same float, so confidence ties and order survive.
         lines.append(f"{relative} {int(preds.nyu40_ids[k])} {float(preds.confidences[k])!r}")
     txt_path = out_dir / f"{scene_name}.txt"
@@ -144,8 +137,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
 
     Raises:
       DataError: naming the file and line of a malformed entry, a missing mask file, a mask whose length is
-        not `num_vertices` or whose values are not 0/1, or a mask file listed twice with one class. A mask
-        listed again with another class is an alternative class hypothesis (`InstancePredictions.alternative`).
+        not `num_vertices` or whose values are not 0/1, or a mask file listed twice. A line whose mask equals an
+        earlier line's, under another class, is an alternative class hypothesis (`InstancePredictions.alternative`).
     """
     txt_path = Path(txt_path)
     try:
@@ -155,8 +148,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
     except (OSError, UnicodeDecodeError) as error:
         raise DataError(f"{txt_path}: cannot read the prediction file ({error})") from error
     masks, ids, confidences, alternative = [], [], [], []
-    seen: dict[tuple[Path, int], int] = {}  # (mask, class) -> line
-    masks_read: dict[Path, np.ndarray] = {}
+    seen: dict[Path, int] = {}  # mask file -> line
+    first_class_of: dict[bytes, int] = {}  # a mask's vertices -> the class of its first line
     resolved_folder = txt_path.parent.resolve()
     for number, line in enumerate(text.splitlines(), 1):
         if not line.strip():
@@ -177,20 +170,15 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         if not math.isfinite(confidence):
             raise DataError(f"{where}: confidence {confidence_text!r} is not finite")
         mask_path = _mask_path_inside(txt_path.parent, resolved_folder, relative, where)
-        if (mask_path, nyu40) in seen:
-            raise DataError(f"{where}: mask {relative} is already listed with class {nyu40} on line {seen[mask_path, nyu40]}")
-        seen[mask_path, nyu40] = number
-        if mask_path in masks_read:  # listed again under another class: an alternative class hypothesis
-            mask = masks_read[mask_path]
-            alternative.append(True)
-        else:
-            mask = read_mask_file(
-                mask_path,
-                where,
-                max_bytes=_MAX_MASK_BYTES if num_vertices is None else _MASK_BYTES_PER_VERTEX * num_vertices + 64,
-            )
-            masks_read[mask_path] = mask
-            alternative.append(False)
+        if mask_path in seen:  # the official script would keep the last of its lines only
+            raise DataError(f"{where}: mask {relative} is already listed on line {seen[mask_path]}")
+        seen[mask_path] = number
+        mask = read_mask_file(
+            mask_path, where, max_bytes=_MAX_MASK_BYTES if num_vertices is None else _MASK_BYTES_PER_VERTEX * num_vertices + 64
+        )
+        # the same vertices as an earlier line under another class: an alternative class hypothesis of its instance
+        key = np.packbits(mask).tobytes() + mask.shape[0].to_bytes(8, "little")
+        alternative.append(bool(mask.any()) and first_class_of.setdefault(key, nyu40) != nyu40)
         if num_vertices is None:
             num_vertices = mask.shape[0]
         if mask.shape[0] != num_vertices:

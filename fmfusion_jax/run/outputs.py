@@ -473,7 +473,8 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("benchmark/",),
         "ScanNet benchmark prediction files (`<scene>.txt`, `pred_mask/`) over the scene's `_vh_clean_2.ply` "
         "vertices, when the scene has ground truth: each instance under its most likely class, then under each "
-        "other class of at least 10 % (`export.alternative_class_probability`; a mask file per instance)",
+        "other class of at least 10 % (`export.alternative_class_probability`; a mask file per line, as the official "
+        "script needs)",
         _write_benchmark,
         uses=("scored",),
         lap="benchmark",
