@@ -196,7 +196,9 @@ def apply_shower_curtain_rule(
     Open-set detectors rarely say "shower curtain", and the published likelihood matrix gives the label
     "curtain" the same weight under both classes (0.665 vs 0.663), so the fused distribution cannot tell
     them apart: a stray "shower curtain" label tips any curtain over. The context decides instead (the
-    reference applies the first direction only). The losing class's mass moves to the winning one.
+    reference applies the first direction only). The losing class's mass moves to the winning one; with
+    `both_ways` also where the instance already has the winning class, so that its distribution does not offer
+    the other as an alternative class of the same weight (`io.map_outputs.alternative_class_hypotheses`).
     """
     curtain = label_sets.class_index("curtain")
     shower = label_sets.class_index("shower curtain")
@@ -209,7 +211,7 @@ def apply_shower_curtain_rule(
         if inst.class_index in (curtain, shower) and len(inst.points):
             near = bool(len(anchor_centres)) and np.linalg.norm(anchor_centres - inst.points.mean(axis=0), axis=1).min() < radius
             source, target = (curtain, shower) if near else (shower, curtain)
-            if inst.class_index == source and (near or both_ways):
+            if both_ways or (inst.class_index == source and near):
                 distribution = inst.distribution.copy()
                 distribution[target] += distribution[source]
                 distribution[source] = 0.0

@@ -218,3 +218,28 @@ def test_far_specks_match_the_flood_fill_oracle(seed, max_distance):
     expected = specks_oracle(points, voxel, max_distance)
     assume(expected is not None)
     assert sorted(map(tuple, kept)) == sorted(map(tuple, expected))
+
+
+def test_the_curtain_context_leaves_no_twin_class_to_offer_as_an_alternative():
+    """The likelihood weighs the label 'curtain' alike under curtain and shower curtain; once the context decides,
+    the other keeps no mass, whichever of the two the instance had: else the benchmark files would offer every
+    curtain as a shower curtain of the same weight (and the reverse by a toilet)."""
+    from fmfusion_jax.io.map_outputs import alternative_class_hypotheses
+
+    curtain, shower = LABELS.class_index("curtain"), LABELS.class_index("shower curtain")
+
+    def twin(instance_id, top, other, centre):
+        inst = make_instance(instance_id, "curtain", centre)
+        distribution = np.full(LABELS.num_classes, 0.01)
+        distribution[top], distribution[other] = 0.41, 0.39
+        return dataclasses.replace(inst, distribution=distribution / distribution.sum())
+
+    instances = [make_instance(0, "toilet", [0, 0, 0]), twin(1, shower, curtain, [1, 0, 0]), twin(2, curtain, shower, [6, 0, 0])]
+    out = {inst.instance_id: inst for inst in postprocess_instances(instances, LABELS, ExportConfig(min_points=200))}
+    assert out[1].class_index == shower and out[1].distribution[curtain] == 0.0
+    assert out[2].class_index == curtain and out[2].distribution[shower] == 0.0
+    rows, classes, _ = alternative_class_hypotheses([out[1], out[2]], LABELS, 0.1)
+    assert not set(classes.tolist()) & {curtain, shower}
+    # the reference's rule (one way) leaves them as they were
+    reference = postprocess_instances(instances, LABELS, ExportConfig(min_points=200, curtain_by_context=False))
+    assert {inst.instance_id: inst for inst in reference}[2].distribution[shower] > 0.3
