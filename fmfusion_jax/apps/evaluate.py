@@ -129,9 +129,8 @@ def _explain(scenes: list, names: list[str], meshes: list, explain_dir: Path) ->
 
     print("error analysis (objects by status | predictions by kind; docs/error-analysis.md):")
     found: dict[int, bool] = {}
-    for (gt_ids, predictions), name, mesh in zip(scenes, names, meshes):
+    for (gt_ids, preds), name, mesh in zip(scenes, names, meshes):
         vertices, faces = mesh if mesh is not None else (None, None)
-        preds = predictions.primary()  # each instance once: the alternative class hypotheses are not instances
         explanation = explain_scene(gt_ids, preds, vertices, scene_name=name)
         found |= {g.gt_id: g.status == "found" for g in explanation.ground_truth}
         out_dir = explain_dir if len(scenes) == 1 else explain_dir / name

@@ -9,7 +9,8 @@ makes it: a cube around the first camera). Per frame (`track_and_fuse`):
    (`tracking.track_frame`) against the reference: the model raycast from the last good pose, in that camera's
    frame, so the result is `T_reference_current` exactly as in frame-to-frame tracking;
 2. unless the frame is lost, its depth is integrated at its pose `T_world_reference @ T_reference_current`;
-   a lost frame leaves the model and the pose as they were (its depth is integrated as empty);
+   a lost frame leaves the model and the pose as they were (its depth is integrated as empty) and casts no
+   reference (the last good one stays);
 3. the model is raycast from the new pose (`raycast.raycast_tsdf`, depth only) and its depth's vertex/normal
    pyramid made as a frame's (`tracking.frame_maps`): the next frame's reference.
 
@@ -38,22 +39,21 @@ class ModelStep(NamedTuple):
     """What one frame-to-model step returns."""
 
     blocks: VoxelBlocks  # the model with the frame fused (unchanged but for counters where lost)
-    reference: FrameMaps  # the model raycast from `T_world_camera`: the next frame's reference
+    reference: FrameMaps  # the model raycast from `T_world_camera`: the next frame's reference (empty where lost:
+    # the last good one stays the reference, as `mapping.tracking.Tracker` keeps it)
     result: TrackResult  # the ICP's estimate against the old reference and its failure signal
     T_world_camera: jax.Array  # float32[4, 4]: the frame's pose (the reference's where lost)
 
 
-def _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config: TrackingConfig, map_config: MapConfig, unguided):
+def _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config: TrackingConfig, map_config: MapConfig):
     h, w = depth.shape
     color = jnp.zeros((h, w, 3), jnp.uint8)  # the model holds geometry only
     blocks = integrate_tsdf_unjitted(blocks, depth, color, T_world_camera, intrinsics, map_config)
     # guided by the depth just fused (`TrackingConfig.raycast_guided`), a ray looks for the model's surface near
-    # it only and the rays without depth are not cast: a few samples a ray instead of a march from depth_min; a
-    # lost frame (nothing fused) casts every ray whole (`unguided`)
+    # it only and the rays without depth are not cast: a few samples a ray instead of a march from depth_min (a
+    # lost frame fuses nothing, so nothing is cast: its reference is not used)
     guide = depth if config.raycast_guided else None
-    cast = raycast_tsdf_unjitted(
-        blocks, T_world_camera, intrinsics, map_config, h, w, config.raycast_steps, False, guide, unguided
-    )
+    cast = raycast_tsdf_unjitted(blocks, T_world_camera, intrinsics, map_config, h, w, config.raycast_steps, False, guide, False)
     # the reference's vertices and normals from the raycast depth as a frame's own (`frame_maps`): with the TSDF
     # gradient's normals the ICP slid along the walls of two noisy generated walks (92 and 141 mm ATE; 4.7 and 6.5 mm
     # with these), and the raycast skips six trilinear samples a ray
@@ -73,7 +73,7 @@ def start_model(
     """
     depth = jnp.asarray(depth, jnp.float32)
     T_world_camera = jnp.asarray(T_world_camera, jnp.float32)
-    return _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config, map_config, jnp.bool_(False))
+    return _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config, map_config)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "map_config"), donate_argnums=0)
@@ -100,7 +100,7 @@ def track_and_fuse(
     result = track_frame(reference, current, intrinsics, jnp.eye(4, dtype=jnp.float32), config)
     T_world_camera = jnp.where(result.lost, T_world_reference, T_world_reference @ result.T_reference_current)
     fused = jnp.where(result.lost, 0.0, depth)  # a lost frame adds nothing to the model
-    blocks, reference = _fuse_and_raycast(blocks, fused, T_world_camera, intrinsics, config, map_config, result.lost)
+    blocks, reference = _fuse_and_raycast(blocks, fused, T_world_camera, intrinsics, config, map_config)
     return ModelStep(blocks, reference, result, T_world_camera)
 
 

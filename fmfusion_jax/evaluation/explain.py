@@ -445,11 +445,14 @@ def explain_scene(
 
     Args:
       gt_ids: `(V,)` int benchmark ids of the mesh vertices (`nyu40 * 1000 + objectId + 1`, 0 = none).
-      preds: `(P, V)` masks, nyu40 ids and confidences over the same vertices.
+      preds: `(P, V)` masks, nyu40 ids and confidences over the same vertices; the analysis is of the map's
+        instances, each once under its most likely class (`InstancePredictions.primary()`: the alternative class
+        hypotheses are left out).
       vertices: `(V, 3)` mesh vertices, for the centroids in the records (optional).
       class_names: nyu40 id -> name (default: the benchmark's names of its 18 classes).
       scene_name: for titles.
     """
+    preds = preds.primary()
     if class_names is None:
         class_names = dict(zip(BENCHMARK_NYU40_IDS, benchmark_class_names()))
     counts = overlap_counts(gt_ids, preds, min_region_size)

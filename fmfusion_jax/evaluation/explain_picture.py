@@ -54,9 +54,11 @@ def render_explanation(
 
     Args:
       explanation: made from `gt_ids` and `preds`.
-      gt_ids: `(V,)` benchmark ids; preds: `(P, V)` masks; vertices: `(V, 3)` metres, z up.
+      gt_ids: `(V,)` benchmark ids; preds: `(P, V)` masks (their instances, as `explain_scene` reads them);
+        vertices: `(V, 3)` metres, z up.
       faces: `(F, 3)` mesh triangles, only to size the splats (nearest-neighbour spacing without them).
     """
+    preds = preds.primary()
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     instance_ids, category = vertex_categories(gt_ids)
     n = len(instance_ids)

@@ -340,9 +340,8 @@ def _write_explain(context: OutputContext) -> None:
     gt = context.ground_truth
     gt_ids, predictions, _ = context.scored
     start = time.perf_counter()
-    instances = predictions.primary()  # each instance once: the alternative class hypotheses are not instances
-    explanation = explain_scene(gt_ids, instances, gt.vertices, scene_name=context.scene.name)
-    write_explanation(context.out_dir, explanation, gt_ids, instances, gt.vertices, gt.faces)
+    explanation = explain_scene(gt_ids, predictions, gt.vertices, scene_name=context.scene.name)
+    write_explanation(context.out_dir, explanation, gt_ids, predictions, gt.vertices, gt.faces)
     context.benchmark["explain"] = {
         "objects": explanation.status_counts(),
         "predictions": explanation.kind_counts(),

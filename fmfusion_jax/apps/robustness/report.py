@@ -160,7 +160,7 @@ def precision_counts(gt_ids: np.ndarray, predictions) -> dict[str, int]:
       predictions: the run's `InstancePredictions` over the same vertices.
     """
 
-    explanation = explain_scene(gt_ids, predictions.primary())  # instances, not their alternative classes
+    explanation = explain_scene(gt_ids, predictions)
     return {
         "objects": len(explanation.ground_truth),
         "predictions": len(explanation.predictions),
