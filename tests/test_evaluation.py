@@ -24,7 +24,7 @@ from fmfusion_jax.evaluation.scannet_benchmark import (
     precision_recall_curve,
 )
 from fmfusion_jax.io.benchmark_format import InstancePredictions, export_ground_truth_as_predictions
-from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks
+from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks, unique_rows
 
 WALL, CABINET, BED, CHAIR = 1, 3, 4, 5
 V = 1000
@@ -308,6 +308,18 @@ def test_points_to_vertex_masks_nearest_instance_wins():
     # vertex 3 is farther than the radius from both.
     np.testing.assert_array_equal(masks, [[1, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0]])
     assert not np.any(masks.sum(axis=0) > 1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    values=st.lists(st.tuples(*[st.sampled_from([-1.5, -0.0, 0.0, 0.25, 2.0])] * 3), max_size=30),
+)
+def test_unique_rows_is_numpys_unique_over_rows(values):
+    rows = np.asarray(values, np.float64).reshape(-1, 3)
+    expected_rows, expected_first = np.unique(rows, axis=0, return_index=True)
+    got_rows, got_first = unique_rows(rows)
+    np.testing.assert_array_equal(got_rows, expected_rows)
+    np.testing.assert_array_equal(got_first, expected_first)
 
 
 def test_points_to_vertex_masks_shared_point_goes_to_first_instance():

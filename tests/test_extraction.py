@@ -12,7 +12,15 @@ from oracles import reference as ref
 from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.extraction import extract_instance_points, extract_mesh, extract_surface_points
+from fmfusion_jax.engine.extraction import (
+    _pool_blocks,
+    _raster_blocks,
+    _row_major_permutation,
+    extract_instance_points,
+    extract_mesh,
+    extract_surface_points,
+    extract_surface_voxels,
+)
 from fmfusion_jax.engine.state import MapState, init_map_state, init_voxel_blocks
 
 SPHERE_CONFIG = MapConfig(
@@ -100,12 +108,49 @@ def test_surface_points_match_mesh_vertices_on_a_closed_surface():
     assert colors.shape == points.shape
 
 
+def test_surface_voxels_cover_the_mesh_and_lie_on_the_surface():
+    """The overview's stand-in for the mesh: voxels within about a voxel of the surface, one near every vertex,
+    none where nothing was observed."""
+    from scipy.spatial import cKDTree
+
+    blocks = sphere_blocks(lambda x, y, z: z > CENTRE[2])
+    vertices, _, _ = extract_mesh(blocks, SPHERE_CONFIG)
+    points, colors = extract_surface_voxels(blocks, SPHERE_CONFIG)
+    voxel = SPHERE_CONFIG.voxel_size
+    assert points.dtype == np.float32 and colors.dtype == np.uint8 and colors.shape == points.shape
+    assert np.abs(np.linalg.norm(points - CENTRE, axis=1) - RADIUS).max() <= 1.01 * voxel
+    assert cKDTree(points).query(vertices)[0].max() <= np.sqrt(3) * voxel
+    assert points[:, 2].min() > CENTRE[2] - voxel
+    expected = np.clip(np.round(points * 100 + 120), 0, 255)  # the voxels' own colours
+    assert np.abs(colors.astype(float) - expected).max() <= 1.0
+
+
+def test_a_thin_surface_between_far_voxels_keeps_a_voxel():
+    """tsdf +1 over -1 (a surface passing between two voxels farther than the band from it) still draws."""
+    blocks = sphere_blocks()
+    tsdf = np.asarray(blocks.tsdf)
+    blocks = blocks._replace(tsdf=jnp.asarray(np.sign(tsdf) + (tsdf == 0)))  # every value +-1
+    points, _ = extract_surface_voxels(blocks, SPHERE_CONFIG)
+    assert len(points) > 100
+    assert np.abs(np.linalg.norm(points - CENTRE, axis=1) - RADIUS).max() <= 1.01 * SPHERE_CONFIG.voxel_size
+
+
+@given(bs=st.sampled_from([2, 4, 8]), rows=st.integers(1, 4))
+def test_raster_blocks_is_the_row_major_gather_and_pool_blocks_its_inverse(bs, rows):
+    values = np.arange(rows * bs**3).reshape(rows, bs**3)
+    raster = _raster_blocks(values, bs)
+    np.testing.assert_array_equal(raster, values[:, _row_major_permutation(bs)].reshape(rows, bs, bs, bs))
+    np.testing.assert_array_equal(_pool_blocks(raster), values)
+
+
 def test_empty_map_extracts_nothing():
     state = init_map_state(SPHERE_CONFIG)
     v, f, c = extract_mesh(state, SPHERE_CONFIG)
     assert v.shape == (0, 3) and f.shape == (0, 3) and c.shape == (0, 3)
     p, pc = extract_surface_points(state, SPHERE_CONFIG)
     assert p.shape == (0, 3)
+    p, pc = extract_surface_voxels(state, SPHERE_CONFIG)
+    assert p.shape == (0, 3) and pc.shape == (0, 3)
     assert extract_instance_points(state, SPHERE_CONFIG) == {}
 
 

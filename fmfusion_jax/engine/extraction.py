@@ -264,4 +264,54 @@ def extract_instance_points(
     return {int(i): p for i, p in zip(unique, np.split(points, starts[1:]))}
 
 
-__all__ = ["extract_mesh", "extract_surface_points", "extract_instance_points"]
+def _raster_blocks(values: np.ndarray, bs: int) -> np.ndarray:
+    """`(B, V)` pool rows (2x2x2-cell order, `state.local_voxel_index`) -> `(B, bs, bs, bs)` blocks in (x, y, z)
+    raster order: one transpose of the cell layout, no gather."""
+    c = bs // 2
+    return values.reshape(-1, c, c, c, 2, 2, 2).transpose(0, 1, 4, 2, 5, 3, 6).reshape(-1, bs, bs, bs)
+
+
+def _pool_blocks(blocks: np.ndarray) -> np.ndarray:
+    """The inverse of `_raster_blocks`: `(B, bs, bs, bs)` -> `(B, V)` pool rows."""
+    bs = blocks.shape[1]
+    c = bs // 2
+    return blocks.reshape(-1, c, 2, c, 2, c, 2).transpose(0, 1, 3, 5, 2, 4, 6).reshape(len(blocks), bs**3)
+
+
+def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, band: float | None = None):
+    """Centres of the voxels on the global surface, without assembling volumes: a cheap stand-in for the mesh
+    where the surface is only looked at from afar (the overview picture is drawn from these while the mesh is
+    still being extracted).
+
+    Args:
+      state: a `MapState` or `VoxelBlocks`.
+      config: the map config.
+      min_weight: voxels with a smaller integration weight are unobserved.
+      band: a voxel is on the surface when `|tsdf| * sdf_trunc` is at most this many metres (default: half a
+        voxel, so that a surface crossing a row of voxels keeps about one of them).
+
+    Returns:
+      `(points float32 (N, 3) world metres, colors uint8 (N, 3))`, in pool order.
+    """
+    host = _host_blocks(state)
+    limit = (config.voxel_size if band is None else band) / config.sdf_trunc
+    valid = host["weight"] >= min_weight
+    surface = valid & (np.abs(host["tsdf"]) <= limit)
+    # where the surface passes between two voxels far from it on either side (a thin, noisy surface), the voxel
+    # on the positive side of a sign change within the block stands for it
+    raster_valid, positive = (_raster_blocks(x, config.block_size) for x in (valid, host["tsdf"] >= 0))
+    crossing = np.zeros_like(positive)
+    for axis in (1, 2, 3):
+        lo, hi = [slice(None)] * 4, [slice(None)] * 4
+        lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+        change = (positive[tuple(lo)] != positive[tuple(hi)]) & raster_valid[tuple(lo)] & raster_valid[tuple(hi)]
+        crossing[tuple(lo)] |= change & positive[tuple(lo)]
+        crossing[tuple(hi)] |= change & positive[tuple(hi)]
+    surface |= _pool_blocks(crossing)
+    block, voxel = np.nonzero(surface)
+    g = host["coords"][block] * config.block_size + voxel_offsets(config.block_size)[voxel]
+    colors = np.clip(np.round(host["color"][block, voxel].astype(np.float32)), 0, 255).astype(np.uint8)
+    return _voxel_to_world(g.astype(np.float64), config), colors
+
+
+__all__ = ["extract_mesh", "extract_surface_points", "extract_surface_voxels", "extract_instance_points"]

@@ -17,6 +17,7 @@ from fmfusion_jax.instances import STRUCTURE_CLASSES, MapInstance
 from fmfusion_jax.io.benchmark_format import InstancePredictions
 from fmfusion_jax.io.vertex_transfer import points_to_vertex_masks
 from fmfusion_jax.labels import LabelSets
+from fmfusion_jax.npz_files import write_npz
 
 
 def instance_colors(num: int, seed: int = 7) -> np.ndarray:
@@ -97,12 +98,14 @@ def write_labelled_points(out_dir: Path, points: np.ndarray, colors: np.ndarray,
     `labelled_points.pcd` (PCD v0.7, binary; fields x y z rgb label instance, as PCL and ROS read them)."""
     points = np.asarray(points, np.float32).reshape(-1, 3)
     colors = np.asarray(colors, np.uint8).reshape(-1, 3)
-    np.savez_compressed(
+    write_npz(
         out_dir / "labelled_points.npz",
-        points=points,
-        colors=colors,
-        label=np.asarray(label, np.uint16),
-        instance=np.asarray(instance, np.int32),
+        [
+            ("points", points),
+            ("colors", colors),
+            ("label", np.asarray(label, np.uint16)),
+            ("instance", np.asarray(instance, np.int32)),
+        ],
     )
     rgb = (colors[:, 0].astype(np.uint32) << 16) | (colors[:, 1].astype(np.uint32) << 8) | colors[:, 2].astype(np.uint32)
     rows = np.empty(

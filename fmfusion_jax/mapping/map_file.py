@@ -5,8 +5,8 @@ holding the arrays plus one extra entry, `__metadata__`, a 0-d unicode array wit
 map, the metadata holds the format name and version, the `MapConfig` and the `PipelineConfig` (so the map
 can be interpreted and fusion continued with the same static sizes) and how far fusion had got.
 
-Entries are deflated at a low level: the pool is mostly empty voxels, so this shrinks a map several
-times for little time.
+Entries are deflated at a low level (by ISA-L when installed, `npz_files`): the pool is mostly empty voxels, so
+this shrinks a map several times for little time.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.serialization import state_arrays, state_from_arrays
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.mapping.builder import FusionResult
+from fmfusion_jax.npz_files import write_npz
 
 METADATA_KEY = "__metadata__"
 MAP_FORMAT = "fmfusion-jax map state"
@@ -48,15 +49,14 @@ def write_state_file(
     text = json.dumps(metadata, sort_keys=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(path.name + ".partial")
-    with zipfile.ZipFile(partial, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel) as archive:
+
+    def entries() -> Iterable[tuple[str, Any]]:
         for index, (name, value) in enumerate(itertools.chain([(METADATA_KEY, np.array(text))], items)):
             if index and name == METADATA_KEY:
                 raise ValueError(f"{METADATA_KEY} is reserved for the metadata")
-            value = np.asarray(value)
-            if value.dtype == object:
-                raise ValueError(f"{name}: object arrays cannot be saved (no pickle)")
-            with archive.open(f"{name}.npy", "w", force_zip64=True) as stream:
-                np.lib.format.write_array(stream, value, allow_pickle=False)
+            yield name, value
+
+    write_npz(partial, entries(), compresslevel)
     partial.replace(path)
     return path
 

@@ -122,6 +122,13 @@ class OutputContext:
         return extraction.extract_mesh(self.fused_map.state, self.fused_map.map_config)
 
     @functools.cached_property
+    def surface(self) -> tuple[Any, Any]:
+        """`(points, colors)` of the global surface's voxels (the overview's surface: no mesh to wait for)."""
+        from fmfusion_jax.engine import extraction  # lazy: `fmfusion --help` reads the registry
+
+        return extraction.extract_surface_voxels(self.fused_map.state, self.fused_map.map_config)
+
+    @functools.cached_property
     def scored(self) -> tuple[Any, InstancePredictions, BenchmarkResult]:
         """`(gt_ids, predictions, score)`: the benchmark predictions over the ground truth's mesh vertices and
         their score on this scene alone."""
@@ -353,10 +360,8 @@ def _write_overview(context: OutputContext) -> None:
     from fmfusion_jax.viz import overview  # lazy: `fmfusion --help` reads the registry
 
     result, gt, label_sets = context.fused_map, context.ground_truth, context.label_sets
-    vertices, faces, colors = context.mesh
-    panels = [
-        overview.map_overview_panel(context.map_instances, label_sets, vertices, colors, faces, result.map_config.voxel_size)
-    ]
+    points, colors = context.surface
+    panels = [overview.map_overview_panel(context.map_instances, label_sets, points, colors, None, result.map_config.voxel_size)]
     if gt is not None:
         panels.append(
             overview.ground_truth_overview_panel(
@@ -505,7 +510,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("overview.png",),
         "top-down picture of the instances by class, beside the ground truth when there is one",
         _write_overview,
-        uses=("mesh", "scored", "map_instances"),
+        uses=("surface", "scored", "map_instances"),
         lap="overview",
         listed=1,
     ),
@@ -543,8 +548,8 @@ def chosen_outputs(names: Sequence[str] | None) -> tuple[str, ...] | None:
 SHARED_VALUES = ("map_instances", "records", "points", "mesh", "scored", "graph")
 #: What a shared value is made from (`write_files` starts it once these are made).
 _VALUE_INPUTS = {"records": ("map_instances",), "points": ("map_instances",), "scored": ("map_instances",), "graph": ("records",)}
-#: Steps started first when they are ready, the chain to the overview first (it is long, and waits for the mesh,
-#: the instances and the benchmark score), then the map file (long, its zlib runs beside everything else).
+#: Steps started first when they are ready: the mesh (the longest step) beside the chain to the overview (the
+#: instances, the benchmark score, then the picture), then the map file.
 _FIRST = ("mesh", "map_instances", "scored", "overview.png", "map_state.npz")
 
 #: Threads the writers run in: zlib and PNG encoding release the GIL, and so does much of NumPy.

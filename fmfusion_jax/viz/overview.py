@@ -92,21 +92,24 @@ def point_spacing(points: np.ndarray, default: float, max_tree_points: int = 200
 def map_overview_panel(
     instances: list[MapInstance],
     label_sets: LabelSets,
-    mesh_vertices: np.ndarray,
-    mesh_colors: np.ndarray | None,
-    mesh_faces: np.ndarray | None,
+    surface_points: np.ndarray,
+    surface_colors: np.ndarray | None,
+    surface_faces: np.ndarray | None,
     voxel_size: float,
     caption: str = "fused map",
 ) -> OverviewPanel:
-    """The fused map's panel: the global mesh in grey under the instance points coloured by class."""
+    """The fused map's panel: the global surface in grey under the instance points coloured by class.
+
+    The surface is the global mesh (`surface_faces` its triangles) or its voxels (`surface_faces` None:
+    `engine.extraction.extract_surface_voxels`, drawn as splats one voxel wide)."""
     palette = overview_class_colors(label_sets)
-    mesh_vertices = np.asarray(mesh_vertices, np.float32).reshape(-1, 3)
+    surface_points = np.asarray(surface_points, np.float32).reshape(-1, 3)
     layers = [
         OverviewLayer(
-            mesh_vertices,
-            grey_from_colors(mesh_colors, len(mesh_vertices)),
-            mesh_spacing(mesh_vertices, mesh_faces, voxel_size),
-            faces=mesh_faces,
+            surface_points,
+            grey_from_colors(surface_colors, len(surface_points)),
+            mesh_spacing(surface_points, surface_faces, voxel_size),
+            faces=surface_faces,
         )
     ]
     counts: dict[int, int] = {}
