@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 
@@ -87,6 +86,8 @@ def floor_vertices(
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(faces) == 0:
         return np.zeros(len(vertices), bool)
+    import trimesh  # heavy (~0.5 s): imported when a ground-truth mesh is scored, not by every run
+
     normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
     up_vector = np.asarray(up, np.float64)
     height = vertices @ up_vector

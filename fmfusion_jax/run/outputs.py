@@ -122,11 +122,22 @@ class OutputContext:
         return extraction.extract_mesh(self.fused_map.state, self.fused_map.map_config)
 
     @functools.cached_property
-    def surface(self) -> tuple[Any, Any]:
-        """`(points, colors)` of the global surface's voxels (the overview's surface: no mesh to wait for)."""
+    def overview_panels(self) -> tuple[list[Any], Any]:
+        """`(panels, drawn)` of overview.png: the map's surface voxels under its instances, beside the ground truth
+        when there is one, drawn (`viz.overview.rasterize_panels`); the title, with the score, comes last."""
         from fmfusion_jax.engine import extraction  # lazy: `fmfusion --help` reads the registry
+        from fmfusion_jax.viz import overview
 
-        return extraction.extract_surface_voxels(self.fused_map.state, self.fused_map.map_config)
+        result, gt, label_sets = self.fused_map, self.ground_truth, self.label_sets
+        points, colors = extraction.extract_surface_voxels(result.state, result.map_config)
+        panels = [overview.map_overview_panel(self.map_instances, label_sets, points, colors, None, result.map_config.voxel_size)]
+        if gt is not None:
+            panels.append(
+                overview.ground_truth_overview_panel(
+                    gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids, gt.instance_ids, label_sets
+                )
+            )
+        return panels, overview.rasterize_panels(panels)
 
     @functools.cached_property
     def scored(self) -> tuple[Any, InstancePredictions, BenchmarkResult]:
@@ -357,23 +368,23 @@ def _write_explain(context: OutputContext) -> None:
 
 
 def _write_overview(context: OutputContext) -> None:
-    from fmfusion_jax.viz import overview  # lazy: `fmfusion --help` reads the registry
+    """overview.png: the panels drawn already (`OutputContext.overview_panels`, beside the benchmark's scoring),
+    titled with the score."""
+    import cv2  # lazy: `fmfusion --help` reads the registry
 
-    result, gt, label_sets = context.fused_map, context.ground_truth, context.label_sets
-    points, colors = context.surface
-    panels = [overview.map_overview_panel(context.map_instances, label_sets, points, colors, None, result.map_config.voxel_size)]
-    if gt is not None:
-        panels.append(
-            overview.ground_truth_overview_panel(
-                gt.vertices, gt.faces, gt.vertex_colors, gt.nyu40_ids, gt.instance_ids, label_sets
-            )
-        )
+    from fmfusion_jax.viz import overview
+
+    result, gt = context.fused_map, context.ground_truth
+    panels, drawn = context.overview_panels
     title = f"{context.scene.name}: {result.frames_integrated} frames"
     if gt is not None:
         score = context.scored[2]
         title += f"  |  AP {score.mAP:.3f}   AP50 {score.mAP50:.3f}   AP25 {score.mAP25:.3f}"
+    image = overview.compose_overview(panels, drawn, context.label_sets, title)
+    path = context.out_dir / "overview.png"
     try:
-        overview.write_overview(context.out_dir / "overview.png", panels, label_sets, title)
+        if not cv2.imwrite(str(path), image):
+            raise OSError(f"cannot write {path}")
     except OSError as error:
         log.warning("no overview: %s", error)
 
@@ -510,7 +521,7 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("overview.png",),
         "top-down picture of the instances by class, beside the ground truth when there is one",
         _write_overview,
-        uses=("surface", "scored", "map_instances"),
+        uses=("overview_panels", "scored"),
         lap="overview",
         listed=1,
     ),
@@ -545,12 +556,18 @@ def chosen_outputs(names: Sequence[str] | None) -> tuple[str, ...] | None:
 
 
 #: The `OutputContext` values several writers read, each made once.
-SHARED_VALUES = ("map_instances", "records", "points", "mesh", "scored", "graph")
+SHARED_VALUES = ("map_instances", "records", "points", "mesh", "scored", "graph", "overview_panels")
 #: What a shared value is made from (`write_files` starts it once these are made).
-_VALUE_INPUTS = {"records": ("map_instances",), "points": ("map_instances",), "scored": ("map_instances",), "graph": ("records",)}
-#: Steps started first when they are ready: the mesh (the longest step) beside the chain to the overview (the
-#: instances, the benchmark score, then the picture), then the map file.
-_FIRST = ("mesh", "map_instances", "scored", "overview.png", "map_state.npz")
+_VALUE_INPUTS = {
+    "records": ("map_instances",),
+    "points": ("map_instances",),
+    "scored": ("map_instances",),
+    "graph": ("records",),
+    "overview_panels": ("map_instances",),
+}
+#: Steps started first when they are ready: the mesh (the longest step) beside the instances, then the overview's
+#: panels and the benchmark score (each waits for the instances only), then the map file.
+_FIRST = ("mesh", "map_instances", "overview_panels", "scored", "overview.png", "map_state.npz")
 
 #: Threads the writers run in: zlib and PNG encoding release the GIL, and so does much of NumPy.
 WRITER_THREADS = 2

@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.io.map_outputs import oriented_box
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 
@@ -87,6 +86,8 @@ class RerunView:
             )
         instances = mapper.instances()
         if instances:
+            from fmfusion_jax.io.map_outputs import oriented_box  # lazy: scipy's KD-tree, only with a viewer
+
             boxes = [oriented_box(inst.points) for inst in instances]
             names = mapper.label_sets.class_names
             rec.log(

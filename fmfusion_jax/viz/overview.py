@@ -302,13 +302,33 @@ def _densify(
     return np.concatenate(new_points).astype(np.float32), np.concatenate(new_colors)
 
 
+#: The overview's layout in pixels: outer margin, gap between panels, title and caption heights, pad in a panel.
+_MARGIN, _GAP, _TITLE_H, _CAPTION_H, _PANEL_PAD = 12, 16, 44, 30, 10
+
+
+@dataclasses.dataclass
+class PanelImages:
+    """The panels drawn (`rasterize_panels`): their BGR images, `(height, width, 3)` uint8 each, and the view's scale
+    in pixels per metre (the scale bar's)."""
+
+    images: list[np.ndarray]
+    scale: float
+    height: int
+    width: int
+
+
 def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: str, panel_width: int = 800) -> np.ndarray:
     """The overview picture (`(H, W, 3)` uint8 BGR): title, panels side by side, legend of the classes.
 
     Every panel uses the same top-down orthographic view (rotated so that the room's walls are along the
     image axes), so the map and the ground truth can be compared place by place.
     """
-    margin, gap, title_h, caption_h, pad = 12, 16, 44, 30, 10
+    return compose_overview(panels, rasterize_panels(panels, panel_width), label_sets, title)
+
+
+def rasterize_panels(panels: list[OverviewPanel], panel_width: int = 800) -> PanelImages:
+    """Draws the panels in one top-down view (the long part of `render_overview`; the title is not needed yet)."""
+    pad = _PANEL_PAD
     everything = [layer.points for panel in panels for layer in panel.layers if len(layer.points)]
     all_points = np.concatenate(everything) if everything else np.zeros((0, 3), np.float32)
     cut = height_cut(all_points[:, 2])
@@ -358,7 +378,13 @@ def render_overview(panels: list[OverviewPanel], label_sets: LabelSets, title: s
         if not drawn:
             cv2.putText(image, "empty", (panel_width // 2 - 30, panel_height // 2), _FONT, 0.8, (90, 90, 90), 2, cv2.LINE_AA)
         images.append(image)
+    return PanelImages(images, scale, panel_height, panel_width)
 
+
+def compose_overview(panels: list[OverviewPanel], drawn: PanelImages, label_sets: LabelSets, title: str) -> np.ndarray:
+    """The overview picture from the panels drawn by `rasterize_panels`: title, captions, scale bars, legend."""
+    margin, gap, title_h, caption_h = _MARGIN, _GAP, _TITLE_H, _CAPTION_H
+    images, scale, panel_height, panel_width = drawn.images, drawn.scale, drawn.height, drawn.width
     # Legend: every class in any panel, with its count per panel.
     present = sorted({k for panel in panels for k in panel.class_counts})
     palette = overview_class_colors(label_sets)
