@@ -278,6 +278,10 @@ def _pool_blocks(blocks: np.ndarray) -> np.ndarray:
     return blocks.reshape(-1, c, 2, c, 2, c, 2).transpose(0, 1, 3, 5, 2, 4, 6).reshape(len(blocks), bs**3)
 
 
+#: Pool rows taken at a time by `extract_surface_voxels` (its temporaries are a few bytes per voxel of a slice).
+SURFACE_SLICE_BLOCKS = 2048
+
+
 def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, band: float | None = None):
     """Centres of the voxels on the global surface, without assembling volumes: a cheap stand-in for the mesh
     where the surface is only looked at from afar (the overview picture is drawn from these while the mesh is
@@ -287,19 +291,32 @@ def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, ba
       state: a `MapState` or `VoxelBlocks`.
       config: the map config.
       min_weight: voxels with a smaller integration weight are unobserved.
-      band: a voxel is on the surface when `|tsdf| * sdf_trunc` is at most this many metres (default: half a
-        voxel, so that a surface crossing a row of voxels keeps about one of them).
+      band: a voxel is on the surface when `|tsdf| * sdf_trunc` is at most this many metres (default: one voxel);
+        so is the voxel on the positive side of a sign change to a neighbour in its block (a thin, noisy surface
+        passing between two voxels farther than the band from it).
 
     Returns:
       `(points float32 (N, 3) world metres, colors uint8 (N, 3))`, in pool order.
     """
     host = _host_blocks(state)
     limit = (config.voxel_size if band is None else band) / config.sdf_trunc
-    valid = host["weight"] >= min_weight
-    surface = valid & (np.abs(host["tsdf"]) <= limit)
-    # where the surface passes between two voxels far from it on either side (a thin, noisy surface), the voxel
-    # on the positive side of a sign change within the block stands for it
-    raster_valid, positive = (_raster_blocks(x, config.block_size) for x in (valid, host["tsdf"] >= 0))
+    offsets = voxel_offsets(config.block_size)
+    points, colors = [np.zeros((0, 3), np.float32)], [np.zeros((0, 3), np.uint8)]
+    for start in range(0, len(host["coords"]), SURFACE_SLICE_BLOCKS):
+        rows = slice(start, start + SURFACE_SLICE_BLOCKS)
+        tsdf = host["tsdf"][rows]
+        block, voxel = np.nonzero(_surface_mask(tsdf, host["weight"][rows] >= min_weight, limit, config.block_size))
+        g = host["coords"][rows][block] * config.block_size + offsets[voxel]
+        points.append(_voxel_to_world(g.astype(np.float64), config))
+        colors.append(np.clip(np.round(host["color"][rows][block, voxel].astype(np.float32)), 0, 255).astype(np.uint8))
+    return np.concatenate(points), np.concatenate(colors)
+
+
+def _surface_mask(tsdf: np.ndarray, valid: np.ndarray, limit: float, bs: int) -> np.ndarray:
+    """`(B, V)` bool: valid voxels with `|tsdf| <= limit`, or on the positive side of a sign change to a valid
+    neighbour within the block (`extract_surface_voxels`)."""
+    surface = valid & (np.abs(tsdf) <= limit)
+    raster_valid, positive = _raster_blocks(valid, bs), _raster_blocks(tsdf >= 0, bs)
     crossing = np.zeros_like(positive)
     for axis in (1, 2, 3):
         lo, hi = [slice(None)] * 4, [slice(None)] * 4
@@ -307,11 +324,7 @@ def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, ba
         change = (positive[tuple(lo)] != positive[tuple(hi)]) & raster_valid[tuple(lo)] & raster_valid[tuple(hi)]
         crossing[tuple(lo)] |= change & positive[tuple(lo)]
         crossing[tuple(hi)] |= change & positive[tuple(hi)]
-    surface |= _pool_blocks(crossing)
-    block, voxel = np.nonzero(surface)
-    g = host["coords"][block] * config.block_size + voxel_offsets(config.block_size)[voxel]
-    colors = np.clip(np.round(host["color"][block, voxel].astype(np.float32)), 0, 255).astype(np.uint8)
-    return _voxel_to_world(g.astype(np.float64), config), colors
+    return surface | _pool_blocks(crossing)
 
 
 __all__ = ["extract_mesh", "extract_surface_points", "extract_surface_voxels", "extract_instance_points"]
