@@ -126,13 +126,18 @@ def test_surface_voxels_cover_the_mesh_and_lie_on_the_surface():
 
 
 def test_a_thin_surface_between_far_voxels_keeps_a_voxel():
-    """tsdf +1 over -1 (a surface passing between two voxels farther than the band from it) still draws."""
+    """tsdf +1 over -1 (a surface passing between two voxels farther than the band from it) still draws, within
+    a block and between two: every vertex of its mesh has a drawn voxel beside it."""
+    from scipy.spatial import cKDTree
+
     blocks = sphere_blocks()
     tsdf = np.asarray(blocks.tsdf)
     blocks = blocks._replace(tsdf=jnp.asarray(np.sign(tsdf) + (tsdf == 0)))  # every value +-1
+    vertices, _, _ = extract_mesh(blocks, SPHERE_CONFIG)
     points, _ = extract_surface_voxels(blocks, SPHERE_CONFIG)
-    assert len(points) > 100
-    assert np.abs(np.linalg.norm(points - CENTRE, axis=1) - RADIUS).max() <= 1.01 * SPHERE_CONFIG.voxel_size
+    voxel = SPHERE_CONFIG.voxel_size
+    assert np.abs(np.linalg.norm(points - CENTRE, axis=1) - RADIUS).max() <= 1.01 * voxel
+    assert cKDTree(points).query(vertices)[0].max() <= 1.01 * voxel  # the vertex's edge has a voxel drawn
 
 
 @given(bs=st.sampled_from([2, 4, 8]), rows=st.integers(1, 4))

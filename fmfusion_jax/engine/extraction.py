@@ -292,8 +292,9 @@ def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, ba
       config: the map config.
       min_weight: voxels with a smaller integration weight are unobserved.
       band: a voxel is on the surface when `|tsdf| * sdf_trunc` is at most this many metres (default: one voxel);
-        so is the voxel on the positive side of a sign change to a neighbour in its block (a thin, noisy surface
-        passing between two voxels farther than the band from it).
+        so is the voxel on the positive side of a sign change to a valid neighbour, in its block or the next (a
+        thin, noisy surface passing between two voxels farther than the band from it): every edge the mesh crosses
+        has one of its voxels drawn.
 
     Returns:
       `(points float32 (N, 3) world metres, colors uint8 (N, 3))`, in pool order.
@@ -301,15 +302,47 @@ def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, ba
     host = _host_blocks(state)
     limit = (config.voxel_size if band is None else band) / config.sdf_trunc
     offsets = voxel_offsets(config.block_size)
+    across = _crossings_between_blocks(host, config.block_size, min_weight)
     points, colors = [np.zeros((0, 3), np.float32)], [np.zeros((0, 3), np.uint8)]
     for start in range(0, len(host["coords"]), SURFACE_SLICE_BLOCKS):
         rows = slice(start, start + SURFACE_SLICE_BLOCKS)
         tsdf = host["tsdf"][rows]
-        block, voxel = np.nonzero(_surface_mask(tsdf, host["weight"][rows] >= min_weight, limit, config.block_size))
+        surface = _surface_mask(tsdf, host["weight"][rows] >= min_weight, limit, config.block_size) | across[rows]
+        block, voxel = np.nonzero(surface)
         g = host["coords"][rows][block] * config.block_size + offsets[voxel]
         points.append(_voxel_to_world(g.astype(np.float64), config))
         colors.append(np.clip(np.round(host["color"][rows][block, voxel].astype(np.float32)), 0, 255).astype(np.uint8))
     return np.concatenate(points), np.concatenate(colors)
+
+
+def _crossings_between_blocks(host: dict, bs: int, min_weight: float) -> np.ndarray:
+    """`(B, V)` bool: the voxels on a block's faces on the positive side of a sign change to the valid voxel facing
+    them in the next block along x, y or z (the in-block changes are `_surface_mask`'s)."""
+    coords = host["coords"].astype(np.int64)
+    marked = np.zeros(host["tsdf"].shape, bool)
+    if len(coords) == 0:
+        return marked
+    low, span = coords.min(axis=0), np.ptp(coords, axis=0) + 2
+    linear = ((coords[:, 0] - low[0]) * span[1] + (coords[:, 1] - low[1])) * span[2] + (coords[:, 2] - low[2])
+    order = np.argsort(linear)
+    face = np.stack(np.meshgrid(np.arange(bs), np.arange(bs), indexing="ij"), -1).reshape(-1, 2)
+    for axis in range(3):
+        step = np.zeros(3, np.int64)
+        step[axis] = 1
+        target = linear + ((step[0] * span[1] + step[1]) * span[2] + step[2])
+        found = np.minimum(np.searchsorted(linear[order], target), len(order) - 1)
+        here = np.flatnonzero(linear[order][found] == target)  # blocks whose + neighbour along `axis` exists
+        there = order[found[here]]
+        last, first = (np.insert(face, axis, value, axis=1) for value in (bs - 1, 0))
+        last_voxel = local_voxel_index(last[:, 0], last[:, 1], last[:, 2], bs)
+        first_voxel = local_voxel_index(first[:, 0], first[:, 1], first[:, 2], bs)
+        at_last, at_first = (here[:, None], last_voxel[None, :]), (there[:, None], first_voxel[None, :])
+        t_last, t_first = host["tsdf"][at_last], host["tsdf"][at_first]
+        valid = (host["weight"][at_last] >= min_weight) & (host["weight"][at_first] >= min_weight)
+        change = valid & ((t_last >= 0) != (t_first >= 0))
+        marked[at_last] |= change & (t_last >= 0)
+        marked[at_first] |= change & (t_first >= 0)
+    return marked
 
 
 def _surface_mask(tsdf: np.ndarray, valid: np.ndarray, limit: float, bs: int) -> np.ndarray:
