@@ -15,13 +15,12 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.extraction import (
     _pool_blocks,
     _raster_blocks,
-    _row_major_permutation,
     extract_instance_points,
     extract_mesh,
     extract_surface_points,
     extract_surface_voxels,
 )
-from fmfusion_jax.engine.state import MapState, init_map_state, init_voxel_blocks
+from fmfusion_jax.engine.state import MapState, init_map_state, init_voxel_blocks, local_voxel_index
 
 SPHERE_CONFIG = MapConfig(
     voxel_size=0.02,
@@ -140,11 +139,18 @@ def test_a_thin_surface_between_far_voxels_keeps_a_voxel():
     assert cKDTree(points).query(vertices)[0].max() <= 1.01 * voxel  # the vertex's edge has a voxel drawn
 
 
+def row_major_permutation(block_size: int) -> np.ndarray:
+    """The oracle of `_raster_blocks`: `perm` such that `block[..., perm].reshape(bs, bs, bs)` is the block in (x, y, z)
+    raster order."""
+    g = np.stack(np.meshgrid(*(np.arange(block_size),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    return local_voxel_index(g[:, 0], g[:, 1], g[:, 2], block_size)
+
+
 @given(bs=st.sampled_from([2, 4, 8]), rows=st.integers(1, 4))
 def test_raster_blocks_is_the_row_major_gather_and_pool_blocks_its_inverse(bs, rows):
     values = np.arange(rows * bs**3).reshape(rows, bs**3)
     raster = _raster_blocks(values, bs)
-    np.testing.assert_array_equal(raster, values[:, _row_major_permutation(bs)].reshape(rows, bs, bs, bs))
+    np.testing.assert_array_equal(raster, values[:, row_major_permutation(bs)].reshape(rows, bs, bs, bs))
     np.testing.assert_array_equal(_pool_blocks(raster), values)
 
 

@@ -31,10 +31,19 @@ def _host_blocks(state_or_blocks) -> dict[str, np.ndarray]:
     }
 
 
-def _row_major_permutation(block_size: int) -> np.ndarray:
-    """`perm` such that `block[..., perm].reshape(bs, bs, bs)` is the block in (x, y, z) raster order."""
-    g = np.stack(np.meshgrid(*(np.arange(block_size),) * 3, indexing="ij"), -1).reshape(-1, 3)
-    return local_voxel_index(g[:, 0], g[:, 1], g[:, 2], block_size)
+def _raster_blocks(values: np.ndarray, bs: int) -> np.ndarray:
+    """`(B, V, ...)` pool rows (2x2x2-cell order, `state.local_voxel_index`) -> `(B, bs, bs, bs, ...)` blocks in
+    (x, y, z) raster order: one transpose of the cell layout, no gather."""
+    c, tail = bs // 2, values.shape[2:]
+    cells = values.reshape(-1, c, c, c, 2, 2, 2, *tail)
+    return cells.transpose(0, 1, 4, 2, 5, 3, 6, *range(7, 7 + len(tail))).reshape(-1, bs, bs, bs, *tail)
+
+
+def _pool_blocks(blocks: np.ndarray) -> np.ndarray:
+    """The inverse of `_raster_blocks`: `(B, bs, bs, bs)` -> `(B, V)` pool rows."""
+    bs = blocks.shape[1]
+    c = bs // 2
+    return blocks.reshape(-1, c, 2, c, 2, c, 2).transpose(0, 1, 3, 5, 2, 4, 6).reshape(len(blocks), bs**3)
 
 
 def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float) -> Iterator[tuple]:
@@ -44,7 +53,6 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float)
     coords = host["coords"]
     if len(coords) == 0:
         return
-    perm = _row_major_permutation(bs)
     # Each block feeds its own chunk, and (as the apron) the chunks just below it along each axis
     # where it sits on the chunk's lower face.
     block_parts: list[np.ndarray] = []
@@ -74,7 +82,7 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float)
         # block-major views of the volumes
         b, r = block_ids[group], rel[group]
         for volume, name in ((vol_t, "tsdf"), (vol_w, "weight"), (vol_c, "color")):
-            values = host[name][b][:, perm].reshape(len(b), bs, bs, bs, *host[name].shape[2:])
+            values = _raster_blocks(host[name][b], bs)
             _block_view(volume, chunk_blocks + 1, bs)[r[:, 0], r[:, 1], r[:, 2]] = values
         valid = (vol_w >= min_weight)[:n, :n, :n]
         yield chunk * chunk_blocks * bs, vol_t[:n, :n, :n], valid, vol_c[:n, :n, :n]
@@ -262,20 +270,6 @@ def extract_instance_points(
     inst, points = inst[order], points[order]
     unique, starts = np.unique(inst, return_index=True)
     return {int(i): p for i, p in zip(unique, np.split(points, starts[1:]))}
-
-
-def _raster_blocks(values: np.ndarray, bs: int) -> np.ndarray:
-    """`(B, V)` pool rows (2x2x2-cell order, `state.local_voxel_index`) -> `(B, bs, bs, bs)` blocks in (x, y, z)
-    raster order: one transpose of the cell layout, no gather."""
-    c = bs // 2
-    return values.reshape(-1, c, c, c, 2, 2, 2).transpose(0, 1, 4, 2, 5, 3, 6).reshape(-1, bs, bs, bs)
-
-
-def _pool_blocks(blocks: np.ndarray) -> np.ndarray:
-    """The inverse of `_raster_blocks`: `(B, bs, bs, bs)` -> `(B, V)` pool rows."""
-    bs = blocks.shape[1]
-    c = bs // 2
-    return blocks.reshape(-1, c, 2, c, 2, c, 2).transpose(0, 1, 3, 5, 2, 4, 6).reshape(len(blocks), bs**3)
 
 
 #: Pool rows taken at a time by `extract_surface_voxels` (its temporaries are a few bytes per voxel of a slice).

@@ -370,9 +370,7 @@ def _write_explain(context: OutputContext) -> None:
 def _write_overview(context: OutputContext) -> None:
     """overview.png: the panels drawn already (`OutputContext.overview_panels`, beside the benchmark's scoring),
     titled with the score."""
-    import cv2  # lazy: `fmfusion --help` reads the registry
-
-    from fmfusion_jax.viz import overview
+    from fmfusion_jax.viz import overview  # lazy: `fmfusion --help` reads the registry
 
     result, gt = context.fused_map, context.ground_truth
     panels, drawn = context.overview_panels
@@ -380,11 +378,8 @@ def _write_overview(context: OutputContext) -> None:
     if gt is not None:
         score = context.scored[2]
         title += f"  |  AP {score.mAP:.3f}   AP50 {score.mAP50:.3f}   AP25 {score.mAP25:.3f}"
-    image = overview.compose_overview(panels, drawn, context.label_sets, title)
-    path = context.out_dir / "overview.png"
     try:
-        if not cv2.imwrite(str(path), image):
-            raise OSError(f"cannot write {path}")
+        overview.write_overview(context.out_dir / "overview.png", panels, context.label_sets, title, drawn=drawn)
     except OSError as error:
         log.warning("no overview: %s", error)
 

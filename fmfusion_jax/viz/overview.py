@@ -449,10 +449,17 @@ def scale_bar(image: np.ndarray, right: int, baseline: int, scale: float) -> Non
 
 
 def write_overview(
-    path: Path, panels: list[OverviewPanel], label_sets: LabelSets, title: str, panel_width: int = 800
+    path: Path,
+    panels: list[OverviewPanel],
+    label_sets: LabelSets,
+    title: str,
+    panel_width: int = 800,
+    drawn: PanelImages | None = None,
 ) -> np.ndarray:
-    """Renders the overview (see `render_overview`) and writes it as PNG; returns the BGR image."""
-    image = render_overview(panels, label_sets, title, panel_width)
+    """Renders the overview (see `render_overview`; from `drawn`, the panels' `rasterize_panels`, when given) and
+    writes it as PNG; returns the BGR image."""
+    drawn = rasterize_panels(panels, panel_width) if drawn is None else drawn
+    image = compose_overview(panels, drawn, label_sets, title)
     if not cv2.imwrite(str(path), image):
         raise OSError(f"cannot write {path}")
     return image
