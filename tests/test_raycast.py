@@ -77,7 +77,7 @@ def compare(T_world_camera: np.ndarray) -> None:
         values, observed, origin_voxels, config.voxel_size, T_world_camera, K, HEIGHT, WIDTH, config.depth_min, config.depth_max
     )
     hit = want_depth > 0
-    assert hit.mean() > 0.9
+    assert hit.mean() > 0.8  # the surfaces fill most of the view (a turned camera sees past them in one corner)
     assert not (valid & ~hit).any()  # nothing the oracle does not see
     assert valid.sum() > 0.6 * hit.sum()  # depth edges (the sphere's outline, the image border) are dropped
     # within 1 mm but for a grazing pixel of the sphere's outline now and then, where the two Newton steps and the

@@ -116,6 +116,20 @@ def test_chunking_does_not_change_the_result(chunk):
     np.testing.assert_allclose(da.tsdf, db.tsdf, atol=1e-6)
 
 
+def test_geometry_only_integration_leaves_the_colours():
+    """`color=None` (frame-to-model tracking's TSDF): the same TSDF and weights as with a colour image, colours
+    untouched."""
+    with_color, geometry = init_voxel_blocks(CONFIG), init_voxel_blocks(CONFIG)
+    for i in range(3):
+        depth, color, T = frame(i)
+        with_color = tsdf.integrate_tsdf(with_color, depth, color, T, K, CONFIG)
+        geometry = tsdf.integrate_tsdf(geometry, depth, None, T, K, CONFIG)
+    for name in ("block_index", "block_coords", "tsdf", "weight"):
+        assert np.array_equal(np.asarray(getattr(geometry, name)), np.asarray(getattr(with_color, name))), name
+    assert np.any(np.asarray(with_color.color) != 0)
+    assert not np.any(np.asarray(geometry.color))
+
+
 def test_integrate_chunk_by_backend():
     """0 leaves the TSDF's loop step to the backend: cache-sized on the CPU, fewer steps on an accelerator."""
     assert integrate_chunk_for_backend("cpu") == 96 and integrate_chunk_for_backend("gpu") == 256

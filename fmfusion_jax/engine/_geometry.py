@@ -88,15 +88,26 @@ def locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):
 
     Returns `(slot, v, inside)`: `slot` int32 (-1 where the block is outside the index or not
     allocated), `v` the voxel's index inside its block, `inside` whether the block is inside the index.
+    Power-of-two blocks (the default 8) use shifts and masks: the floor divisions and remainders of the
+    generic path (sign fix-ups included) were a large part of a per-pixel or per-ray lookup's cost on the CPU.
     """
     bs = config.block_size
-    bx, by, bz = gx // bs, gy // bs, gz // bs  # floor division, also for negatives
     sx, sy, sz = config.grid_shape
+    if bs & (bs - 1):
+        bx, by, bz = gx // bs, gy // bs, gz // bs  # floor division, also for negatives
+        inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
+        flat = jnp.where(inside, (bx * sy + by) * sz + bz, 0)
+        slot = jnp.where(inside, blocks.block_index.reshape(-1)[flat], -1)
+        return slot, local_voxel_index(gx - bx * bs, gy - by * bs, gz - bz * bs, bs), inside
+    shift = bs.bit_length() - 1
+    bx, by, bz = gx >> shift, gy >> shift, gz >> shift  # arithmetic shift: floor division, negatives too
+    x, y, z = gx & (bs - 1), gy & (bs - 1), gz & (bs - 1)  # floor remainder
     inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
     flat = jnp.where(inside, (bx * sy + by) * sz + bz, 0)
-    slot = jnp.where(inside, blocks.block_index.reshape(-1)[flat], -1)
-    v = local_voxel_index(gx - bx * bs, gy - by * bs, gz - bz * bs, bs)
-    return slot, v, inside
+    slot = jnp.where(inside, blocks.block_index.reshape(-1).at[flat].get(mode="promise_in_bounds"), -1)
+    c = bs // 2  # local_voxel_index (2x2x2-cell order) with shifts
+    cell = ((x >> 1) * c + (y >> 1)) * c + (z >> 1)
+    return slot, cell * 8 + (x & 1) * 4 + (y & 1) * 2 + (z & 1), inside
 
 
 def as_pose(T_world_camera) -> jax.Array:

@@ -68,28 +68,6 @@ def _subsampled_points(depth, T, K, config: MapConfig, offset_voxels: float, ori
     return ok, geo.world_to_voxel(x, y, z, config, origin_block)
 
 
-def _locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):
-    """`_geometry.locate_voxels` (same results), with shifts and masks for power-of-two blocks.
-
-    The floor divisions and remainders of the generic version (sign fix-ups included) were a large
-    part of the per-pixel lookup's cost on the CPU.
-    """
-    bs = config.block_size
-    if bs & (bs - 1):
-        return geo.locate_voxels(blocks, gx, gy, gz, config)
-    shift = bs.bit_length() - 1
-    bx, by, bz = gx >> shift, gy >> shift, gz >> shift  # arithmetic shift: floor division, negatives too
-    x, y, z = gx & (bs - 1), gy & (bs - 1), gz & (bs - 1)  # floor remainder
-    sx, sy, sz = config.grid_shape
-    inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
-    flat = jnp.where(inside, (bx * sy + by) * sz + bz, 0)
-    slot = jnp.where(inside, blocks.block_index.reshape(-1).at[flat].get(mode="promise_in_bounds"), -1)
-    c = bs // 2  # local_voxel_index (2x2x2-cell order) with shifts
-    cell = ((x >> 1) * c + (y >> 1)) * c + (z >> 1)
-    v = cell * 8 + (x & 1) * 4 + (y & 1) * 2 + (z & 1)
-    return slot, v, inside
-
-
 def _entry_base(blocks: VoxelBlocks, slot, voxel):
     """Flat pool entry of slot 0 at the addresses `(slot, voxel)` (0 where slot is -1)."""
     _, v_per_block, num_slots = blocks.instance_id.shape
@@ -121,7 +99,7 @@ def pixel_instance_slots(blocks: VoxelBlocks, depth, T_world_camera, intrinsics,
     ids, weights = [], []
     for offset in config.instance_lookup_offsets:
         ok, (gx, gy, gz) = _subsampled_points(depth, T, K, config, offset, blocks.origin_block)
-        slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
+        slot, v, _ = geo.locate_voxels(blocks, gx, gy, gz, config)
         i, w = _slot_entries(blocks, jnp.where(ok, slot, -1), v)
         ids += i
         weights += w
@@ -353,7 +331,7 @@ def pixel_voxels(blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config:
     otherwise redo the back-projection and block lookup in each of them."""
     T, K = geo.as_pose(T_world_camera), geo.as_intrinsics(intrinsics)
     ok, (gx, gy, gz) = _subsampled_points(jnp.asarray(depth, jnp.float32), T, K, config, 0.0, blocks.origin_block)
-    slot, v, _ = _locate_voxels(blocks, gx, gy, gz, config)
+    slot, v, _ = geo.locate_voxels(blocks, gx, gy, gz, config)
     seen = ok & (slot >= 0) & (slot < config.dummy_slot)
     return geo.materialize(jnp.where(seen, slot * config.voxels_per_block + v, -1).reshape(-1))
 

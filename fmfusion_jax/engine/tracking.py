@@ -168,41 +168,48 @@ def level_intrinsics(intrinsics, level: int):
     return jnp.asarray(intrinsics, jnp.float32) * s
 
 
+def _cross(a, b):
+    """Cross product of two vectors given as 3 arrays each (any one shape)."""
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 def _vertex_normal_map(depth, intrinsics, config: TrackingConfig):
     """Vertices, normals and validity `(Hl, Wl, 3), (Hl, Wl, 3), (Hl, Wl)` of one level's depth `(Hl, Wl)`.
 
     Normals are the cross product of the central differences of the neighbouring vertices, where the pixel and
     its four neighbours are valid and no neighbour's depth differs by more than `EDGE_STEP` of the pixel's;
-    they face the camera."""
+    they face the camera. Computed per coordinate (`(Hl, Wl)` arrays, stacked at the end): 2x faster than on
+    `(Hl, Wl, 3)` points on the 2-core CPU."""
     h, w = depth.shape
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     ok = (depth >= config.depth_min) & (depth <= config.depth_max)
     d = jnp.where(ok, depth, 0.0)
     u = jnp.arange(w, dtype=jnp.float32)[None, :]
     v = jnp.arange(h, dtype=jnp.float32)[:, None]
-    vertices = jnp.stack([(u - cx) / fx * d, (v - cy) / fy * d, d], axis=-1)
-    pad_v = jnp.pad(vertices, ((1, 1), (1, 1), (0, 0)))
-    pad_d = jnp.pad(d, 1)
-    dx = pad_v[1:-1, 2:] - pad_v[1:-1, :-2]
-    dy = pad_v[2:, 1:-1] - pad_v[:-2, 1:-1]
-    neighbours = (pad_d[1:-1, 2:], pad_d[1:-1, :-2], pad_d[2:, 1:-1], pad_d[:-2, 1:-1])
+    vertex = [(u - cx) / fx * d, (v - cy) / fy * d, d]
+    padded = [jnp.pad(c, 1) for c in vertex]
+    right, left = [c[1:-1, 2:] for c in padded], [c[1:-1, :-2] for c in padded]
+    down, up = [c[2:, 1:-1] for c in padded], [c[:-2, 1:-1] for c in padded]
     smooth = ok
-    for other in neighbours:
+    for other in (right[2], left[2], down[2], up[2]):  # the neighbours' depths
         smooth = smooth & (other > 0) & (jnp.abs(other - d) <= EDGE_STEP * d)
-    n = jnp.cross(dx, dy)
-    length = jnp.linalg.norm(n, axis=-1)
+    n = _cross([a - b for a, b in zip(right, left)], [a - b for a, b in zip(down, up)])
+    length = jnp.sqrt(_dot(n, n))
     # a crease (a wall meeting the floor) has a continuous depth but a normal between its two planes: the
     # one-sided differences disagree there
-    forward = jnp.cross(pad_v[1:-1, 2:] - vertices, pad_v[2:, 1:-1] - vertices)
-    backward = jnp.cross(vertices - pad_v[1:-1, :-2], vertices - pad_v[:-2, 1:-1])
-    agree = jnp.sum(forward * backward, axis=-1) >= config.crease_cos * jnp.linalg.norm(forward, axis=-1) * jnp.linalg.norm(
-        backward, axis=-1
-    )
+    forward = _cross([a - b for a, b in zip(right, vertex)], [a - b for a, b in zip(down, vertex)])
+    backward = _cross([a - b for a, b in zip(vertex, left)], [a - b for a, b in zip(vertex, up)])
+    agree = _dot(forward, backward) >= config.crease_cos * jnp.sqrt(_dot(forward, forward)) * jnp.sqrt(_dot(backward, backward))
     valid = smooth & (length > 0) & agree
-    n = n / jnp.where(valid, length, 1.0)[..., None]
-    n = jnp.where(jnp.sum(n * vertices, axis=-1, keepdims=True) > 0, -n, n)
-    zero = jnp.zeros_like(vertices)
-    return jnp.where(valid[..., None], vertices, zero), jnp.where(valid[..., None], n, zero), valid
+    scale = 1.0 / jnp.where(valid, length, 1.0)
+    scale = jnp.where(_dot(n, vertex) > 0, -scale, scale)  # facing the camera
+    vertices = jnp.stack([jnp.where(valid, c, 0.0) for c in vertex], axis=-1)
+    normals = jnp.stack([jnp.where(valid, c * scale, 0.0) for c in n], axis=-1)
+    return vertices, normals, valid
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -236,6 +243,51 @@ class NormalEquations(NamedTuple):
     inliers: jax.Array  # int32[]
 
 
+def level_rows(vertices, normals, valid):
+    """One level's maps as rows `float32[7, Hl * Wl]`: x, y, z, nx, ny, nz, valid (1 or 0).
+
+    The ICP works on these rows (a structure of arrays): its gathers and sums over them ran 3.7x faster than over
+    `(Hl, Wl, 3)` points on the 2-core CPU (1.39 -> 0.38 ms an iteration at 160 x 120)."""
+    flat = vertices.shape[0] * vertices.shape[1]
+    return jnp.concatenate([vertices.reshape(flat, 3).T, normals.reshape(flat, 3).T, valid.reshape(1, flat).astype(jnp.float32)])
+
+
+def normal_equations_of_rows(ref_rows, cur_rows, shape: tuple[int, int], intrinsics, T, config) -> NormalEquations:
+    """Point-to-plane normal equations of the current level's rows against the reference's at `T_reference_current`.
+
+    Args:
+      ref_rows, cur_rows: float32 `(7, Hl * Wl)` (`level_rows`) of the reference (its camera frame) and the current
+        frame (its own).
+      shape: static `(Hl, Wl)`; intrinsics: float32 `(4,)` of this level; T: float32 `(4, 4)` `T_reference_current`.
+    """
+    h, w = shape
+    R, t = T[:3, :3], T[:3, 3]
+    v, m = cur_rows[0:3], cur_rows[3:6]
+    p = [R[a, 0] * v[0] + R[a, 1] * v[1] + R[a, 2] * v[2] + t[a] for a in range(3)]  # in the reference frame
+    n_cur = [R[a, 0] * m[0] + R[a, 1] * m[1] + R[a, 2] * m[2] for a in range(3)]
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    z = p[2]
+    z_safe = jnp.where(z > 1e-6, z, 1.0)
+    u = jnp.round(fx * p[0] / z_safe + cx)
+    v_px = jnp.round(fy * p[1] / z_safe + cy)
+    inside = (cur_rows[6] > 0) & (z > 1e-6) & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)
+    flat = jnp.where(inside, v_px.astype(jnp.int32) * w + u.astype(jnp.int32), 0)
+    ref = ref_rows[:, flat]  # (7, N): the correspondences
+    q, n = ref[0:3], ref[3:6]
+    diff = [p[a] - q[a] for a in range(3)]
+    cos_limit = math.cos(math.radians(config.max_normal_angle_deg))
+    inlier = (
+        inside
+        & (ref[6] > 0)
+        & (diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2] <= config.max_distance**2)
+        & (n[0] * n_cur[0] + n[1] * n_cur[1] + n[2] * n_cur[2] >= cos_limit)
+    )
+    r = jnp.where(inlier, n[0] * diff[0] + n[1] * diff[1] + n[2] * diff[2], 0.0)
+    p_cross_n = [p[1] * n[2] - p[2] * n[1], p[2] * n[0] - p[0] * n[2], p[0] * n[1] - p[1] * n[0]]
+    J = jnp.where(inlier[None], jnp.stack([n[0], n[1], n[2], *p_cross_n]), 0.0)  # (6, N): dr/dxi
+    return NormalEquations(J @ J.T, J @ r, jnp.sum(r * r), jnp.sum(inlier.astype(jnp.int32)))
+
+
 def normal_equations(
     ref_vertex, ref_normal, ref_valid, cur_vertex, cur_normal, cur_valid, intrinsics, T, config
 ) -> NormalEquations:
@@ -246,31 +298,15 @@ def normal_equations(
       cur_vertex, cur_normal: float32 `(Hl, Wl, 3)`; cur_valid: bool `(Hl, Wl)` (current camera frame).
       intrinsics: float32 `(4,)` of this level; T: float32 `(4, 4)` `T_reference_current`.
     """
-    h, w = ref_valid.shape
-    R, t = T[:3, :3], T[:3, 3]
-    p = cur_vertex @ R.T + t  # (Hl, Wl, 3) in the reference frame
-    n_cur = cur_normal @ R.T
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    z = p[..., 2]
-    z_safe = jnp.where(z > 1e-6, z, 1.0)
-    u = jnp.round(fx * p[..., 0] / z_safe + cx)
-    v = jnp.round(fy * p[..., 1] / z_safe + cy)
-    inside = cur_valid & (z > 1e-6) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    flat = jnp.where(inside, v.astype(jnp.int32) * w + u.astype(jnp.int32), 0)
-    q = ref_vertex.reshape(-1, 3)[flat]
-    n = ref_normal.reshape(-1, 3)[flat]
-    diff = p - q
-    cos_limit = math.cos(math.radians(config.max_normal_angle_deg))
-    inlier = (
-        inside
-        & ref_valid.reshape(-1)[flat]
-        & (jnp.sum(diff * diff, axis=-1) <= config.max_distance**2)
-        & (jnp.sum(n * n_cur, axis=-1) >= cos_limit)
+    height, width = ref_valid.shape
+    return normal_equations_of_rows(
+        level_rows(ref_vertex, ref_normal, ref_valid),
+        level_rows(cur_vertex, cur_normal, cur_valid),
+        (height, width),
+        intrinsics,
+        T,
+        config,
     )
-    r = jnp.where(inlier, jnp.sum(n * diff, axis=-1), 0.0)
-    J = jnp.where(inlier[..., None], jnp.concatenate([n, jnp.cross(p, n)], axis=-1), 0.0).reshape(-1, 6)
-    r = r.reshape(-1)
-    return NormalEquations(J.T @ J, J.T @ r, jnp.sum(r * r), jnp.sum(inlier.astype(jnp.int32)))
 
 
 def gauss_newton_update(system: NormalEquations, T, damping: float = 0.0):
@@ -295,20 +331,20 @@ def track_frame(
       T_reference_current_guess: float32 `(4, 4)`.
     """
     T = jnp.asarray(T_reference_current_guess, jnp.float32)
+    rows = [
+        (
+            level_rows(reference.vertices[level], reference.normals[level], reference.valid[level]),
+            level_rows(current.vertices[level], current.normals[level], current.valid[level]),
+        )
+        for level in range(config.levels)
+    ]
     for level in reversed(range(config.levels)):
         K = level_intrinsics(intrinsics, level)
-        maps = (
-            reference.vertices[level],
-            reference.normals[level],
-            reference.valid[level],
-            current.vertices[level],
-            current.normals[level],
-            current.valid[level],
-        )
+        height, width = reference.valid[level].shape
 
-        def body(carry, maps=maps, K=K):
+        def body(carry, pair=rows[level], K=K, shape=(height, width)):
             i, T, _ = carry
-            T_next = gauss_newton_update(normal_equations(*maps, K, T, config), T, config.damping)
+            T_next = gauss_newton_update(normal_equations_of_rows(*pair, shape, K, T, config), T, config.damping)
             return i + 1, T_next, jnp.max(jnp.abs(T_next - T)) <= config.converged_step
 
         def cond(carry, level=level):
@@ -316,17 +352,8 @@ def track_frame(
             return (i < config.iterations[level]) & ~converged
 
         _, T, _ = jax.lax.while_loop(cond, body, (jnp.int32(0), T, jnp.bool_(False)))
-    final = normal_equations(
-        reference.vertices[0],
-        reference.normals[0],
-        reference.valid[0],
-        current.vertices[0],
-        current.normals[0],
-        current.valid[0],
-        level_intrinsics(intrinsics, 0),
-        T,
-        config,
-    )
+    height, width = reference.valid[0].shape
+    final = normal_equations_of_rows(*rows[0], (height, width), level_intrinsics(intrinsics, 0), T, config)
     count = jnp.maximum(final.inliers, 1).astype(jnp.float32)
     residual = jnp.sqrt(final.squared_error / count)
     share = final.inliers / jnp.maximum(jnp.sum(current.valid[0].astype(jnp.int32)), 1).astype(jnp.float32)

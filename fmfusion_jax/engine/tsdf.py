@@ -128,7 +128,7 @@ def block_voxel_centres(blocks: VoxelBlocks, slots, config: MapConfig):
 
 
 def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: MapConfig):
-    """New (tsdf, weight, color) rows `(C, V[, 3])` of the given slots after one frame."""
+    """New (tsdf, weight, color) rows `(C, V[, 3])` of the given slots after one frame (color None: None)."""
     h, w = config.image_height, config.image_width
     x, y, z = block_voxel_centres(blocks, slots, config)
     xc, yc, zc = geo.world_to_camera(T, x, y, z)
@@ -149,21 +149,24 @@ def _integrate_chunk(blocks: VoxelBlocks, slots, depth, color, T, K, config: Map
 
     w_old = blocks.weight[slots]
     t_old = blocks.tsdf[slots]
-    c_old = blocks.color[slots].astype(jnp.float32)  # stored in half precision, averaged in single
     inv = 1.0 / (w_old + 1.0)
     t_new = jnp.where(update, jnp.clip((t_old * w_old + observed) * inv, -1.0, 1.0), t_old)
+    w_new = jnp.where(update, jnp.minimum(w_old + 1.0, config.max_weight), w_old)
+    if color is None:
+        return t_new, w_new, None
+    c_old = blocks.color[slots].astype(jnp.float32)  # stored in half precision, averaged in single
     rgb = color.reshape(-1, 3)[pixel].astype(jnp.float32)  # (C, V, 3); converted once gathered, not the image
     c_new = jnp.where(update[..., None], (c_old * w_old[..., None] + rgb) * inv[..., None], c_old).astype(blocks.color.dtype)
-    w_new = jnp.where(update, jnp.minimum(w_old + 1.0, config.max_weight), w_old)
     return t_new, w_new, c_new
 
 
 def _integrate_tsdf(blocks: VoxelBlocks, depth, color, T_world_camera, intrinsics, config: MapConfig) -> VoxelBlocks:
     depth = jnp.asarray(depth, jnp.float32)
-    color = jnp.asarray(color)
+    color = None if color is None else jnp.asarray(color)
     h, w = config.image_height, config.image_width
-    if depth.shape != (h, w) or color.shape != (h, w, 3):
-        raise ValueError(f"depth {depth.shape} / color {color.shape} do not match the config's {h}x{w} image")
+    if depth.shape != (h, w) or (color is not None and color.shape != (h, w, 3)):
+        shown = None if color is None else color.shape
+        raise ValueError(f"depth {depth.shape} / color {shown} do not match the config's {h}x{w} image")
     T = geo.as_pose(T_world_camera)
     K = geo.as_intrinsics(intrinsics)
     touched = _find_touched_blocks(blocks, depth, T, K, config)
@@ -178,11 +181,8 @@ def _integrate_tsdf(blocks: VoxelBlocks, depth, color, T_world_camera, intrinsic
         t_new, w_new, c_new = _integrate_chunk(pool, slots, depth, color, T, K, config)
         # rows of padding (the scratch slot) are dropped, not written back: no second read of the old rows
         rows = jnp.where(ok, slots, config.block_capacity)
-        return pool._replace(
-            tsdf=pool.tsdf.at[rows].set(t_new, mode="drop"),
-            weight=pool.weight.at[rows].set(w_new, mode="drop"),
-            color=pool.color.at[rows].set(c_new, mode="drop"),
-        )
+        pool = pool._replace(tsdf=pool.tsdf.at[rows].set(t_new, mode="drop"), weight=pool.weight.at[rows].set(w_new, mode="drop"))
+        return pool if c_new is None else pool._replace(color=pool.color.at[rows].set(c_new, mode="drop"))
 
     blocks = geo.fold_chunks(touched.count, chunk, total, body, touched.blocks)
     stale = blocks.geometry_stale.at[jnp.where(touched.valid, touched.slots, config.block_capacity)].set(True, mode="drop")
@@ -196,7 +196,8 @@ def integrate_tsdf(blocks: VoxelBlocks, depth, color, T_world_camera, intrinsics
     Args:
       blocks: the pool.
       depth: float32 `(H, W)` metres, 0 (or outside `[depth_min, depth_max]`) where invalid.
-      color: uint8 (or float) `(H, W, 3)` RGB registered to the depth.
+      color: uint8 (or float) `(H, W, 3)` RGB registered to the depth, or None: the geometry alone (the
+        colours stay as they were; frame-to-model tracking's TSDF).
       T_world_camera: float32 `(4, 4)` camera-to-world pose.
       intrinsics: float32 `(4,)` = `(fx, fy, cx, cy)` of the depth camera, pixel centres at integers.
       config: static; `H, W` must equal `config.image_height, config.image_width`.
