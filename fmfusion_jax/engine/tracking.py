@@ -5,8 +5,8 @@ own camera frame; the result is `T_reference_current`, the current camera's pose
 frame. The host chains these into `T_world_camera` (`mapping.tracking`).
 
 Per frame (`track_frame`), coarse to fine over an image pyramid (`TrackingConfig.levels` levels, each the one
-above subsampled 2x), a fixed number of Gauss-Newton iterations per level (`lax.fori_loop`: the loop is
-compiled once for an image size and a config, never per frame):
+above subsampled 2x), Gauss-Newton iterations per level up to a bound, ended early at convergence (`lax.while_loop`:
+compiled once for an image size and a config, never per frame), on each level's points as rows (`level_rows`):
 
 - every valid current pixel's point `p = T_reference_current @ v_current` is projected into the reference
   image; the reference's vertex `q` and normal `n` at the nearest pixel are its correspondence
@@ -276,15 +276,9 @@ def normal_equations_of_rows(ref_rows, cur_rows, shape: tuple[int, int], intrins
     q, n = ref[0:3], ref[3:6]
     diff = [p[a] - q[a] for a in range(3)]
     cos_limit = math.cos(math.radians(config.max_normal_angle_deg))
-    inlier = (
-        inside
-        & (ref[6] > 0)
-        & (diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2] <= config.max_distance**2)
-        & (n[0] * n_cur[0] + n[1] * n_cur[1] + n[2] * n_cur[2] >= cos_limit)
-    )
-    r = jnp.where(inlier, n[0] * diff[0] + n[1] * diff[1] + n[2] * diff[2], 0.0)
-    p_cross_n = [p[1] * n[2] - p[2] * n[1], p[2] * n[0] - p[0] * n[2], p[0] * n[1] - p[1] * n[0]]
-    J = jnp.where(inlier[None], jnp.stack([n[0], n[1], n[2], *p_cross_n]), 0.0)  # (6, N): dr/dxi
+    inlier = inside & (ref[6] > 0) & (_dot(diff, diff) <= config.max_distance**2) & (_dot(n, n_cur) >= cos_limit)
+    r = jnp.where(inlier, _dot(n, diff), 0.0)
+    J = jnp.where(inlier[None], jnp.stack([n[0], n[1], n[2], *_cross(p, n)]), 0.0)  # (6, N): dr/dxi
     return NormalEquations(J @ J.T, J @ r, jnp.sum(r * r), jnp.sum(inlier.astype(jnp.int32)))
 
 
