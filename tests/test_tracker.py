@@ -173,3 +173,23 @@ def test_tracking_time_per_frame():
         ms = (time.perf_counter() - start) / (len(depths) - 1) * 1e3
         print(f"tracking {WIDTH}x{HEIGHT} against the {config.reference}: {ms:.1f} ms per frame over {len(depths)} frames")
         assert ms < 1000
+
+
+def test_frame_to_model_compiles_one_step(caplog):
+    """The first frame runs the later frames' executable (`start_model` is `track_and_fuse` with `first`): a cold
+    start compiles one step, and the first frame is fused at its given pose."""
+    import jax
+
+    truth, depths = sequence()
+    config = TrackingConfig(reference="model", raycast_steps=61)  # a config no other test compiles
+    jax.config.update("jax_log_compiles", True)
+    try:
+        with caplog.at_level("WARNING", logger="jax"):
+            frames = track_depths(depths[:4], INTRINSICS, config, T_world_first=truth[0])
+    finally:
+        jax.config.update("jax_log_compiles", False)
+    compiled = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling jit(")]
+    assert sum("track_and_fuse" in m for m in compiled) == 1, compiled
+    assert not any("start_model" in m for m in compiled)
+    np.testing.assert_allclose(frames[0].T_world_camera, truth[0])
+    assert not any(f.lost for f in frames) and ate_rmse(np.stack([f.T_world_camera for f in frames]), truth[:4]) < 1e-3

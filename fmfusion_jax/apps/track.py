@@ -3,9 +3,9 @@ to frame: `--reference frame`; `mapping.tracking.Tracker`), written as the recor
 trajectory.txt; Open3D / Redwood: trajectory.log; a RealSense SDK recording REC.bag: REC.bag.trajectory.txt beside
 it) so that `fmfusion run REC` fuses with them.
 
-Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): the
-pyramid's finest level then costs ~15-60 ms a frame frame to frame (~50-100 ms frame to model, which also fuses
-and raycasts its TSDF) on a 2-core CPU instead of seconds. Reads the formats whose frames are listed without
+Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): frame to
+model then takes ~30 ms a frame at 320 x 240 on a 2-core CPU (~6 ms at 160 x 120; docs/your-own-data.md), the
+next frames decoded meanwhile. Reads the formats whose frames are listed without
 poses: TUM (rgb.txt and depth.txt), Open3D / Redwood (color/, depth/ and camera_intrinsic.json, as Open3D's
 RealSense and Azure Kinect recorders write them) and RealSense SDK recordings (.bag, .db3: `io.realsense`, which
 never hold poses).
@@ -13,6 +13,7 @@ never hold poses).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import logging
 import time
@@ -36,12 +37,15 @@ from fmfusion_jax.io.recordings import (
 )
 from fmfusion_jax.io.scene import read_depth_image
 from fmfusion_jax.mapping.tracking import Tracker
+from fmfusion_jax.run.scene_fusion import read_ahead
 from fmfusion_jax.types import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 
 #: Widest image tracked (pixels): larger depth images are subsampled by an integer step down to it.
 TRACK_WIDTH = 320
+#: Depth frames decoded ahead of the one tracked.
+READ_AHEAD = 2
 #: The trajectory file each format's reader reads (`io.recordings`), which `track` writes.
 TRAJECTORY_FILES = {"tum": "trajectory.txt", "redwood": "trajectory.log"}
 
@@ -81,11 +85,17 @@ def track_recording(
     step = max(1, -(-camera.width // TRACK_WIDTH))
     tracked = subsampled_camera(camera, step)
     tracker = Tracker(tracked, dataclasses.replace(TrackingConfig(), reference=reference))
+
+    def read_depth(depth_path: Path) -> np.ndarray:
+        return np.ascontiguousarray(read_depth_image(depth_path, recording.depth_scale, depth_max)[::step, ::step])
+
     poses, start = [], time.perf_counter()
-    frames = tqdm(recording.depth_paths, desc=f"tracking {root.name}", unit="frame", disable=not progress)
-    for depth_path in frames:
-        depth = read_depth_image(depth_path, recording.depth_scale, depth_max)[::step, ::step]
-        poses.append(tracker.track(np.ascontiguousarray(depth)).T_world_camera)
+    # the next frames are decoded while one is tracked (a 640 x 480 PNG takes a few ms)
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
+        depths = read_ahead(read_depth, recording.depth_paths, reader, READ_AHEAD)
+        frames = tqdm(depths, total=len(recording.depth_paths), desc=f"tracking {root.name}", unit="frame", disable=not progress)
+        for depth in frames:
+            poses.append(tracker.track(depth).T_world_camera)
     seconds = time.perf_counter() - start
     target.parent.mkdir(parents=True, exist_ok=True)
     if recording.stamps is not None:  # TUM, RealSense

@@ -155,6 +155,7 @@ class Tracker:
                 (self._T_model_world @ self._T_world_reference).astype(np.float32),
                 self.config,
                 self._map_config,
+                np.bool_(False),  # start_model's executable (`first` is traced)
             )
             self._model, result = step.blocks, step.result
             next_reference = step.reference
