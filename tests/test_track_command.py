@@ -75,6 +75,19 @@ def test_the_parser_spells_the_engine_choices():
     from fmfusion_jax.engine.tracking import REFERENCES, TrackingConfig
 
     assert track.REFERENCES == REFERENCES and track.DEFAULT_REFERENCE == TrackingConfig.reference
+    from fmfusion_jax.apps.track import TRACK_WIDTH
+
+    assert track.DEFAULT_MAX_WIDTH == TRACK_WIDTH
+
+
+def test_track_at_a_chosen_width(tmp_path, capsys):
+    root, truth = _tum_without_poses(tmp_path)
+    assert cli.main(["track", str(root), "--no-progress", "--max-width", "80"]) == 0
+    assert "at 80x60" in capsys.readouterr().out
+    assert len(open_scene(root).poses()) == len(truth)  # tracked, coarsely (80 x 60: 73 mm ATE, 0.35 mm at 160 x 120)
+    with pytest.raises(SystemExit):
+        cli.main(["track", str(root), "--max-width", "0"])
+    assert "must be at least 1" in capsys.readouterr().err
 
 
 def test_track_refuses_what_it_cannot_read(tmp_path, capsys):

@@ -3,7 +3,7 @@ to frame: `--reference frame`; `mapping.tracking.Tracker`), written as the recor
 trajectory.txt; Open3D / Redwood: trajectory.log; a RealSense SDK recording REC.bag: REC.bag.trajectory.txt beside
 it) so that `fmfusion run REC` fuses with them.
 
-Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide): frame to
+Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide, or `max_width`): frame to
 model then takes ~30 ms a frame at 320 x 240 on a 2-core CPU (~6 ms at 160 x 120; docs/your-own-data.md), the
 next frames decoded meanwhile. Reads the formats whose frames are listed without
 poses: TUM (rgb.txt and depth.txt), Open3D / Redwood (color/, depth/ and camera_intrinsic.json, as Open3D's
@@ -42,7 +42,7 @@ from fmfusion_jax.types import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 
-#: Widest image tracked (pixels): larger depth images are subsampled by an integer step down to it.
+#: Widest image tracked by default (pixels): larger depth images are subsampled by an integer step down to it.
 TRACK_WIDTH = 320
 #: Depth frames decoded ahead of the one tracked.
 READ_AHEAD = 2
@@ -70,11 +70,13 @@ def track_recording(
     overwrite: bool = False,
     progress: bool = True,
     reference: str = TrackingConfig.reference,
+    max_width: int = TRACK_WIDTH,
 ) -> Path:
     """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder, a RealSense SDK recording) and writes
     its trajectory to `out` (default: the file the recording's reader reads when it has no other poses: TUM's
     trajectory.txt, Redwood's trajectory.log, a RealSense recording's REC.bag.trajectory.txt); returns the file
-    written. `reference`: "model" (frame-to-model) or "frame" (frame-to-frame), `TrackingConfig.reference`."""
+    written. `reference`: "model" (frame-to-model) or "frame" (frame-to-frame), `TrackingConfig.reference`;
+    `max_width`: every Nth pixel is tracked so that the image is at most this wide."""
     root = Path(path)
     default, read = _trajectory_and_reader(root)
     target = Path(out) if out is not None else default
@@ -82,7 +84,7 @@ def track_recording(
         raise UserError(f"{target}: exists; pass --overwrite to replace it, or --out another file")
     recording = read()
     camera = recording.intrinsics()
-    step = max(1, -(-camera.width // TRACK_WIDTH))
+    step = max(1, -(-camera.width // max_width))
     tracked = subsampled_camera(camera, step)
     tracker = Tracker(tracked, dataclasses.replace(TrackingConfig(), reference=reference))
 

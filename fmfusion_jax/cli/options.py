@@ -59,6 +59,17 @@ def add_max_frames(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help=help)
 
 
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number of at least 1 (anything else is a usage error naming the value)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def add_depth_max(parser: argparse.ArgumentParser) -> None:
     """`--depth-max M`: depth truncation."""
     parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")
