@@ -6,7 +6,7 @@ estimated poses").
     fmfusion run OUT/synth0005_00 --detections OUT/det --out OUT/given       # the given poses' AP
     python examples/ap_with_estimated_poses.py OUT/synth0005_00 OUT/det OUT/model [--reference frame]
 
-Tracks the scene's depth at most 160 pixels wide from its first given pose (`mapping.tracking.Tracker`), prints
+Tracks the scene's depth and colour at most 160 pixels wide from its first given pose (`mapping.tracking.Tracker`), prints
 the ATE against the given poses, writes the estimated poses over a copy of the scene's `pose/` (ScanNet layout)
 in OUT/model/, and runs `fmfusion run` on the copy with the same detections (its AP is printed by the run).
 """
@@ -45,7 +45,14 @@ def main() -> None:
         T_world_first=given[0],
     )
     start = time.perf_counter()
-    estimated = np.stack([tracker.track(np.ascontiguousarray(f.depth[::step, ::step])).T_world_camera for f in scene.frames()])
+    estimated = np.stack(
+        [
+            tracker.track(
+                np.ascontiguousarray(f.depth[::step, ::step]), np.ascontiguousarray(f.color[::step, ::step])
+            ).T_world_camera
+            for f in scene.frames()
+        ]
+    )
     seconds = time.perf_counter() - start
     ate = float(np.sqrt(np.mean(np.sum((estimated[:, :3, 3] - given[:, :3, 3]) ** 2, axis=1))))
     print(

@@ -193,3 +193,22 @@ def test_frame_to_model_compiles_one_step(caplog):
     assert not any("start_model" in m for m in compiled)
     np.testing.assert_allclose(frames[0].T_world_camera, truth[0])
     assert not any(f.lost for f in frames) and ate_rmse(np.stack([f.T_world_camera for f in frames]), truth[:4]) < 1e-3
+
+
+def test_frame_to_model_with_colour_follows_a_walk_along_a_flat_wall():
+    """Sliding 5 mm a frame along a textured wall: the depth alone sees no motion, the colour term follows it."""
+    from test_tracking import INTRINSICS as WALL_CAMERA
+    from test_tracking import _textured_wall
+
+    truth = [np.eye(4) for _ in range(20)]
+    for k, T in enumerate(truth):
+        T[0, 3] = 0.005 * k
+    frames = [_textured_wall(T) for T in truth]
+    with_color, depth_only = Tracker(WALL_CAMERA, MODEL), Tracker(WALL_CAMERA, MODEL)
+    for depth, color in frames:
+        followed = with_color.track(depth, color)
+        stood = depth_only.track(depth)
+    assert abs(followed.T_world_camera[0, 3] - truth[-1][0, 3]) < 0.005 and with_color.frames_lost == 0
+    assert abs(stood.T_world_camera[0, 3]) < 0.03  # the last of 9.5 cm not seen
+    with pytest.raises(ValueError, match="colour of shape"):
+        with_color.track(frames[0][0], frames[0][1][:10])

@@ -140,3 +140,44 @@ def test_lost_when_the_frames_do_not_overlap():
 def test_the_config_is_checked():
     with pytest.raises(ValueError, match="iteration count per level"):
         tk.TrackingConfig(levels=2)
+
+
+def _textured_wall(T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depth and colour `(H, W)`, `(H, W, 3)` of a flat wall at z = 2 m with a smooth texture fixed to it: geometry
+    that leaves the translation along the wall unconstrained."""
+    u, v = np.meshgrid(np.arange(WIDTH), np.arange(HEIGHT))
+    rays = np.stack([(u - INTRINSICS.cx) / INTRINSICS.fx, (v - INTRINSICS.cy) / INTRINSICS.fy, np.ones_like(u, float)], -1)
+    directions = rays @ T_world_camera[:3, :3].T
+    t = (2.0 - T_world_camera[2, 3]) / directions[..., 2]
+    points = T_world_camera[:3, 3] + t[..., None] * directions
+    depth = (t * (rays[..., 2])).astype(np.float32)  # z in the camera frame (the camera faces the wall)
+    x, y = points[..., 0], points[..., 1]
+    texture = 0.5 + 0.2 * np.sin(9.0 * x + 2.0) * np.cos(7.0 * y) + 0.15 * np.sin(5.0 * x - 11.0 * y)
+    grey = np.clip(np.round(255 * texture), 0, 255).astype(np.uint8)
+    return depth, np.repeat(grey[..., None], 3, axis=-1)
+
+
+def test_the_colour_term_holds_the_camera_where_the_geometry_does_not():
+    """Facing a flat textured wall, a 1.5 cm step along it: depth alone cannot see it (the ICP stays put), the colour
+    term recovers it to a millimetre."""
+    motion = np.eye(4)
+    motion[:3, 3] = [0.015, -0.01, 0.0]
+    maps = [tk.frame_maps(depth, K, CONFIG, color) for depth, color in (_textured_wall(T) for T in (np.eye(4), motion))]
+    depth_only = [m._replace(intensity=()) for m in maps]
+    without = np.asarray(tk.track_frame(*depth_only, K, jnp.eye(4), CONFIG).T_reference_current)
+    with_color = tk.track_frame(*maps, K, jnp.eye(4), CONFIG)
+    T = np.asarray(with_color.T_reference_current)
+    assert np.abs(without[:2, 3]).max() < 3e-3  # the wall alone does not move the estimate along it
+    assert not bool(with_color.lost)
+    np.testing.assert_allclose(T[:3, 3], motion[:3, 3], atol=1e-3)
+    np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=2e-3)
+
+
+def test_the_intensity_of_a_uniform_image_is_its_luma():
+    color = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
+    color[...] = (200, 100, 50)
+    luma = (0.299 * 200 + 0.587 * 100 + 0.114 * 50) / 255
+    np.testing.assert_allclose(np.asarray(tk.intensity_image(color)), luma, atol=1e-6)
+    maps = tk.frame_maps(np.ones((HEIGHT, WIDTH), np.float32), K, CONFIG, color)
+    assert [i.shape for i in maps.intensity] == [(120, 160), (60, 80), (30, 40)]
+    assert tk.frame_maps(np.ones((HEIGHT, WIDTH), np.float32), K, CONFIG).intensity == ()

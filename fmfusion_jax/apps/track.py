@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -35,7 +36,7 @@ from fmfusion_jax.io.recordings import (
     write_trajectory_log,
     write_tum_trajectory,
 )
-from fmfusion_jax.io.scene import read_depth_image
+from fmfusion_jax.io.scene import read_color_image, read_depth_image
 from fmfusion_jax.mapping.tracking import Tracker
 from fmfusion_jax.run.scene_fusion import read_ahead
 from fmfusion_jax.types import CameraIntrinsics
@@ -71,12 +72,14 @@ def track_recording(
     progress: bool = True,
     reference: str = TrackingConfig.reference,
     max_width: int = TRACK_WIDTH,
+    color: bool = True,
 ) -> Path:
     """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder, a RealSense SDK recording) and writes
     its trajectory to `out` (default: the file the recording's reader reads when it has no other poses: TUM's
     trajectory.txt, Redwood's trajectory.log, a RealSense recording's REC.bag.trajectory.txt); returns the file
     written. `reference`: "model" (frame-to-model) or "frame" (frame-to-frame), `TrackingConfig.reference`;
-    `max_width`: every Nth pixel is tracked so that the image is at most this wide."""
+    `max_width`: every Nth pixel is tracked so that the image is at most this wide; `color`: the colour images
+    are read too, for the ICP's colour term (`TrackingConfig.color_weight`)."""
     root = Path(path)
     default, read = _trajectory_and_reader(root)
     target = Path(out) if out is not None else default
@@ -88,16 +91,23 @@ def track_recording(
     tracked = subsampled_camera(camera, step)
     tracker = Tracker(tracked, dataclasses.replace(TrackingConfig(), reference=reference))
 
-    def read_depth(depth_path: Path) -> np.ndarray:
-        return np.ascontiguousarray(read_depth_image(depth_path, recording.depth_scale, depth_max)[::step, ::step])
+    def read_frame(index: int) -> tuple[np.ndarray, np.ndarray | None]:
+        full = read_depth_image(recording.depth_paths[index], recording.depth_scale, depth_max)
+        depth = np.ascontiguousarray(full[::step, ::step])
+        if not color:
+            return depth, None
+        rgb = read_color_image(recording.color_paths[index])
+        if rgb.shape[:2] != full.shape:  # registered to the depth, at another size
+            rgb = cv2.resize(rgb, (full.shape[1], full.shape[0]), interpolation=cv2.INTER_AREA)
+        return depth, np.ascontiguousarray(rgb[::step, ::step])
 
     poses, start = [], time.perf_counter()
     # the next frames are decoded while one is tracked (a 640 x 480 PNG takes a few ms)
     with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="fmfusion-read") as reader:
-        depths = read_ahead(read_depth, recording.depth_paths, reader, READ_AHEAD)
-        frames = tqdm(depths, total=len(recording.depth_paths), desc=f"tracking {root.name}", unit="frame", disable=not progress)
-        for depth in frames:
-            poses.append(tracker.track(depth).T_world_camera)
+        decoded = read_ahead(read_frame, range(len(recording.depth_paths)), reader, READ_AHEAD)
+        frames = tqdm(decoded, total=len(recording.depth_paths), desc=f"tracking {root.name}", unit="frame", disable=not progress)
+        for depth, rgb in frames:
+            poses.append(tracker.track(depth, rgb).T_world_camera)
     seconds = time.perf_counter() - start
     target.parent.mkdir(parents=True, exist_ok=True)
     if recording.stamps is not None:  # TUM, RealSense
@@ -106,6 +116,7 @@ def track_recording(
         write_trajectory_log(target, poses)
     print(
         f"{root.name}: {len(poses)} frames tracked against the {reference} at {tracked.width}x{tracked.height} "
+        f"({'depth and colour' if color else 'depth alone'}) "
         f"in {seconds:.1f} s "
         f"({1000 * seconds / max(len(poses), 1):.0f} ms a frame, reading included), {tracker.frames_lost} lost "
         f"(they keep the last good pose)\ntrajectory written to {target}"

@@ -57,6 +57,12 @@ def register(subparsers) -> None:
         "recording at 320 x 240, ~30 ms a frame on a 2-core CPU; 160: ~4x faster, less accurate where little "
         "geometry constrains the motion)",
     )
+    parser.add_argument(
+        "--no-color",
+        action="store_true",
+        help="track the depth alone (by default the colour images add a photometric term, which holds the camera "
+        "where the geometry alone does not: facing a wall)",
+    )
     options.add_depth_max(parser)
     options.add_no_progress(parser)
     parser.set_defaults(func=run)
@@ -73,5 +79,6 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         reference=args.reference,
         max_width=args.max_width,
+        color=not args.no_color,
     )
     return 0

@@ -62,15 +62,17 @@ def _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config: Trackin
     return blocks, frame_maps(geo.materialize(cast.depth), intrinsics, config)
 
 
-def empty_reference(height: int, width: int, config: TrackingConfig) -> FrameMaps:
-    """A reference with no valid pixel, of `frame_maps`' shapes for an `(height, width)` image."""
+def empty_reference(height: int, width: int, config: TrackingConfig, with_color: bool = False) -> FrameMaps:
+    """A reference with no valid pixel, of `frame_maps`' shapes for an `(height, width)` image (with an intensity
+    pyramid of zeros when `with_color`)."""
     shapes = [(-(-height // (1 << level)), -(-width // (1 << level))) for level in range(config.levels)]
     zeros = tuple(jnp.zeros((h, w, 3), jnp.float32) for h, w in shapes)
-    return FrameMaps(zeros, zeros, tuple(jnp.zeros(shape, bool) for shape in shapes))
+    intensity = tuple(jnp.zeros(shape, jnp.float32) for shape in shapes) if with_color else ()
+    return FrameMaps(zeros, zeros, tuple(jnp.zeros(shape, bool) for shape in shapes), intensity)
 
 
 def start_model(
-    blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: TrackingConfig, map_config: MapConfig
+    blocks: VoxelBlocks, depth, T_world_camera, intrinsics, config: TrackingConfig, map_config: MapConfig, color=None
 ) -> tuple[VoxelBlocks, FrameMaps]:
     """The first frame fused at its given pose, and the model raycast from there (the reference of the second).
 
@@ -81,10 +83,11 @@ def start_model(
       blocks: an empty pool of `map_config` (donated).
       depth: float32 `(H, W)` metres, 0 where invalid.
       T_world_camera: float32 `(4, 4)`; intrinsics: float32 `(4,)`.
+      color: uint8 `(H, W, 3)` RGB registered to the depth, or None (then every later frame has none either).
     """
     height, width = depth.shape
-    reference = empty_reference(height, width, config)
-    step = track_and_fuse(blocks, reference, depth, intrinsics, T_world_camera, config, map_config, jnp.bool_(True))
+    reference = empty_reference(height, width, config, with_color=color is not None)
+    step = track_and_fuse(blocks, reference, depth, intrinsics, T_world_camera, config, map_config, jnp.bool_(True), color)
     return step.blocks, step.reference
 
 
@@ -98,6 +101,7 @@ def track_and_fuse(
     config: TrackingConfig,
     map_config: MapConfig,
     first=False,
+    color=None,
 ) -> ModelStep:
     """One frame tracked against the model's raycast `reference` (seen from `T_world_reference`), then fused.
 
@@ -108,16 +112,20 @@ def track_and_fuse(
       intrinsics: float32 `(4,)`; T_world_reference: float32 `(4, 4)`.
       first: bool `()` (traced: the same executable either way): the frame is fused at `T_world_reference` itself
         whatever the ICP found (`start_model`; its `result` is then meaningless).
+      color: uint8 `(H, W, 3)` RGB of the frame, or None: with colour, the ICP adds the photometric term against the
+        reference's intensity (the last good frame's: the model holds no colour) and the next reference gets this
+        frame's (`TrackingConfig.color_weight`).
     """
     depth = jnp.asarray(depth, jnp.float32)
     T_world_reference = jnp.asarray(T_world_reference, jnp.float32)
     first = jnp.asarray(first, bool)
-    current = frame_maps(depth, intrinsics, config)
+    current = frame_maps(depth, intrinsics, config, color)
     result = track_frame(reference, current, intrinsics, jnp.eye(4, dtype=jnp.float32), config)
     T_world_camera = jnp.where(result.lost | first, T_world_reference, T_world_reference @ result.T_reference_current)
     fused = jnp.where(result.lost & ~first, 0.0, depth)  # a lost frame adds nothing to the model
     blocks, reference = _fuse_and_raycast(blocks, fused, T_world_camera, intrinsics, config, map_config)
-    return ModelStep(blocks, reference, result, T_world_camera)
+    # the raycast is seen from this frame's pose, so this frame's image is its intensity
+    return ModelStep(blocks, reference._replace(intensity=current.intensity), result, T_world_camera)
 
 
 __all__ = ["ModelStep", "empty_reference", "start_model", "track_and_fuse"]

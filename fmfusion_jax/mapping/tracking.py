@@ -1,6 +1,6 @@
 """Camera poses for a recording without them: tracking on the host, one jitted step per frame.
 
-`Tracker.track(depth)` returns each frame's `T_world_camera`: the first frame's is the identity (or a given
+`Tracker.track(depth, color=None)` returns each frame's `T_world_camera`: the first frame's is the identity (or a given
 initial pose), every later one `T_world_reference @ T_reference_current` (chained in float64). What a frame is
 tracked against is `TrackingConfig.reference`:
 
@@ -129,20 +129,24 @@ class Tracker:
             return None
         return self._model, self._map_config
 
-    def track(self, depth: np.ndarray) -> TrackedFrame:
-        """The next frame's pose from its depth (float32 `(H, W)` metres at the intrinsics' size, 0 = invalid)."""
+    def track(self, depth: np.ndarray, color: np.ndarray | None = None) -> TrackedFrame:
+        """The next frame's pose from its depth (float32 `(H, W)` metres at the intrinsics' size, 0 = invalid) and
+        colour (uint8 `(H, W, 3)` RGB registered to it: the ICP's colour term, `TrackingConfig.color_weight`; give it
+        for every frame or for none)."""
         if depth.shape != (self._intrinsics.height, self._intrinsics.width):
             raise ValueError(f"depth of shape {depth.shape}, the camera is {self._intrinsics.width}x{self._intrinsics.height}")
+        if color is not None and color.shape != (*depth.shape, 3):
+            raise ValueError(f"colour of shape {color.shape}, the depth is {depth.shape}")
         depth = np.asarray(depth, np.float32)
         index = self.frames_tracked + self.frames_lost
         if self._reference is None:
             if self._map_config is not None:
                 blocks = init_voxel_blocks(self._map_config)
                 self._model, self._reference = start_model(
-                    blocks, depth, T_MODEL_FIRST.astype(np.float32), self._K, self.config, self._map_config
+                    blocks, depth, T_MODEL_FIRST.astype(np.float32), self._K, self.config, self._map_config, color
                 )
             else:
-                self._reference = frame_maps(depth, self._K, self.config)
+                self._reference = frame_maps(depth, self._K, self.config, color)
             self.frames_tracked += 1
             return TrackedFrame(self._T_world_first.copy(), False, 0.0, 1.0)
         if self._map_config is not None:
@@ -156,11 +160,12 @@ class Tracker:
                 self.config,
                 self._map_config,
                 np.bool_(False),  # start_model's executable (`first` is traced)
+                color,
             )
             self._model, result = step.blocks, step.result
             next_reference = step.reference
         else:
-            next_reference = frame_maps(depth, self._K, self.config)
+            next_reference = frame_maps(depth, self._K, self.config, color)
             result = track_frame(self._reference, next_reference, self._K, jnp.eye(4, dtype=jnp.float32), self.config)
         residual, share = float(result.residual), float(result.inlier_share)
         if bool(result.lost):
@@ -190,7 +195,10 @@ def track_depths(
     intrinsics: CameraIntrinsics,
     config: TrackingConfig | None = None,
     T_world_first: np.ndarray | None = None,
+    colors: Iterable[np.ndarray] | None = None,
 ) -> list[TrackedFrame]:
-    """`Tracker.track` over a sequence of depth frames."""
+    """`Tracker.track` over a sequence of depth frames (and their colour images: the ICP's colour term)."""
     tracker = Tracker(intrinsics, config, T_world_first)
-    return [tracker.track(depth) for depth in depths]
+    if colors is None:
+        return [tracker.track(depth) for depth in depths]
+    return [tracker.track(depth, color) for depth, color in zip(depths, colors, strict=True)]
