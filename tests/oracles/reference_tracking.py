@@ -70,3 +70,49 @@ def gauss_newton_step(
             inliers += 1
     xi = np.linalg.solve(A + damping * np.trace(A) / 6 * np.eye(6), -b)
     return A, b, inliers, exp_se3(xi) @ T
+
+
+def photometric_residuals(
+    ref_intensity: np.ndarray,
+    cur_vertices: np.ndarray,
+    cur_valid: np.ndarray,
+    cur_intensity: np.ndarray,
+    K: np.ndarray,
+    T: np.ndarray,
+    max_residual: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per current pixel `(N,)`: the residual `I_ref(pi(T v)) - I_cur` (bilinear, the pixel kept one inside the
+    border), its Jacobian `(N, 6)` with respect to a left twist `(rho, phi)` of `T`, and whether it is used (valid,
+    projected inside the reference image, `|r| <= max_residual`). Loops over the pixels, float64."""
+    h, w = ref_intensity.shape
+    padded = np.pad(ref_intensity.astype(np.float64), 1, mode="edge")
+    gu = (padded[1:-1, 2:] - padded[1:-1, :-2]) / 2.0
+    gv = (padded[2:, 1:-1] - padded[:-2, 1:-1]) / 2.0
+    fx, fy, cx, cy = K
+    vertices = cur_vertices.reshape(-1, 3).astype(np.float64)
+    n = len(vertices)
+    r, J, used = np.zeros(n), np.zeros((n, 6)), np.zeros(n, bool)
+
+    def sample(image, u, v):
+        u0, v0 = min(max(np.floor(u), 0), w - 2), min(max(np.floor(v), 0), h - 2)
+        a, b = u - u0, v - v0
+        i, j = int(u0), int(v0)
+        return (image[j, i] * (1 - a) + image[j, i + 1] * a) * (1 - b) + (image[j + 1, i] * (1 - a) + image[j + 1, i + 1] * a) * b
+
+    for k in range(n):
+        if not cur_valid.reshape(-1)[k]:
+            continue
+        p = T[:3, :3] @ vertices[k] + T[:3, 3]
+        if p[2] <= 1e-6:
+            continue
+        u, v = fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy
+        if not (0 <= u <= w - 1 and 0 <= v <= h - 1):
+            continue
+        r[k] = sample(ref_intensity, u, v) - cur_intensity.reshape(-1)[k]
+        if abs(r[k]) > max_residual:
+            continue
+        d_uv = np.array([[fx / p[2], 0.0, -fx * p[0] / p[2] ** 2], [0.0, fy / p[2], -fy * p[1] / p[2] ** 2]])
+        g = np.array([sample(gu, u, v), sample(gv, u, v)]) @ d_uv  # dI/dp
+        J[k] = np.concatenate([g, np.cross(p, g)])  # dp/dxi = [I, -[p]x]
+        used[k] = True
+    return r, J, used
