@@ -285,6 +285,19 @@ def level_rows(vertices, normals, valid):
     return jnp.concatenate([vertices.reshape(flat, 3).T, normals.reshape(flat, 3).T, valid.reshape(1, flat).astype(jnp.float32)])
 
 
+def _project(cur_rows, intrinsics, T):
+    """The current level's points in the reference frame and their projection there: `(p, z_safe, u, v, in_front)`,
+    `p` 3 arrays `(N,)` (`T @ v`), `z_safe` the depth (1 behind the camera), `(u, v)` continuous pixels, `in_front`
+    valid points ahead of the camera. Shared by the point-to-plane and the photometric terms."""
+    R, t = T[:3, :3], T[:3, 3]
+    v = cur_rows[0:3]
+    p = [R[a, 0] * v[0] + R[a, 1] * v[1] + R[a, 2] * v[2] + t[a] for a in range(3)]
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    z = p[2]
+    z_safe = jnp.where(z > 1e-6, z, 1.0)
+    return p, z_safe, fx * p[0] / z_safe + cx, fy * p[1] / z_safe + cy, (cur_rows[6] > 0) & (z > 1e-6)
+
+
 def normal_equations_of_rows(ref_rows, cur_rows, shape: tuple[int, int], intrinsics, T, config) -> NormalEquations:
     """Point-to-plane normal equations of the current level's rows against the reference's at `T_reference_current`.
 
@@ -294,16 +307,11 @@ def normal_equations_of_rows(ref_rows, cur_rows, shape: tuple[int, int], intrins
       shape: static `(Hl, Wl)`; intrinsics: float32 `(4,)` of this level; T: float32 `(4, 4)` `T_reference_current`.
     """
     h, w = shape
-    R, t = T[:3, :3], T[:3, 3]
-    v, m = cur_rows[0:3], cur_rows[3:6]
-    p = [R[a, 0] * v[0] + R[a, 1] * v[1] + R[a, 2] * v[2] + t[a] for a in range(3)]  # in the reference frame
+    R, m = T[:3, :3], cur_rows[3:6]
     n_cur = [R[a, 0] * m[0] + R[a, 1] * m[1] + R[a, 2] * m[2] for a in range(3)]
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    z = p[2]
-    z_safe = jnp.where(z > 1e-6, z, 1.0)
-    u = jnp.round(fx * p[0] / z_safe + cx)
-    v_px = jnp.round(fy * p[1] / z_safe + cy)
-    inside = (cur_rows[6] > 0) & (z > 1e-6) & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)
+    p, _, u, v_px, in_front = _project(cur_rows, intrinsics, T)
+    u, v_px = jnp.round(u), jnp.round(v_px)  # the nearest pixel's correspondence
+    inside = in_front & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)
     flat = jnp.where(inside, v_px.astype(jnp.int32) * w + u.astype(jnp.int32), 0)
     ref = ref_rows[:, flat]  # (7, N): the correspondences
     q, n = ref[0:3], ref[3:6]
@@ -368,15 +376,9 @@ def photometric_equations(ref_rows, shape: tuple[int, int], cur_rows, cur_intens
       intrinsics: float32 `(4,)` of the reference level; T: float32 `(4, 4)`.
     """
     h, w = shape
-    R, t = T[:3, :3], T[:3, 3]
-    v = cur_rows[0:3]
-    p = [R[a, 0] * v[0] + R[a, 1] * v[1] + R[a, 2] * v[2] + t[a] for a in range(3)]
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    z = p[2]
-    z_safe = jnp.where(z > 1e-6, z, 1.0)
-    u = fx * p[0] / z_safe + cx
-    v_px = fy * p[1] / z_safe + cy
-    inside = (cur_rows[6] > 0) & (z > 1e-6) & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)
+    fx, fy = intrinsics[0], intrinsics[1]
+    p, z_safe, u, v_px, in_front = _project(cur_rows, intrinsics, T)
+    inside = in_front & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)
     sample = _bilinear_rows(ref_rows, shape, u, v_px)
     r = sample[0] - cur_intensity
     use = inside & (jnp.abs(r) <= config.color_max_residual)
