@@ -81,6 +81,7 @@ def run_scene(
             time_stages=verbose > 0,
             observer=observer,
             outputs_chosen=outputs_chosen,
+            last_in_process=True,
         )
     print(outcome.summary)
     if not outcome.complete:

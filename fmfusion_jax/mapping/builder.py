@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fmfusion_jax import host_memory
 from fmfusion_jax.config import PipelineConfig, RefinementConfig
 from fmfusion_jax.engine import step, support
 from fmfusion_jax.engine.config import MapConfig
@@ -149,6 +150,7 @@ class MapBuilder:
             likelihood = load_likelihood(config.label_fusion.likelihood)
         self.likelihood = jnp.asarray(likelihood, jnp.float32)
         self.state = init_map_state(map_config) if state is None else state
+        host_memory.release_unallocated_rows(self.state)  # the pool's empty rows take no memory until filled
         self.timer = StageTimer() if timer is None else timer
         self.fuse_detections = fuse_detections
         #: Whether a detection frame the merge is due after is one call (`step.fuse_and_refine`) where the stages are

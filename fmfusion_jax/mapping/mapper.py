@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fmfusion_jax import host_memory
 from fmfusion_jax.compile_cache import use_compile_cache
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine import extraction, growth, step
@@ -504,6 +505,7 @@ class Mapper:
             return
         new = dataclasses.replace(growth.config_for_block_range(old, new_lo, new_hi), block_capacity=pool, instance_capacity=rows)
         builder.state = growth.grow_state(builder.state, old, new)
+        host_memory.release_unallocated_rows(builder.state)
         builder.map_config = new
         builder.timer.new_layout()  # the steps recompile for the new shapes
         self.growths += 1

@@ -11,6 +11,9 @@ import time
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 
+import jax
+
+from fmfusion_jax import host_memory
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
@@ -115,6 +118,7 @@ def run_and_export(
     time_stages: bool = False,
     observer: Callable[..., None] | None = None,
     outputs_chosen: Collection[str] | None = None,
+    last_in_process: bool = False,
 ) -> RunOutcome:
     """`fmfusion run`: fuse, write, and summarize.
 
@@ -123,7 +127,9 @@ def run_and_export(
     a checkpoint and the outputs of what was fused are written into `OUT.partial`, and `resume=True` later
     continues from the checkpoint (the map equals an uninterrupted run's). `checkpoint_every` frames also
     writes one. An unfinished `OUT.partial` is continued (`resume`) or discarded (`restart`), never silently.
-    `outputs_chosen`: the writers to run (`run.outputs.chosen_outputs`; None: all).
+    `outputs_chosen`: the writers to run (`run.outputs.chosen_outputs`; None: all). `last_in_process`: no other
+    map is fused in this process afterwards (`fmfusion run`), so the compiled steps are dropped before the outputs
+    are written (they hold ~100 MiB; another run would load them from the compile cache again).
     """
     start = time.perf_counter()
     out_dir = prepare_output_dir(out_dir, create=False)
@@ -156,6 +162,9 @@ def run_and_export(
         if not complete:
             log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
         result = fusion.finalize()
+        if last_in_process:
+            jax.clear_caches()
+        host_memory.trim_heap()  # what fusion and compilation freed, before the outputs' temporaries
         try:
             timings_ms = getattr(detection_source, "timings_ms", None)
             detection_ms = timings_ms() if callable(timings_ms) else None
