@@ -96,8 +96,11 @@ def _packed_rows(key: np.ndarray) -> np.ndarray:
     bits = [int(span).bit_length() for span in key.max(axis=0) - low]
     if sum(bits) > 64:
         return key
-    shifted = (key - low).astype(np.uint64)
-    return (shifted[:, 0] << np.uint64(bits[1] + bits[2])) | (shifted[:, 1] << np.uint64(bits[2])) | shifted[:, 2]
+    shifted = key - low  # non-negative: read as unsigned below without a copy
+    packed = shifted[:, 0].view(np.uint64) << np.uint64(bits[1] + bits[2])
+    packed |= shifted[:, 1].view(np.uint64) << np.uint64(bits[2])
+    packed |= shifted[:, 2].view(np.uint64)
+    return packed
 
 
 def _block_view(volume: np.ndarray, blocks: int, bs: int) -> np.ndarray:
@@ -177,10 +180,16 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
         offset += len(v)
     if not verts:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.uint8)
-    g, f, c = np.concatenate(verts), np.concatenate(faces), np.concatenate(colors)
-    del verts, faces, colors
+    g = np.concatenate(verts)  # each list let go as soon as it is joined
+    del verts
+    f = np.concatenate(faces)
+    del faces
+    c = np.concatenate(colors)
+    del colors
     # merge the copies of vertices on chunk faces (identical coordinates: same values, same arithmetic)
-    packed = _packed_rows(np.round(g * 4096).astype(np.int64))
+    key = g * 4096  # rounded in place: the vertices' temporaries are tens of MiB each at the outputs' peak
+    packed = _packed_rows(np.round(key, out=key).astype(np.int64))
+    del key
     _, first, inverse = np.unique(packed, axis=0 if packed.ndim == 2 else None, return_index=True, return_inverse=True)
     del packed
     f = inverse.reshape(-1).astype(np.int32)[f]

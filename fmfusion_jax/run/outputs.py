@@ -20,6 +20,7 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from fmfusion_jax import host_memory
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.evaluation.explain import explain_scene
@@ -39,7 +40,7 @@ log = logging.getLogger(__name__)
 
 @dataclasses.dataclass
 class OutputContext:
-    """What the writers need, built once per run; the derived values (mesh, points, score, ...) are computed on
+    """What the writers need, built once per run; the derived values (instances, points, score, ...) are computed on
     first use, so a subset of writers computes only what it needs.
 
     Attributes:
@@ -113,13 +114,6 @@ class OutputContext:
         from fmfusion_jax import scene_graph  # lazy: `fmfusion --help` reads the registry
 
         return scene_graph.build_scene_graph(self.records)
-
-    @functools.cached_property
-    def mesh(self) -> tuple[Any, Any, Any]:
-        """`(vertices, faces, colors)` of the global TSDF surface."""
-        from fmfusion_jax.engine import extraction  # lazy: `fmfusion --help` reads the registry
-
-        return extraction.extract_mesh(self.fused_map.state, self.fused_map.map_config)
 
     @functools.cached_property
     def overview_panels(self) -> tuple[list[Any], Any]:
@@ -318,9 +312,12 @@ def _write_scene_graph_graphml(context: OutputContext) -> None:
 
 
 def _write_mesh(context: OutputContext) -> None:
-    from fmfusion_jax.io import map_outputs  # lazy: `fmfusion --help` reads the registry
+    """The global TSDF's surface, made here and not kept: no other output reads it (~110 MiB for a room)."""
+    from fmfusion_jax.engine import extraction  # lazy: `fmfusion --help` reads the registry
+    from fmfusion_jax.io import map_outputs
 
-    vertices, faces, colors = context.mesh
+    result = context.fused_map
+    vertices, faces, colors = extraction.extract_mesh(result.state, result.map_config)
     map_outputs.write_mesh(context.out_dir / "mesh.ply", vertices, faces, colors)
     if len(faces) == 0:
         log.warning("%s: the global surface is empty (no depth fused?): mesh.ply has no face", context.scene.name)
@@ -468,7 +465,6 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         _write_mesh,
         lap="mesh",
         listed=5,
-        uses=("mesh",),
     ),
     OutputWriter(
         "map_state.npz",
@@ -551,7 +547,7 @@ def chosen_outputs(names: Sequence[str] | None) -> tuple[str, ...] | None:
 
 
 #: The `OutputContext` values several writers read, each made once.
-SHARED_VALUES = ("map_instances", "records", "points", "mesh", "scored", "graph", "overview_panels")
+SHARED_VALUES = ("map_instances", "records", "points", "scored", "graph", "overview_panels")
 #: What a shared value is made from (`write_files` starts it once these are made).
 _VALUE_INPUTS = {
     "records": ("map_instances",),
@@ -560,9 +556,9 @@ _VALUE_INPUTS = {
     "graph": ("records",),
     "overview_panels": ("map_instances",),
 }
-#: Steps started first when they are ready: the mesh (the longest step) beside the instances, then the overview's
-#: panels and the benchmark score (each waits for the instances only), then the map file.
-_FIRST = ("mesh", "map_instances", "overview_panels", "scored", "overview.png", "map_state.npz")
+#: Steps started first when they are ready: the mesh (the longest step, written and let go at once) beside the
+#: instances, then the overview's panels and the benchmark score (each waits for the instances only), then the map file.
+_FIRST = ("mesh.ply", "map_instances", "overview_panels", "scored", "overview.png", "map_state.npz")
 
 #: Threads the writers run in: zlib and PNG encoding release the GIL, and so does much of NumPy.
 WRITER_THREADS = 2
@@ -630,10 +626,18 @@ def _run_steps(steps: dict[str, tuple[Callable[[], Any], tuple[str, ...]]], thre
 
 
 def _timed(fn: Callable[..., Any], *args: Any) -> float:
-    """Seconds `fn(*args)` took."""
+    """Seconds `fn(*args)` took. After a long step the C heap is trimmed: its temporaries' memory goes back to the
+    system before the next step's (each writer thread keeps an arena of its own)."""
     start = time.perf_counter()
     fn(*args)
-    return time.perf_counter() - start
+    seconds = time.perf_counter() - start
+    if seconds > TRIM_AFTER_S:
+        host_memory.trim_heap()
+    return seconds
+
+
+#: A writer step that took this long (s) is followed by a trim of the C heap (which itself takes 10-100 ms).
+TRIM_AFTER_S = 0.3
 
 
 def listed_outputs(out_dir: Path) -> list[str]:
