@@ -251,6 +251,7 @@ class Mapper:
             if self._builder is None:
                 raise UserError("the map is empty: integrate at least one frame first")
             self._result = self._builder.result()
+            host_memory.trim_heap()  # what fusion and compiling freed goes back before the exports' temporaries
         return self._result
 
     # ------------------------------------------------------------------------------------------------
@@ -286,6 +287,7 @@ class Mapper:
             return self._result
         builder = self._require_builder()
         state = jax.tree.map(jnp.copy, builder.state)  # finalize donates its input: never the live map
+        host_memory.release_unallocated_rows(state)  # the copy's empty rows, before finalize's own temporaries
         if self.config.refinement.enabled:
             state, _ = step.finalize(state, builder.step_config, builder.fusion_config)
         return builder.snapshot(state)
