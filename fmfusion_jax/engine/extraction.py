@@ -130,6 +130,30 @@ def _sample_linear(volume: np.ndarray, points: np.ndarray) -> np.ndarray:
     return out
 
 
+def _sample_on_edges(volume: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """`_sample_linear` at marching cubes' vertices, which lie on voxel edges (at most one fractional coordinate):
+    the edge's two corners only, the same values (the other six trilinear weights are exactly 0, and adding a 0
+    changes no sum). Points off the edges (Lewiner's vertices inside ambiguous cubes) are sampled trilinearly."""
+    lo = np.clip(np.floor(points).astype(int), 0, np.asarray(volume.shape[:3]) - 1)
+    f = points - lo
+    fractional = f != 0
+    if len(points) == 0:
+        return _sample_linear(volume, points)
+    rows = np.arange(len(points))
+    axis = np.argmax(fractional, axis=1)  # axis 0 (weight 0 on its far corner) for a point on a voxel
+    hi = lo.copy()
+    hi[rows, axis] = np.minimum(lo[rows, axis] + 1, np.asarray(volume.shape[:3])[axis] - 1)
+    along = f[rows, axis]
+    tail = (-1,) + (1,) * (volume.ndim - 3)
+    near = volume[lo[:, 0], lo[:, 1], lo[:, 2]] * (1.0 - along).reshape(tail)
+    far = volume[hi[:, 0], hi[:, 1], hi[:, 2]] * along.reshape(tail)
+    samples = 0.0 + near + far
+    inside = np.flatnonzero(fractional.sum(axis=1) > 1)
+    if len(inside):
+        samples[inside] = _sample_linear(volume, points[inside])
+    return samples
+
+
 def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks: int = 8):
     """Marching-cubes mesh of the global TSDF's zero level set.
 
@@ -174,7 +198,7 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
         if len(f) == 0:
             continue
         # narrowed per chunk (the same values as narrowing at the end): a room's mesh is a million vertices
-        colors.append(np.clip(np.round(_sample_linear(color, v)), 0, 255).astype(np.uint8))
+        colors.append(np.clip(np.round(_sample_on_edges(color, v)), 0, 255).astype(np.uint8))
         verts.append(v + origin)
         faces.append((f + offset).astype(np.int32))
         offset += len(v)
