@@ -134,11 +134,11 @@ def _sample_on_edges(volume: np.ndarray, points: np.ndarray) -> np.ndarray:
     """`_sample_linear` at marching cubes' vertices, which lie on voxel edges (at most one fractional coordinate):
     the edge's two corners only, the same values (the other six trilinear weights are exactly 0, and adding a 0
     changes no sum). Points off the edges (Lewiner's vertices inside ambiguous cubes) are sampled trilinearly."""
+    if len(points) == 0:
+        return _sample_linear(volume, points)
     lo = np.clip(np.floor(points).astype(int), 0, np.asarray(volume.shape[:3]) - 1)
     f = points - lo
     fractional = f != 0
-    if len(points) == 0:
-        return _sample_linear(volume, points)
     rows = np.arange(len(points))
     axis = np.argmax(fractional, axis=1)  # axis 0 (weight 0 on its far corner) for a point on a voxel
     hi = lo.copy()

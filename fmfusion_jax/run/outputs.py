@@ -625,19 +625,19 @@ def _run_steps(steps: dict[str, tuple[Callable[[], Any], tuple[str, ...]]], thre
     return seconds
 
 
+#: A writer step that took this long (s) is followed by a trim of the C heap (which itself takes 10-100 ms).
+TRIM_AFTER_STEP_S = 0.3
+
+
 def _timed(fn: Callable[..., Any], *args: Any) -> float:
     """Seconds `fn(*args)` took. After a long step the C heap is trimmed: its temporaries' memory goes back to the
     system before the next step's (each writer thread keeps an arena of its own)."""
     start = time.perf_counter()
     fn(*args)
     seconds = time.perf_counter() - start
-    if seconds > TRIM_AFTER_S:
+    if seconds > TRIM_AFTER_STEP_S:
         host_memory.trim_heap()
     return seconds
-
-
-#: A writer step that took this long (s) is followed by a trim of the C heap (which itself takes 10-100 ms).
-TRIM_AFTER_S = 0.3
 
 
 def listed_outputs(out_dir: Path) -> list[str]:

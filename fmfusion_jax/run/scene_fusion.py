@@ -113,7 +113,7 @@ class SceneFusion:
             self.mapper = Mapper.for_scene(scene, config, sample=sample, time_stages=time_stages)
 
     #: A frame that took this long (s) compiled a step (or loaded it): the C heap is trimmed after it.
-    TRIM_AFTER_S = 0.5
+    TRIM_AFTER_FRAME_S = 0.5
     #: Frames read, decoded and prepared (`Mapper.prepare`) ahead per reader thread, while the current one is fused.
     READ_AHEAD = 2
     #: Reader threads: one on a small machine (its cores run the device's work), up to four where cores are many (a
@@ -145,7 +145,7 @@ class SceneFusion:
                 started = time.perf_counter()
                 self._fuse_frame(self.position, next(frames))
                 self.frame_seconds.append(time.perf_counter() - started)
-                if self.frame_seconds[-1] > self.TRIM_AFTER_S:  # a step was compiled: the compiler's memory goes back
+                if self.frame_seconds[-1] > self.TRIM_AFTER_FRAME_S:  # a step was compiled: the compiler's memory goes back
                     host_memory.trim_heap()
                 self.position += 1
                 if progress:
