@@ -8,7 +8,7 @@ the engine reads are the same; only the resident memory shrinks. This works on t
 `jax.Array` is a host buffer that NumPy can view without a copy, on Linux; elsewhere every function here is a no-op.
 
 `trim_heap` asks glibc to return the free memory its arenas keep (XLA's compiler and the outputs' temporaries
-leave hundreds of MiB there).
+leave hundreds of MiB there); `compilations` tells a loop when a step was compiled, so that it trims then.
 """
 
 from __future__ import annotations
@@ -90,6 +90,30 @@ def trim_heap() -> None:
     libc = _libc()
     if libc is not None:
         libc.malloc_trim(0)
+
+
+#: JAX's monitoring event for an executable compiled or loaded from the compile cache.
+_BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+_compiled = 0
+_listening = False
+
+
+def compilations() -> int:
+    """Executables compiled (or loaded from the compile cache) in this process since the first call: a loop that
+    sees the count change after a frame knows that the frame compiled a step (a JAX monitoring listener)."""
+    global _listening
+    if not _listening:
+        import jax.monitoring
+
+        jax.monitoring.register_event_duration_secs_listener(_count_compilation)
+        _listening = True
+    return _compiled
+
+
+def _count_compilation(event: str, duration: float, **_: Any) -> None:
+    global _compiled
+    if event == _BACKEND_COMPILE_EVENT:
+        _compiled += 1
 
 
 def _on_cpu(array: "jax.Array") -> bool:

@@ -91,3 +91,13 @@ def test_a_grown_pool_gives_back_its_new_rows():
     assert host_memory.release_unallocated_rows(grown) > 0
     for leaf, fresh in zip(_leaves(grown), _leaves(init_map_state(bigger)), strict=True):
         np.testing.assert_array_equal(leaf, fresh)
+
+
+def test_compilations_count_each_new_step_once():
+    before = host_memory.compilations()
+    step = jax.jit(lambda x: x * 3.25 + 0.5)  # a new function: compiled (or loaded from the compile cache) once
+    step(np.ones(7, np.float32)).block_until_ready()
+    after_first = host_memory.compilations()
+    step(np.ones(7, np.float32)).block_until_ready()
+    assert after_first >= before + 1
+    assert host_memory.compilations() == after_first

@@ -112,8 +112,6 @@ class SceneFusion:
             warn_static_trajectory(scene)
             self.mapper = Mapper.for_scene(scene, config, sample=sample, time_stages=time_stages)
 
-    #: A frame that took this long (s) compiled a step (or loaded it): the C heap is trimmed after it.
-    TRIM_AFTER_FRAME_S = 0.5
     #: Frames read, decoded and prepared (`Mapper.prepare`) ahead per reader thread, while the current one is fused.
     READ_AHEAD = 2
     #: Reader threads: one on a small machine (its cores run the device's work), up to four where cores are many (a
@@ -137,6 +135,7 @@ class SceneFusion:
             if self._source_detects_ahead:
                 lookahead = Lookahead(self.mapper.schedule_copy(), self.mapper.frames_integrated)
                 frames = read_ahead(functools.partial(self._detect_ahead, lookahead), frames, detector, 1)
+            compiled = host_memory.compilations()
             while self.position < len(self.scene):
                 if should_stop and should_stop():
                     if self.checkpoint is not None:
@@ -145,7 +144,8 @@ class SceneFusion:
                 started = time.perf_counter()
                 self._fuse_frame(self.position, next(frames))
                 self.frame_seconds.append(time.perf_counter() - started)
-                if self.frame_seconds[-1] > self.TRIM_AFTER_FRAME_S:  # a step was compiled: the compiler's memory goes back
+                if host_memory.compilations() != compiled:  # a step was compiled: the compiler's memory goes back
+                    compiled = host_memory.compilations()
                     host_memory.trim_heap()
                 self.position += 1
                 if progress:
