@@ -110,7 +110,7 @@ def compilations() -> int:
     return _compiled
 
 
-def _count_compilation(event: str, duration: float, **_: Any) -> None:
+def _count_compilation(event: str, duration_secs: float, **kwargs: str | int) -> None:
     global _compiled
     if event == _BACKEND_COMPILE_EVENT:
         _compiled += 1
