@@ -95,19 +95,17 @@ def locate_voxels(blocks: VoxelBlocks, gx, gy, gz, config: MapConfig):
     sx, sy, sz = config.grid_shape
     if bs & (bs - 1):
         bx, by, bz = gx // bs, gy // bs, gz // bs  # floor division, also for negatives
-        inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
-        flat = jnp.where(inside, (bx * sy + by) * sz + bz, 0)
-        slot = jnp.where(inside, blocks.block_index.reshape(-1)[flat], -1)
-        return slot, local_voxel_index(gx - bx * bs, gy - by * bs, gz - bz * bs, bs), inside
-    shift = bs.bit_length() - 1
-    bx, by, bz = gx >> shift, gy >> shift, gz >> shift  # arithmetic shift: floor division, negatives too
-    x, y, z = gx & (bs - 1), gy & (bs - 1), gz & (bs - 1)  # floor remainder
+        v = local_voxel_index(gx - bx * bs, gy - by * bs, gz - bz * bs, bs)
+    else:
+        shift = bs.bit_length() - 1
+        bx, by, bz = gx >> shift, gy >> shift, gz >> shift  # arithmetic shift: floor division, negatives too
+        x, y, z = gx & (bs - 1), gy & (bs - 1), gz & (bs - 1)  # floor remainder
+        c = bs // 2  # local_voxel_index (2x2x2-cell order) with shifts
+        v = (((x >> 1) * c + (y >> 1)) * c + (z >> 1)) * 8 + (x & 1) * 4 + (y & 1) * 2 + (z & 1)
     inside = (bx >= 0) & (bx < sx) & (by >= 0) & (by < sy) & (bz >= 0) & (bz < sz)
-    flat = jnp.where(inside, (bx * sy + by) * sz + bz, 0)
+    flat = jnp.where(inside, (bx * sy + by) * sz + bz, 0)  # in bounds: outside blocks read entry 0
     slot = jnp.where(inside, blocks.block_index.reshape(-1).at[flat].get(mode="promise_in_bounds"), -1)
-    c = bs // 2  # local_voxel_index (2x2x2-cell order) with shifts
-    cell = ((x >> 1) * c + (y >> 1)) * c + (z >> 1)
-    return slot, cell * 8 + (x & 1) * 4 + (y & 1) * 2 + (z & 1), inside
+    return slot, v, inside
 
 
 def as_pose(T_world_camera) -> jax.Array:
