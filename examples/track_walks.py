@@ -1,7 +1,7 @@
 """Tracking on generated 30 Hz walks: writes each walk's true and estimated trajectories as TUM files for `evo`,
 frame-to-frame and frame-to-model, and prints the warm milliseconds per frame.
 
-    python examples/track_walks.py OUT [--rooms 3] [--frames 300] [--size 160x120] [--noise] [--no-color]
+    python examples/track_walks.py OUT [--rooms 3] [--frames 300] [--size 160x120] [--noise] [--no-color] [--bilateral R]
 
 For each room seed `s` (0, 1, ...): `fmfusion synth`'s room of that seed (`generate_scene(s)`), the generator's
 loop drawn over 1800 frames (a one-minute walk at 30 Hz), its first `--frames` frames rendered (with the
@@ -51,10 +51,27 @@ def walk(seed: int, frames: int, width: int, height: int, noise: bool, with_colo
     return poses, np.stack(depths), intrinsics
 
 
-def track(depths, intrinsics, reference: str, T_world_first, colors=None) -> tuple[list[np.ndarray], float, int]:
+def aligned_ate(estimated: list[np.ndarray], truth: np.ndarray) -> float:
+    """RMS distance (m) of the camera centres after the rigid motion that best aligns them (Umeyama without scale,
+    as `evo_ape -a`)."""
+    P = np.array([T[:3, 3] for T in estimated], np.float64)
+    Q = np.asarray(truth, np.float64)[:, :3, 3]
+    P0, Q0 = P - P.mean(0), Q - Q.mean(0)
+    U, _, Vt = np.linalg.svd(P0.T @ Q0)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return float(np.sqrt(np.mean(np.sum((P0 @ R.T - Q0) ** 2, axis=1))))
+
+
+def track(
+    depths, intrinsics, reference: str, T_world_first, colors=None, bilateral: int | None = None
+) -> tuple[list[np.ndarray], float, int]:
     """The estimated poses, the warm ms per frame (after the first 3 frames, which compile) and the lost count;
-    with `colors`, the ICP's colour term too."""
-    tracker = Tracker(intrinsics, dataclasses.replace(TrackingConfig(), reference=reference), T_world_first=T_world_first)
+    with `colors`, the ICP's colour term too; `bilateral` the bilateral depth filter's radius (default: the config's)."""
+    config = dataclasses.replace(TrackingConfig(), reference=reference)
+    if bilateral is not None:
+        config = dataclasses.replace(config, bilateral_radius=bilateral)
+    tracker = Tracker(intrinsics, config, T_world_first=T_world_first)
     images = colors if colors is not None else [None] * len(depths)
     poses = [tracker.track(d, c).T_world_camera for d, c in zip(depths[:3], images[:3])]
     start = time.perf_counter()
@@ -72,6 +89,7 @@ def main() -> None:
     parser.add_argument("--noise", action="store_true", help="Kinect-like depth noise, holes and dropouts")
     parser.add_argument("--references", default="frame,model")
     parser.add_argument("--no-color", action="store_true", help="depth alone (no colour term)")
+    parser.add_argument("--bilateral", type=int, help="the bilateral depth filter's radius (pixels, 0: off)")
     args = parser.parse_args()
     width, height = (int(x) for x in args.size.split("x"))
     for seed in range(args.rooms):
@@ -81,10 +99,14 @@ def main() -> None:
         stamps = np.arange(len(truth)) / 30.0
         write_tum_trajectory(folder / "gt.txt", stamps, list(truth))
         for reference in args.references.split(","):
-            poses, ms, lost = track(depths, intrinsics, reference, truth[0], None if args.no_color else colors)
+            colour = None if args.no_color else colors
+            poses, ms, lost = track(depths, intrinsics, reference, truth[0], colour, args.bilateral)
             write_tum_trajectory(folder / f"{reference}.txt", stamps, poses)
             end = np.linalg.norm(poses[-1][:3, 3] - truth[-1][:3, 3])
-            print(f"room{seed} {reference}: {ms:.1f} ms/frame at {width}x{height}, {lost} lost, last pose {end * 1e3:.1f} mm off")
+            print(
+                f"room{seed} {reference}: {ms:.1f} ms/frame at {width}x{height}, {lost} lost, "
+                f"ATE {aligned_ate(poses, truth) * 1e3:.2f} mm (aligned), last pose {end * 1e3:.1f} mm off"
+            )
 
 
 if __name__ == "__main__":

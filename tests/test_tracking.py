@@ -79,6 +79,43 @@ def test_normals_face_the_camera_and_are_missing_at_edges():
     assert not ok[0].any() and not ok[:, -1].any()
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(0, 2**31 - 1),
+    st.integers(0, 3),
+    finite(0.5, 3.0),
+    finite(0.002, 0.05),
+)
+def test_the_bilateral_depth_filter_matches_the_numpy_oracle(seed, radius, sigma_px, range_share):
+    rng = np.random.default_rng(seed)
+    depth = rng.uniform(0.5, 4.0, (7, 9)) * (rng.random((7, 9)) > 0.2)  # some holes
+    depth[:, 5:] = depth[:, 5:] * 0.0 + 1.0 + 0.003 * rng.standard_normal((7, 4))  # a noisy plane beside the clutter
+    depth = depth.astype(np.float32)
+    got = np.asarray(tk.bilateral_depth(jnp.asarray(depth), radius, sigma_px, range_share))
+    want = R.bilateral_depth(depth.astype(np.float64), radius, sigma_px, range_share, tk.EDGE_STEP)
+    np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-6)
+    assert np.all(got[depth == 0] == 0)
+
+
+def test_the_bilateral_filter_steadies_the_normals_of_noisy_depth():
+    """A wall seen head-on at 2 m with 3 mm of noise a pixel at 320 x 240 (the noise of a Kinect-like camera there):
+    the per-pixel normals of the raw depth scatter by tens of degrees, which fails the ICP's 30 degree test between two
+    frames (frame-to-frame tracking of the noisy generated walks at 320 x 240 lost every frame); the filtered ones
+    stay within a few degrees (3 x 3 filter: median 6 degrees)."""
+    width, height = 320, 240
+    K320 = jnp.array([288.8, 288.8, width / 2 - 0.5, height / 2 - 0.5], jnp.float32)
+    rng = np.random.default_rng(0)
+    depth = (2.0 + 0.003 * rng.standard_normal((height, width))).astype(np.float32)
+    angles = {}
+    for name, config in (("raw", tk.TrackingConfig(bilateral_radius=0)), ("filtered", CONFIG)):
+        maps = tk.frame_maps(depth, K320, config)
+        n, ok = np.asarray(maps.normals[0]), np.asarray(maps.valid[0])
+        angles[name] = np.degrees(np.arccos(np.clip(-n[ok][:, 2], -1.0, 1.0)))
+    assert np.median(angles["raw"]) > 15.0, np.median(angles["raw"])
+    assert np.median(angles["filtered"]) < 8.0, np.median(angles["filtered"])
+    assert np.mean(angles["filtered"] < 15.0) > 0.95  # two frames' normals then agree within the ICP's 30 degrees
+
+
 def test_one_gauss_newton_step_matches_the_numpy_oracle():
     """On the coarsest level of two rendered frames 3 cm / 2 degrees apart, from the identity."""
     T_world_ref = start_pose()

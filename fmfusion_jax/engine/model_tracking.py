@@ -59,7 +59,7 @@ def _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config: Trackin
     # with these), and the raycast skips six trilinear samples a ray
     # the cast depth computed once (`_geometry.materialize`): `frame_maps` reads each pixel several times, and XLA's CPU
     # fusion would redo the raycast's tail for every read (3.5 of 12 ms a frame at 160 x 120)
-    return blocks, frame_maps(geo.materialize(cast.depth), intrinsics, config)
+    return blocks, frame_maps(geo.materialize(cast.depth), intrinsics, config, bilateral=False)
 
 
 def empty_reference(height: int, width: int, config: TrackingConfig, with_color: bool = False) -> FrameMaps:

@@ -116,3 +116,28 @@ def photometric_residuals(
         J[k] = np.concatenate([g, np.cross(p, g)])  # dp/dxi = [I, -[p]x]
         used[k] = True
     return r, J, used
+
+
+def bilateral_depth(depth: np.ndarray, radius: int, sigma_px: float, range_share: float, edge_step: float) -> np.ndarray:
+    """The bilateral filter of `engine.tracking.bilateral_depth`, one pixel and one neighbour at a time."""
+    h, w = depth.shape
+    out = np.zeros((h, w))
+    for v in range(h):
+        for u in range(w):
+            d = float(depth[v, u])
+            if d <= 0:
+                continue
+            total = weight = 0.0
+            for dv in range(-radius, radius + 1):
+                for du in range(-radius, radius + 1):
+                    if not (0 <= v + dv < h and 0 <= u + du < w):
+                        continue
+                    other = float(depth[v + dv, u + du])
+                    if other <= 0 or abs(other - d) > edge_step * d:
+                        continue
+                    spatial = np.exp(-(du * du + dv * dv) / (2 * sigma_px**2))
+                    k = spatial * np.exp(-((other - d) ** 2) / (2 * (range_share * d) ** 2))
+                    total += k * other
+                    weight += k
+            out[v, u] = total / weight
+    return out
