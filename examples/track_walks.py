@@ -2,6 +2,7 @@
 frame-to-frame and frame-to-model, and prints the warm milliseconds per frame.
 
     python examples/track_walks.py OUT [--rooms 3] [--frames 300] [--size 160x120] [--noise] [--no-color] [--bilateral R]
+        [--icp-width PIXELS]
 
 For each room seed `s` (0, 1, ...): `fmfusion synth`'s room of that seed (`generate_scene(s)`), the generator's
 loop drawn over 1800 frames (a one-minute walk at 30 Hz), its first `--frames` frames rendered (with the
@@ -64,13 +65,16 @@ def aligned_ate(estimated: list[np.ndarray], truth: np.ndarray) -> float:
 
 
 def track(
-    depths, intrinsics, reference: str, T_world_first, colors=None, bilateral: int | None = None
+    depths, intrinsics, reference: str, T_world_first, colors=None, bilateral: int | None = None, icp_width: int | None = None
 ) -> tuple[list[np.ndarray], float, int]:
     """The estimated poses, the warm ms per frame (after the first 3 frames, which compile) and the lost count;
-    with `colors`, the ICP's colour term too; `bilateral` the bilateral depth filter's radius (default: the config's)."""
+    with `colors`, the ICP's colour term too; `bilateral` the bilateral depth filter's radius and `icp_width` the
+    ICP's width (`TrackingConfig`'s; None: its default)."""
     config = dataclasses.replace(TrackingConfig(), reference=reference)
     if bilateral is not None:
         config = dataclasses.replace(config, bilateral_radius=bilateral)
+    if icp_width is not None:
+        config = dataclasses.replace(config, icp_width=icp_width)
     tracker = Tracker(intrinsics, config, T_world_first=T_world_first)
     images = colors if colors is not None else [None] * len(depths)
     poses = [tracker.track(d, c).T_world_camera for d, c in zip(depths[:3], images[:3])]
@@ -90,6 +94,7 @@ def main() -> None:
     parser.add_argument("--references", default="frame,model")
     parser.add_argument("--no-color", action="store_true", help="depth alone (no colour term)")
     parser.add_argument("--bilateral", type=int, help="the bilateral depth filter's radius (pixels, 0: off)")
+    parser.add_argument("--icp-width", type=int, help="the ICP's most pixels wide (0: the whole image)")
     args = parser.parse_args()
     width, height = (int(x) for x in args.size.split("x"))
     for seed in range(args.rooms):
@@ -100,7 +105,7 @@ def main() -> None:
         write_tum_trajectory(folder / "gt.txt", stamps, list(truth))
         for reference in args.references.split(","):
             colour = None if args.no_color else colors
-            poses, ms, lost = track(depths, intrinsics, reference, truth[0], colour, args.bilateral)
+            poses, ms, lost = track(depths, intrinsics, reference, truth[0], colour, args.bilateral, args.icp_width)
             write_tum_trajectory(folder / f"{reference}.txt", stamps, poses)
             end = np.linalg.norm(poses[-1][:3, 3] - truth[-1][:3, 3])
             print(

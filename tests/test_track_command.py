@@ -42,7 +42,7 @@ def test_track_writes_the_trajectory_that_run_reads(tmp_path, capsys):
         open_scene(root)
     assert cli.main(["track", str(root), "--no-progress", "--reference", "frame"]) == 0
     assert "60 frames tracked" in (out := capsys.readouterr().out) and (root / "trajectory.txt").is_file()
-    assert "(depth and colour)" in out
+    assert "; depth and colour)" in out
     scene = open_scene(root)
     assert scene.layout == "tum" and len(scene) == len(truth)
     estimated = scene.poses()
@@ -78,13 +78,13 @@ def test_the_parser_spells_the_engine_choices():
     assert track.REFERENCES == REFERENCES and track.DEFAULT_REFERENCE == TrackingConfig.reference
     from fmfusion_jax.apps.track import TRACK_WIDTH
 
-    assert track.DEFAULT_MAX_WIDTH == TRACK_WIDTH
+    assert track.DEFAULT_MAX_WIDTH == TRACK_WIDTH and track.DEFAULT_ICP_WIDTH == TrackingConfig.icp_width
 
 
 def test_track_at_a_chosen_width(tmp_path, capsys):
     root, truth = _tum_without_poses(tmp_path)
     assert cli.main(["track", str(root), "--no-progress", "--max-width", "80", "--no-color"]) == 0
-    assert "at 80x60 (depth alone)" in capsys.readouterr().out
+    assert "at 80x60 (ICP at 80x60; depth alone)" in capsys.readouterr().out
     assert len(open_scene(root).poses()) == len(truth)  # tracked, coarsely (80 x 60: 73 mm ATE, 0.35 mm at 160 x 120)
     with pytest.raises(SystemExit):
         cli.main(["track", str(root), "--max-width", "0"])

@@ -174,6 +174,14 @@ def test_lost_when_the_frames_do_not_overlap():
     np.testing.assert_array_equal(np.asarray(result.T_reference_current), np.eye(4))
 
 
+def test_the_icp_works_at_the_first_level_at_most_icp_width_wide():
+    assert [tk.icp_level(w, CONFIG) for w in (80, 160, 161, 320, 640, 1280)] == [0, 0, 1, 1, 2, 3]
+    assert tk.icp_level(640, tk.TrackingConfig(icp_width=0)) == 0
+    assert tk.icp_level(640, tk.TrackingConfig(icp_width=320)) == 1
+    with pytest.raises(ValueError, match="icp_width"):
+        tk.TrackingConfig(icp_width=-1)
+
+
 def test_the_config_is_checked():
     with pytest.raises(ValueError, match="iteration count per level"):
         tk.TrackingConfig(levels=2)

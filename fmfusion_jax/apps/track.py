@@ -3,9 +3,10 @@ to frame: `--reference frame`; `mapping.tracking.Tracker`), written as the recor
 trajectory.txt; Open3D / Redwood: trajectory.log; a RealSense SDK recording REC.bag: REC.bag.trajectory.txt beside
 it) so that `fmfusion run REC` fuses with them.
 
-Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide, or `max_width`): frame to
-model then takes ~30 ms a frame at 320 x 240 on a 2-core CPU (~6 ms at 160 x 120; docs/your-own-data.md), the
-next frames decoded meanwhile. Reads the formats whose frames are listed without
+Tracks at a reduced resolution (every `step`-th pixel, so that the image is at most `TRACK_WIDTH` wide, or
+`max_width`), the ICP and the model's raycast at half that (`icp_width`): frame to model then takes 7-10 ms a frame
+at 320 x 240 on a 2-core CPU (21-24 ms with the ICP at 320 x 240; docs/your-own-data.md), the next frames decoded
+meanwhile. Reads the formats whose frames are listed without
 poses: TUM (rgb.txt and depth.txt), Open3D / Redwood (color/, depth/ and camera_intrinsic.json, as Open3D's
 RealSense and Azure Kinect recorders write them) and RealSense SDK recordings (.bag, .db3: `io.realsense`, which
 never hold poses).
@@ -24,7 +25,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from fmfusion_jax.engine.tracking import TrackingConfig
+from fmfusion_jax.engine.tracking import TrackingConfig, icp_level
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.realsense import is_realsense_recording, read_realsense
 from fmfusion_jax.io.realsense import trajectory_path as realsense_trajectory
@@ -73,13 +74,16 @@ def track_recording(
     reference: str = TrackingConfig.reference,
     max_width: int = TRACK_WIDTH,
     color: bool = True,
+    icp_width: int = TrackingConfig.icp_width,
 ) -> Path:
     """Tracks the recording at `path` (a TUM or an Open3D / Redwood folder, a RealSense SDK recording) and writes
     its trajectory to `out` (default: the file the recording's reader reads when it has no other poses: TUM's
     trajectory.txt, Redwood's trajectory.log, a RealSense recording's REC.bag.trajectory.txt); returns the file
     written. `reference`: "model" (frame-to-model) or "frame" (frame-to-frame), `TrackingConfig.reference`;
     `max_width`: every Nth pixel is tracked so that the image is at most this wide; `color`: the colour images
-    are read too, for the ICP's colour term (`TrackingConfig.color_weight`)."""
+    are read too, for the ICP's colour term (`TrackingConfig.color_weight`); `icp_width`: the ICP and the model's
+    raycast work at the first pyramid level of the tracked image at most this wide (0: the whole image;
+    `TrackingConfig.icp_width`)."""
     root = Path(path)
     default, read = _trajectory_and_reader(root)
     target = Path(out) if out is not None else default
@@ -89,7 +93,7 @@ def track_recording(
     camera = recording.intrinsics()
     step = max(1, -(-camera.width // max_width))
     tracked = subsampled_camera(camera, step)
-    tracker = Tracker(tracked, dataclasses.replace(TrackingConfig(), reference=reference))
+    tracker = Tracker(tracked, dataclasses.replace(TrackingConfig(), reference=reference, icp_width=icp_width))
 
     def read_frame(index: int) -> tuple[np.ndarray, np.ndarray | None]:
         full = read_depth_image(recording.depth_paths[index], recording.depth_scale, depth_max)
@@ -114,9 +118,11 @@ def track_recording(
         write_tum_trajectory(target, [float(t) for t in recording.stamps], poses)
     else:
         write_trajectory_log(target, poses)
+    level = icp_level(tracked.width, tracker.config)
+    icp_size = f"{-(-tracked.width // (1 << level))}x{-(-tracked.height // (1 << level))}"
     print(
         f"{root.name}: {len(poses)} frames tracked against the {reference} at {tracked.width}x{tracked.height} "
-        f"({'depth and colour' if color else 'depth alone'}) "
+        f"(ICP at {icp_size}; {'depth and colour' if color else 'depth alone'}) "
         f"in {seconds:.1f} s "
         f"({1000 * seconds / max(len(poses), 1):.0f} ms a frame, reading included), {tracker.frames_lost} lost "
         f"(they keep the last good pose)\ntrajectory written to {target}"

@@ -70,6 +70,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    """An argparse type: a whole number of at least 0 (anything else is a usage error naming the value)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
 def add_depth_max(parser: argparse.ArgumentParser) -> None:
     """`--depth-max M`: depth truncation."""
     parser.add_argument("--depth-max", type=float, default=4.0, help="depth truncation in metres (default 4.0)")

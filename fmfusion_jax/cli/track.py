@@ -12,8 +12,9 @@ from fmfusion_jax.cli import options
 #: import JAX (tests/test_track_command.py checks that they agree)
 REFERENCES = ("model", "frame")
 DEFAULT_REFERENCE = "model"
-#: `apps.track.TRACK_WIDTH`, likewise
+#: `apps.track.TRACK_WIDTH` and `TrackingConfig.icp_width`, likewise
 DEFAULT_MAX_WIDTH = 320
+DEFAULT_ICP_WIDTH = 160
 
 
 def register(subparsers) -> None:
@@ -54,8 +55,16 @@ def register(subparsers) -> None:
         default=DEFAULT_MAX_WIDTH,
         metavar="PIXELS",
         help=f"track every Nth pixel so that the image is at most this wide (default {DEFAULT_MAX_WIDTH}: a 640 x 480 "
-        "recording at 320 x 240, ~30 ms a frame on a 2-core CPU; 160: ~4x faster, less accurate where little "
-        "geometry constrains the motion)",
+        "recording at 320 x 240; the model is fused at this size)",
+    )
+    parser.add_argument(
+        "--icp-width",
+        type=options.non_negative_int,
+        default=DEFAULT_ICP_WIDTH,
+        metavar="PIXELS",
+        help=f"the ICP and the model's raycast work at the first pyramid level at most this wide (default "
+        f"{DEFAULT_ICP_WIDTH}: 160 x 120 of a 320 x 240 image, ~10 ms a frame on a 2-core CPU; 0: the whole image, "
+        "~3x slower, about half the drift on long walks)",
     )
     parser.add_argument(
         "--no-color",
@@ -80,5 +89,6 @@ def run(args: argparse.Namespace) -> int:
         reference=args.reference,
         max_width=args.max_width,
         color=not args.no_color,
+        icp_width=args.icp_width,
     )
     return 0

@@ -32,7 +32,15 @@ from fmfusion_jax.engine import _geometry as geo
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.raycast import raycast_tsdf_unjitted
 from fmfusion_jax.engine.state import VoxelBlocks
-from fmfusion_jax.engine.tracking import FrameMaps, TrackingConfig, TrackResult, frame_maps, track_frame
+from fmfusion_jax.engine.tracking import (
+    FrameMaps,
+    TrackingConfig,
+    TrackResult,
+    frame_maps,
+    icp_level,
+    level_intrinsics,
+    track_frame,
+)
 from fmfusion_jax.engine.tsdf import integrate_tsdf_unjitted
 
 
@@ -47,8 +55,10 @@ class ModelStep(NamedTuple):
 
 
 def _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config: TrackingConfig, map_config: MapConfig):
-    h, w = depth.shape
     blocks = integrate_tsdf_unjitted(blocks, depth, None, T_world_camera, intrinsics, map_config)  # geometry only
+    level = icp_level(depth.shape[1], config)  # cast at the ICP's resolution
+    depth, intrinsics = depth[:: 1 << level, :: 1 << level], level_intrinsics(intrinsics, level)
+    h, w = depth.shape
     # guided by the depth just fused (`TrackingConfig.raycast_guided`), a ray looks for the model's surface near
     # it only and the rays without depth are not cast: a few samples a ray instead of a march from depth_min (a
     # lost frame fuses nothing, so nothing is cast: its reference is not used)
@@ -63,9 +73,10 @@ def _fuse_and_raycast(blocks, depth, T_world_camera, intrinsics, config: Trackin
 
 
 def empty_reference(height: int, width: int, config: TrackingConfig, with_color: bool = False) -> FrameMaps:
-    """A reference with no valid pixel, of `frame_maps`' shapes for an `(height, width)` image (with an intensity
-    pyramid of zeros when `with_color`)."""
-    shapes = [(-(-height // (1 << level)), -(-width // (1 << level))) for level in range(config.levels)]
+    """A reference with no valid pixel, of `frame_maps`' shapes for the model's raycast of an `(height, width)` frame
+    (at `icp_level`; with an intensity pyramid of zeros when `with_color`)."""
+    first = icp_level(width, config)
+    shapes = [(-(-height // (1 << level)), -(-width // (1 << level))) for level in range(first, first + config.levels)]
     zeros = tuple(jnp.zeros((h, w, 3), jnp.float32) for h, w in shapes)
     intensity = tuple(jnp.zeros(shape, jnp.float32) for shape in shapes) if with_color else ()
     return FrameMaps(zeros, zeros, tuple(jnp.zeros(shape, bool) for shape in shapes), intensity)
@@ -119,8 +130,9 @@ def track_and_fuse(
     depth = jnp.asarray(depth, jnp.float32)
     T_world_reference = jnp.asarray(T_world_reference, jnp.float32)
     first = jnp.asarray(first, bool)
-    current = frame_maps(depth, intrinsics, config, color)
-    result = track_frame(reference, current, intrinsics, jnp.eye(4, dtype=jnp.float32), config)
+    level = icp_level(depth.shape[1], config)
+    current = frame_maps(depth, intrinsics, config, color, first_level=level)
+    result = track_frame(reference, current, intrinsics, jnp.eye(4, dtype=jnp.float32), config, reference_level=level)
     T_world_camera = jnp.where(result.lost | first, T_world_reference, T_world_reference @ result.T_reference_current)
     fused = jnp.where(result.lost & ~first, 0.0, depth)  # a lost frame adds nothing to the model
     blocks, reference = _fuse_and_raycast(blocks, fused, T_world_camera, intrinsics, config, map_config)

@@ -30,7 +30,7 @@ import numpy as np
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.model_tracking import start_model, track_and_fuse
 from fmfusion_jax.engine.state import VoxelBlocks, init_voxel_blocks
-from fmfusion_jax.engine.tracking import FrameMaps, TrackingConfig, frame_maps, track_frame
+from fmfusion_jax.engine.tracking import FrameMaps, TrackingConfig, frame_maps, icp_level, track_frame
 from fmfusion_jax.types import CameraIntrinsics
 
 log = logging.getLogger(__name__)
@@ -103,6 +103,7 @@ class Tracker:
         self.config = config if config is not None else TrackingConfig()
         self._intrinsics = intrinsics
         self._K = jnp.array([intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy], jnp.float32)
+        self._level = icp_level(intrinsics.width, self.config)  # frame to frame's (the model's step finds its own)
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
         self._reference: FrameMaps | None = None
         self._T_world_reference = self._T_world_first
@@ -146,7 +147,7 @@ class Tracker:
                     blocks, depth, T_MODEL_FIRST.astype(np.float32), self._K, self.config, self._map_config, color
                 )
             else:
-                self._reference = frame_maps(depth, self._K, self.config, color)
+                self._reference = frame_maps(depth, self._K, self.config, color, first_level=self._level)
             self.frames_tracked += 1
             return TrackedFrame(self._T_world_first.copy(), False, 0.0, 1.0)
         if self._map_config is not None:
@@ -165,8 +166,9 @@ class Tracker:
             self._model, result = step.blocks, step.result
             next_reference = step.reference
         else:
-            next_reference = frame_maps(depth, self._K, self.config, color)
-            result = track_frame(self._reference, next_reference, self._K, jnp.eye(4, dtype=jnp.float32), self.config)
+            next_reference = frame_maps(depth, self._K, self.config, color, first_level=self._level)
+            eye = jnp.eye(4, dtype=jnp.float32)
+            result = track_frame(self._reference, next_reference, self._K, eye, self.config, reference_level=self._level)
         residual, share = float(result.residual), float(result.inlier_share)
         if bool(result.lost):
             self.frames_lost += 1
