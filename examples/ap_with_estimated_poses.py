@@ -6,7 +6,8 @@ estimated poses").
     fmfusion run OUT/synth0005_00 --detections OUT/det --out OUT/given       # the given poses' AP
     python examples/ap_with_estimated_poses.py OUT/synth0005_00 OUT/det OUT/model [--reference frame]
 
-Tracks the scene's depth and colour at most 160 pixels wide from its first given pose (`mapping.tracking.Tracker`), prints
+Tracks the scene's depth and colour as `fmfusion track` does (at most `--max-width` pixels wide, default 320, the
+ICP at 160) from its first given pose (`mapping.tracking.Tracker`), prints
 the ATE against the given poses, writes the estimated poses over a copy of the scene's `pose/` (ScanNet layout)
 in OUT/model/, and runs `fmfusion run` on the copy with the same detections (its AP is printed by the run).
 """
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fmfusion_jax.apps.track import subsampled_camera
+from fmfusion_jax.apps.track import TRACK_WIDTH, subsampled_camera
 from fmfusion_jax.engine.tracking import TrackingConfig
 from fmfusion_jax.io.scene import open_scene
 from fmfusion_jax.mapping.tracking import Tracker
@@ -35,10 +36,11 @@ def main() -> None:
     parser.add_argument("detections", help="its detection folder")
     parser.add_argument("out", type=Path, help="folder for the copy with estimated poses and its map")
     parser.add_argument("--reference", choices=("model", "frame"), default=TrackingConfig.reference)
+    parser.add_argument("--max-width", type=int, default=TRACK_WIDTH, help="track every Nth pixel, at most this wide")
     args = parser.parse_args()
     scene = open_scene(args.scene)
     given = scene.poses()
-    step = max(1, -(-scene.intrinsics.width // 160))
+    step = max(1, -(-scene.intrinsics.width // args.max_width))
     tracker = Tracker(
         subsampled_camera(scene.intrinsics, step),
         dataclasses.replace(TrackingConfig(), reference=args.reference),
