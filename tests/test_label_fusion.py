@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from oracles import reference_semantics as R
 
 from fmfusion_jax.engine import label_fusion as LF
-from fmfusion_jax.labels import load_likelihood
+from fmfusion_jax.labels import load_label_sets, load_likelihood, normalize_columns
 
 N, K = 8, 12
 LIKELIHOOD = load_likelihood("statistical").astype(np.float32)  # (38, 20), mostly zeros
@@ -271,3 +271,48 @@ def test_label_fusion_compiles_once(mode):
     for seed in range(1, 4):
         calls(seed)
     assert (LF.fuse_labels._cache_size(), LF.class_distribution._cache_size()) == before
+
+
+# ----------------------------------------------------------------------------- normalized columns
+
+
+@CHECK
+@given(seeds)
+def test_normalized_columns_sum_to_one_and_keep_each_columns_shape(seed):
+    rng = np.random.default_rng(seed)
+    lik = random_likelihood(rng).copy()
+    lik[:, rng.integers(C)] = 0.0  # a class no label names stays without evidence
+    normalized = normalize_columns(lik)
+    sums = lik.sum(0)
+    np.testing.assert_allclose(normalized.sum(0)[sums > 0], 1.0, rtol=1e-6)
+    assert (normalized[:, sums == 0] == 0).all()
+    np.testing.assert_allclose(normalized * sums[None, :], lik, rtol=1e-6, atol=1e-12)  # each column only rescaled
+
+
+def test_every_class_detected_as_the_statistical_matrix_says_fuses_to_itself_with_normalized_columns():
+    """An instance whose detections carry labels in the proportions of its class's column of the published
+    statistical matrix (as the matrix says the class is detected and tagged), fused by the additive update: with
+    normalized columns every one of the 20 classes comes out as itself; with the columns as published a wall comes
+    out a bookshelf (its column sums to 0.43, so its labels "wall", "closet", "shelf" weigh less for it than for the
+    classes detected more often) and a curtain a shower curtain."""
+    names = load_label_sets().class_names
+    frequencies = LIKELIHOOD / LIKELIHOOD.sum(0, keepdims=True)  # (O, C): label shares of each class's detections
+    outcomes = {}
+    for name, lik in (("published", LIKELIHOOD), ("normalized", normalize_columns(LIKELIHOOD).astype(np.float32))):
+        scores = (frequencies.T * 10.0).astype(np.float32)  # (C, O): one instance per class, ten detections' worth
+        instances = jnp.arange(C, dtype=jnp.int32)
+        evidence = LF.fuse_labels(jnp.zeros((C, C)), instances, jnp.asarray(scores), jnp.asarray(lik), jnp.ones(C, bool))
+        outcomes[name] = [names[c] for c in np.asarray(LF.predicted_class(LF.class_distribution(evidence)))]
+    assert outcomes["normalized"] == list(names)
+    wrong = {names[c]: got for c, got in enumerate(outcomes["published"]) if got != names[c]}
+    assert wrong == {"wall": "bookshelf", "curtain": "shower curtain"}
+
+
+def test_the_map_fuses_with_normalized_columns_unless_the_config_says_otherwise():
+    from fmfusion_jax.config import load_config
+    from fmfusion_jax.mapping.engine_configs import fusion_likelihood
+
+    config = load_config("scannet")
+    np.testing.assert_allclose(fusion_likelihood(config), normalize_columns(LIKELIHOOD), rtol=1e-6)
+    config.label_fusion.normalize_columns = False
+    np.testing.assert_allclose(fusion_likelihood(config), LIKELIHOOD, rtol=1e-6)

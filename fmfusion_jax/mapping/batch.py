@@ -16,10 +16,10 @@ from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine.frame import finalize_maps, fuse_frames
 from fmfusion_jax.engine.state import init_map_state
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
+from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.mapping.builder import FusionProgress, FusionResult
 from fmfusion_jax.mapping.capacity import CapacityMonitor
-from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config
+from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config, fusion_likelihood
 from fmfusion_jax.mapping.inputs import HostAdapter, as_config
 from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.mapping.schedule import DetectionSchedule
@@ -69,7 +69,7 @@ class MapperBatch:
         self.states = jax.tree.map(lambda leaf: jnp.stack([leaf] * batch_size), init_map_state(self.map_config))
         self.fusion_config = build_fusion_config(self.config, self.label_sets)
         if likelihood is None:
-            likelihood = load_likelihood(self.config.label_fusion.likelihood)
+            likelihood = fusion_likelihood(self.config)
         self._likelihood = jnp.asarray(likelihood, jnp.float32)
         self._adapter = HostAdapter.for_map(self.config, self.map_config, self.label_sets)
         # each map's own counts, cadences, detection schedule and capacity warnings (a `MapBuilder` keeps them

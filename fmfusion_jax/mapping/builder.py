@@ -21,9 +21,9 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.frame import fuse_frame
 from fmfusion_jax.engine.state import MapState, init_map_state
-from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood
+from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.mapping.capacity import CapacityMonitor, MapSizes
-from fmfusion_jax.mapping.engine_configs import build_fusion_config
+from fmfusion_jax.mapping.engine_configs import build_fusion_config, fusion_likelihood
 from fmfusion_jax.mapping.inputs import HostAdapter
 from fmfusion_jax.mapping.telemetry import StageTimer, small_tree_to_host
 from fmfusion_jax.types import FrameDetections, RGBDFrame
@@ -147,7 +147,7 @@ class MapBuilder:
         self.label_sets = label_sets or load_label_sets()
         self.fusion_config = build_fusion_config(config, self.label_sets)
         if likelihood is None:
-            likelihood = load_likelihood(config.label_fusion.likelihood)
+            likelihood = fusion_likelihood(config)
         self.likelihood = jnp.asarray(likelihood, jnp.float32)
         self.state = init_map_state(map_config) if state is None else state
         host_memory.release_unallocated_rows(self.state)  # the pool's empty rows take no memory until filled

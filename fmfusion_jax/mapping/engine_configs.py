@@ -7,11 +7,13 @@ from __future__ import annotations
 import logging
 import os
 
+import numpy as np
+
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine import step
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.errors import UserError
-from fmfusion_jax.labels import LabelSets, load_label_sets
+from fmfusion_jax.labels import LabelSets, load_label_sets, load_likelihood, normalize_columns
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +97,13 @@ def build_fusion_config(config: PipelineConfig, label_sets: LabelSets | None = N
         floor_band=config.detections.floor_band,
         floor_max_share=config.detections.floor_max_share,
     )
+
+
+def fusion_likelihood(config: PipelineConfig) -> np.ndarray:
+    """`(O, C)` the likelihood matrix that label fusion uses: `label_fusion.likelihood`, its columns normalized
+    when `label_fusion.normalize_columns` (`labels.normalize_columns`)."""
+    likelihood = load_likelihood(config.label_fusion.likelihood)
+    return normalize_columns(likelihood) if config.label_fusion.normalize_columns else likelihood
 
 
 def floor_class_index(label_sets: LabelSets) -> int:

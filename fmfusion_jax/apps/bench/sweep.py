@@ -46,8 +46,9 @@ from fmfusion_jax.apps.bench.harness import (
 from fmfusion_jax.apps.bench.scenes import BenchScene
 from fmfusion_jax.apps.bench.stages import FrameTimer
 from fmfusion_jax.engine.detections import select_detections
-from fmfusion_jax.labels import load_label_sets, load_likelihood
+from fmfusion_jax.labels import load_label_sets
 from fmfusion_jax.mapping.builder import MapBuilder
+from fmfusion_jax.mapping.engine_configs import fusion_likelihood
 from fmfusion_jax.types import FrameDetections
 
 
@@ -114,7 +115,7 @@ def run_ours_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     baseline_mb = peak_rss_mb()
     map_config = scene_map_config(config, open_bench_scene(scene, None)[1])  # the map of the ours worker (all the scene's frames)
     label_sets = load_label_sets()
-    likelihood = jnp.asarray(load_likelihood(config.label_fusion.likelihood), jnp.float32)
+    likelihood = jnp.asarray(fusion_likelihood(config), jnp.float32)
     open_labels, det = label_sets.open_labels, config.detections
     device = device_description()
 
@@ -175,7 +176,7 @@ def run_peer_sweep(scene: BenchScene, frames: int | None, progress: bool, sweep:
     config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
     label_sets = load_label_sets()
-    likelihood = load_likelihood(config.label_fusion.likelihood)
+    likelihood = fusion_likelihood(config)
     open_labels, det = label_sets.open_labels, config.detections
     pipelines = {k: peer.Open3DInstancePipeline(config, opened.intrinsics, likelihood, label_sets) for k in sweep}
     runs = {k: _new_run(k) for k in sweep}

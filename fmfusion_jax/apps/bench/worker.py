@@ -47,7 +47,8 @@ from fmfusion_jax.apps.bench.scenes import BenchScene
 from fmfusion_jax.apps.bench.stages import FUSION_STAGES, FrameTimer, staged_fuse_detections
 from fmfusion_jax.apps.bench.sweep import RUNNERS as SWEEP_RUNNERS
 from fmfusion_jax.compile_cache import enable_compile_cache
-from fmfusion_jax.labels import load_label_sets, load_likelihood
+from fmfusion_jax.labels import load_label_sets
+from fmfusion_jax.mapping.engine_configs import fusion_likelihood
 from fmfusion_jax.mapping.mapper import Mapper
 from fmfusion_jax.run.scene_fusion import SceneFusion, read_ahead
 
@@ -240,9 +241,7 @@ def run_peer(scene: BenchScene, frames: int | None, progress: bool) -> dict:
 
     config, opened, folder = open_bench_scene(scene, frames)
     baseline_mb = peak_rss_mb()
-    pipeline = peer.Open3DInstancePipeline(
-        config, opened.intrinsics, load_likelihood(config.label_fusion.likelihood), load_label_sets()
-    )
+    pipeline = peer.Open3DInstancePipeline(config, opened.intrinsics, fusion_likelihood(config), load_label_sets())
     times = []
     counts: dict[str, list[int]] = {"detections_in": [], "live_instances": []}
     for frame, detections in frames_with_detections(opened, folder, config, progress, f"Open3D peer {scene.name}"):
