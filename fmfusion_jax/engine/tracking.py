@@ -300,6 +300,8 @@ def frame_maps(depth, intrinsics, config: TrackingConfig, color=None, bilateral:
       color: uint8 `(H, W, 3)` RGB registered to the depth, or None (no colour term).
       bilateral: static; smooth the depth first (`bilateral_depth`, `TrackingConfig.bilateral_radius`): a sensor's
         frame, not the model's raycast, whose depth is already an average of many frames.
+      first_level: static; the pyramid's finest level is the image subsampled `2^first_level` times (`icp_level`:
+        the ICP works from there), its `config.levels` levels below that; the filter takes the whole image.
     """
     depth = jnp.asarray(depth, jnp.float32)
     if bilateral and config.bilateral_radius > 0:
