@@ -82,28 +82,13 @@ def test_a_lost_frame_keeps_the_last_pose_and_the_next_one_tracks_against_the_la
     assert ate_rmse(estimated, np.delete(truth[:12], 6, axis=0)) < 2e-3  # frame 7 tracked against frame 5
 
 
-@functools.cache
-def noisy_sequence_320(frames: int = 45) -> tuple[np.ndarray, np.ndarray]:
-    """The walk's first `frames` frames at 320 x 240 with Kinect-like depth noise (`noisy_sequence`'s room)."""
-    from fmfusion_jax.simulation.procedural import add_object, camera_trajectory, empty_room
-    from fmfusion_jax.simulation.scene_views import render_frame
-
-    room = empty_room((4.0, 4.0, 2.6), seed=3)
-    room = add_object(room, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
-    room = add_object(room, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
-    poses = camera_trajectory(room, LOOP_FRAMES)[:frames]
-    intrinsics = INTRINSICS.scaled(320, 240)
-    depths = [render_frame(room, T, intrinsics, rng=np.random.default_rng([5, k])).depth for k, T in enumerate(poses)]
-    return poses, np.stack([np.where(np.isfinite(d), d, 0.0) for d in depths]).astype(np.float32)
-
-
 @pytest.mark.parametrize("reference", ["model", "frame"])
 def test_a_320_x_240_walk_is_tracked_with_the_icp_at_160_x_120_or_at_its_own_size(reference):
     """The ICP (and the model's raycast) at the first pyramid level at most `icp_width` wide: half the frame here by
     default, the whole frame with 0; both follow the noisy walk, depth alone (measured over these 45 frames: model 2.4 /
     3.7 mm, frame 0.7 / 0.5 mm with the ICP at 160 / 320 pixels wide)."""
-    truth, depths = noisy_sequence_320()
     intrinsics = INTRINSICS.scaled(320, 240)
+    truth, depths = noisy_sequence(45, intrinsics, noise_seed=5)
     for icp_width, level in ((160, 1), (0, 0)):
         config = TrackingConfig(reference=reference, icp_width=icp_width)
         tracker = Tracker(intrinsics, config, T_world_first=truth[0])
@@ -114,7 +99,9 @@ def test_a_320_x_240_walk_is_tracked_with_the_icp_at_160_x_120_or_at_its_own_siz
 
 
 @functools.cache
-def noisy_sequence(frames: int = 150) -> tuple[np.ndarray, np.ndarray]:
+def noisy_sequence(
+    frames: int = 150, intrinsics: CameraIntrinsics = INTRINSICS, noise_seed: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
     """The walk's first `frames` frames (5 s at 30 Hz) with Kinect-like depth noise, holes and dropouts."""
     from fmfusion_jax.simulation.procedural import add_object, camera_trajectory, empty_room
     from fmfusion_jax.simulation.scene_views import render_frame
@@ -123,7 +110,8 @@ def noisy_sequence(frames: int = 150) -> tuple[np.ndarray, np.ndarray]:
     room = add_object(room, "bed", [((1.0, 1.1, 0.3), (1.4, 1.9, 0.6), 0.0)])
     room = add_object(room, "table", [((3.0, 3.0, 0.375), (1.0, 0.8, 0.75), 0.0)])
     poses = camera_trajectory(room, LOOP_FRAMES)[:frames]
-    depths = [render_frame(room, T, INTRINSICS, rng=np.random.default_rng([3, k])).depth for k, T in enumerate(poses)]
+    rngs = [np.random.default_rng([noise_seed, k]) for k in range(len(poses))]
+    depths = [render_frame(room, T, intrinsics, rng=rng).depth for T, rng in zip(poses, rngs)]
     return poses, np.stack([np.where(np.isfinite(d), d, 0.0) for d in depths]).astype(np.float32)
 
 

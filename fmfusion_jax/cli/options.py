@@ -59,26 +59,25 @@ def add_max_frames(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help=help)
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: a whole number of at least 1 (anything else is a usage error naming the value)."""
+def _int_at_least(text: str, least: int) -> int:
+    """`text` as a whole number of at least `least`; anything else is a usage error naming the value."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    if value < least:
+        raise argparse.ArgumentTypeError(f"must be at least {least}, got {value}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number of at least 1."""
+    return _int_at_least(text, 1)
 
 
 def non_negative_int(text: str) -> int:
-    """An argparse type: a whole number of at least 0 (anything else is a usage error naming the value)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
-    return value
+    """An argparse type: a whole number of at least 0."""
+    return _int_at_least(text, 0)
 
 
 def add_depth_max(parser: argparse.ArgumentParser) -> None:

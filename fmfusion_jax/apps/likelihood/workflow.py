@@ -130,8 +130,11 @@ def real_case(
 
 
 def with_likelihood(config: PipelineConfig, likelihood: str | Path) -> PipelineConfig:
-    """The config with `label_fusion.likelihood` set (a packaged name or a CSV path)."""
-    label_fusion = config.label_fusion.model_copy(update={"likelihood": str(likelihood)})
+    """The config with `label_fusion.likelihood` set (a packaged name or a CSV path), fused as given
+    (`label_fusion.normalize_columns` off): the workflow compares and fits the matrices themselves, and the
+    calibration's model (`calibrate.class_log_probs`) is the additive update with the matrix as it is."""
+    update = {"likelihood": str(likelihood), "normalize_columns": False}
+    label_fusion = config.label_fusion.model_copy(update=update)
     return config.model_copy(update={"label_fusion": label_fusion})
 
 
