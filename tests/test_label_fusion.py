@@ -308,11 +308,11 @@ def test_every_class_detected_as_the_statistical_matrix_says_fuses_to_itself_wit
     assert wrong == {"wall": "bookshelf", "curtain": "shower curtain"}
 
 
-def test_the_map_fuses_with_normalized_columns_unless_the_config_says_otherwise():
+def test_the_map_fuses_with_the_published_columns_unless_the_config_normalizes_them():
     from fmfusion_jax.config import load_config
     from fmfusion_jax.mapping.engine_configs import fusion_likelihood
 
     config = load_config("scannet")
-    np.testing.assert_allclose(fusion_likelihood(config), normalize_columns(LIKELIHOOD), rtol=1e-6)
-    config.label_fusion.normalize_columns = False
     np.testing.assert_allclose(fusion_likelihood(config), LIKELIHOOD, rtol=1e-6)
+    config.label_fusion.normalize_columns = True
+    np.testing.assert_allclose(fusion_likelihood(config), normalize_columns(LIKELIHOOD), rtol=1e-6)

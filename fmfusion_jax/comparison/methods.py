@@ -62,10 +62,9 @@ class Method:
 
 #: Config overrides that restore the map of v0.1 (before the robustness work): membership by hits alone, no
 #: reunion of fragments, no veto of merges the detector contradicts, confidence = class probability, export of
-#: any slot by the nearest point, no floor filter, one class per instance in the benchmark files, the likelihood's
-#: columns as published. (The motion schedule needs no override: the experiments' configs fix the detection stride.)
+#: any slot by the nearest point, no floor filter, one class per instance in the benchmark files. (The motion
+#: schedule needs no override: the experiments' configs fix the detection stride.)
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
-    "label_fusion.normalize_columns=false",
     "detections.floor_up_axis=none",
     "instances.contrary_vote_weight=0",
     "refinement.reunite_min_frames=0",
