@@ -161,10 +161,10 @@ def run_and_export(
             observer.close(fusion.mapper)
         if not complete:
             log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
-        result = fusion.finalize()
+        result = fusion.finalize()  # trims the C heap (`Mapper.finalize`)
         if last_in_process:
             jax.clear_caches()
-        host_memory.trim_heap()  # what fusion and compilation freed, before the outputs' temporaries
+            host_memory.trim_heap()  # the compiled steps just dropped, before the outputs' temporaries
         try:
             timings_ms = getattr(detection_source, "timings_ms", None)
             detection_ms = timings_ms() if callable(timings_ms) else None
