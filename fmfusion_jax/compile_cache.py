@@ -12,14 +12,28 @@ The `fmfusion` commands turn it on (`enable_compile_cache()`), and so does the P
 unless the process chose a cache folder of its own.
 `FMFUSION_COMPILE_CACHE=off` turns it off, `FMFUSION_COMPILE_CACHE=DIR` moves it (default:
 `$XDG_CACHE_HOME/fmfusion-jax/xla`, i.e. `~/.cache/fmfusion-jax/xla`).
+
+JAX's cache still traces and lowers each step before it can look it up (~0.7 s of Python for the fusion and merge
+steps of a room). The engine's main steps (`engine.saved_steps`) are also saved whole in the same folder
+(`fmfusion-*.step`, beside JAX's `*-cache` entries) when they are compiled: a later process loads them without
+tracing. Their key is the step, its static arguments, its arguments' shapes and types, the source of the engine and
+of the package's top-level modules (an edit there invalidates them), the JAX and jaxlib versions, the device, the
+CPU's features, `XLA_FLAGS` and JAX's settings.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
 import os
+import pickle
+import platform
 import sys
+import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +78,8 @@ def enable_compile_cache(path: str | Path | None = None) -> Path | None:
 
         jax.config.update("jax_compilation_cache_dir", str(folder))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # every step: entries are small
+    global _STORE
+    _STORE = ExecutableStore(folder)
     return folder
 
 
@@ -77,4 +93,145 @@ def use_compile_cache() -> None:
         enable_compile_cache()
 
 
-__all__ = ["ENV", "compile_cache_dir", "enable_compile_cache", "use_compile_cache", "user_cache_dir"]
+class ExecutableStore:
+    """Compiled steps saved whole (`jax.experimental.serialize_executable`), one file per step and key, in `folder`.
+
+    `load_or_compile` returns a step's executable for a key: loaded from its file when there is one, else
+    compiled (JAX's cache may load it, after tracing and lowering) and saved. A file that cannot be read or
+    written costs only the time: the step is compiled as usual (logged)."""
+
+    #: Bumped when what a file holds changes.
+    FORMAT = 1
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+
+    def path(self, name: str, key: str) -> Path:
+        """The file of step `name` under `key` (the step's static arguments and its arguments' types)."""
+        digest = hashlib.sha256(f"{self.FORMAT}|{name}|{key}|{_code_digest()}|{_environment()}".encode()).hexdigest()
+        return self.folder / f"fmfusion-{name.rsplit('.', 1)[-1]}-{digest[:40]}.step"
+
+    def load_or_compile(self, name: str, key: str, compile_step: Callable[[], Any]) -> Any:
+        """The executable of step `name` under `key`: loaded, or `compile_step()` (a `jax.stages.Compiled`) saved."""
+        from jax.experimental import serialize_executable  # lazy: JAX
+
+        path = self.path(name, key)
+        if path.is_file():
+            try:
+                payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+                return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+            except Exception as error:  # noqa: BLE001 - a damaged or foreign file: compile instead (and replace it)
+                log.info("saved step %s unreadable (%s): compiling it", path, error)
+        misses = _compiled_here()
+        compiled = compile_step()
+        if _compiled_here() == misses:
+            # Not compiled here but found (in JAX's cache, or as the same program compiled before in this process):
+            # such an executable saved again does not run (XLA's CPU executables lose kernels: "Function ... not
+            # found"). It is saved by a process that compiles it.
+            return compiled
+        try:
+            data = pickle.dumps(serialize_executable.serialize(compiled))
+            partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
+            partial.write_bytes(data)
+            os.replace(partial, path)  # whole or not at all: processes side by side may write the same step
+        except Exception as error:  # noqa: BLE001 - a backend that cannot serialize, a full disk: not saved
+            log.info("step %s not saved (%s)", name, error)
+        return compiled
+
+
+_STORE: ExecutableStore | None = None
+
+
+def executable_store() -> ExecutableStore | None:
+    """Where this process saves and loads compiled steps: the compile cache's folder once `enable_compile_cache`
+    ran, else None (every step is traced and compiled, or found in a cache the process chose itself)."""
+    return _STORE
+
+
+_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # compiled, or loaded from JAX's cache
+_CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
+_events: dict[tuple[int, str], int] | None = None
+
+
+def _compiled_here() -> int:
+    """Programs this thread compiled so far, not loaded from JAX's cache (JAX monitoring listeners, called in the
+    compiling thread): its compilations less its cache hits. The same program compiled before in this process is
+    neither (JAX keeps it)."""
+    global _events
+    if _events is None:
+        import jax.monitoring  # lazy: JAX
+
+        _events = {}
+        jax.monitoring.register_event_listener(_count_event)
+        jax.monitoring.register_event_duration_secs_listener(_count_duration_event)
+    thread = threading.get_ident()
+    return _events.get((thread, _COMPILE_EVENT), 0) - _events.get((thread, _CACHE_HIT_EVENT), 0)
+
+
+def _count_event(event: str, **kwargs: Any) -> None:
+    if event == _CACHE_HIT_EVENT and _events is not None:
+        key = (threading.get_ident(), event)
+        _events[key] = _events.get(key, 0) + 1
+
+
+def _count_duration_event(event: str, duration_secs: float, **kwargs: Any) -> None:
+    if event == _COMPILE_EVENT and _events is not None:
+        key = (threading.get_ident(), event)
+        _events[key] = _events.get(key, 0) + 1
+
+
+@functools.cache
+def _code_digest() -> str:
+    """SHA-256 of the source of the engine and of the package's top-level modules (what the engine may import: the
+    import contracts keep the layers above out of it): a saved step is never used by other code."""
+    digest = hashlib.sha256()
+    root = Path(__file__).parent
+    for path in sorted([*root.glob("*.py"), *(root / "engine").rglob("*.py")]):
+        digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+@functools.cache
+def _environment() -> str:
+    """What else a compiled step depends on: JAX, jaxlib, the devices, the CPU's features, XLA's flags and JAX's
+    settings (all but the logging and caching ones)."""
+    import jax  # lazy: JAX
+    import jax.extend
+    import jaxlib
+
+    cpu_flags = ""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            cpu_flags = next((line for line in cpuinfo if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        pass
+    backend = jax.extend.backend.get_backend()
+    settings = sorted(
+        (name, repr(value))
+        for name, value in jax.config.values.items()
+        if not any(word in name for word in ("cache", "log", "explain", "traceback"))
+    )
+    return repr(
+        (
+            jax.__version__,
+            jaxlib.__version__,
+            backend.platform,
+            backend.platform_version,
+            [device.device_kind for device in jax.devices()],
+            platform.machine(),
+            cpu_flags,
+            os.environ.get("XLA_FLAGS", ""),
+            settings,
+        )
+    )
+
+
+__all__ = [
+    "ENV",
+    "ExecutableStore",
+    "compile_cache_dir",
+    "enable_compile_cache",
+    "executable_store",
+    "use_compile_cache",
+    "user_cache_dir",
+]

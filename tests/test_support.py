@@ -156,3 +156,23 @@ def test_floor_vertices_are_the_up_facing_ones_near_the_floor():
     assert on_floor[floor_top].all() and (z[floor_top] == 0).all()
     assert not on_floor[~floor_top].any()  # the box: its base corners are near the floor but face sideways
     assert not floor_vertices(mesh.vertices, mesh.faces, (0.0, 0.0, 1.0), -1.0, 0.05).any()  # a floor far below
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), degenerate=st.booleans())
+def test_vertex_normals_are_trimeshs(seed, degenerate):
+    """The floor test's normals without trimesh: its angle-weighted vertex normals (the oracle), on random meshes
+    with vertices of no face, repeated corners and zero-area faces."""
+    import trimesh
+
+    from fmfusion_jax.io.vertex_transfer import vertex_normals
+
+    rng = np.random.default_rng(seed)
+    vertices = rng.normal(size=(30, 3))
+    faces = rng.integers(0, 25, size=(40, 3))  # vertices 25..29 in no face
+    if degenerate:
+        faces[:5, 1] = faces[:5, 0]  # a repeated corner: no normal
+        vertices[26] = vertices[27]  # two vertices at one place
+        faces[5] = (26, 27, 3)
+    expected = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
+    np.testing.assert_allclose(vertex_normals(vertices, faces), expected, rtol=0, atol=1e-12)

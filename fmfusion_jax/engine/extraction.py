@@ -289,8 +289,12 @@ def extract_instance_points(
     ids, weights = host["instance_id"], host["instance_weight"]
     keep = (ids >= 0) & (weights >= min_weight)
     if min_share > 0:
-        strongest = np.max(np.where(ids >= 0, weights, 0.0), axis=-1, keepdims=True)
-        keep &= weights >= min_share * strongest
+        held = np.where(ids >= 0, weights, 0.0)
+        strongest = held[..., 0].copy()  # slot by slot: numpy reduces a short last axis ~7x slower
+        for slot in range(1, held.shape[-1]):
+            np.maximum(strongest, held[..., slot], out=strongest)
+        del held
+        keep &= weights >= min_share * strongest[..., None]
     if on_surface:
         band = config.voxel_size if surface_band is None else surface_band
         surface = (host["weight"] >= min_tsdf_weight) & (np.abs(host["tsdf"]) * config.sdf_trunc <= band)

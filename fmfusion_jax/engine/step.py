@@ -36,6 +36,7 @@ from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.detections import DetectionBatch
 from fmfusion_jax.engine.instance_volume import integrate_instances_unjitted, pixel_cells, pixel_instance_slots, pixel_voxels
 from fmfusion_jax.engine.occupied_cells import census as occupied_census
+from fmfusion_jax.engine.saved_steps import saved_step
 from fmfusion_jax.engine.state import InstanceTable, MapState, VoxelBlocks
 from fmfusion_jax.engine.tsdf import integrate_tsdf
 
@@ -136,7 +137,7 @@ class RefineStats(NamedTuple):
     dropped_cells: jax.Array  # int32[]: occupied cells left out of the overlap counts (capacity)
 
 
-@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
+@saved_step(static_argnames=("config",), donate_argnames=("state",))
 def integrate_frame(state: MapState, frame: FrameInputs, config: MapConfig) -> MapState:
     """Integrates one frame into the global TSDF (no detections)."""
     blocks = integrate_tsdf(state.blocks, frame.depth, frame.color, frame.T_world_camera, frame.intrinsics, config)
@@ -192,7 +193,7 @@ def detection_frame(
 DETECTION_STAGES = ("tsdf", "detections", "projection", "association", "label_fusion", "integration")
 
 
-@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
+@saved_step(static_argnames=("config",), donate_argnames=("state",))
 def fuse_detections(
     state: MapState, frame: FrameInputs, batch: DetectionBatch, likelihood: jax.Array, config: MapConfig, fusion: FusionConfig
 ) -> tuple[MapState, FrameStats]:
@@ -459,7 +460,7 @@ class _MergeParams(NamedTuple):
     separate: ArrayLike  # int32[]: `FusionConfig.separate_min_frames` (0: off)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "label_mode", "veto"), donate_argnames=("state",))
+@saved_step(static_argnames=("config", "label_mode", "veto"), donate_argnames=("state",))
 def _merge_step(
     state: MapState, params: _MergeParams, config: MapConfig, label_mode: str, veto: bool
 ) -> tuple[MapState, RefineStats]:
@@ -622,7 +623,7 @@ def refine(state: MapState, config: MapConfig, fusion: FusionConfig) -> tuple[Ma
     return _merge_step(state, params, config=config, label_mode=fusion.label_mode, veto=fusion.separate_min_frames > 0)
 
 
-@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
+@saved_step(static_argnames=("config",), donate_argnames=("state",))
 def fuse_and_refine(
     state: MapState, frame: FrameInputs, batch: DetectionBatch, likelihood: jax.Array, config: MapConfig, fusion: FusionConfig
 ) -> tuple[MapState, jax.Array]:
@@ -647,7 +648,7 @@ def unpack_statistics(packed: np.ndarray) -> tuple[FrameStats, RefineStats]:
     return FrameStats(*packed[:frame_fields]), RefineStats(*packed[frame_fields:])
 
 
-@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("state",))
+@saved_step(static_argnames=("config",), donate_argnames=("state",))
 def fuse_geometry(state: MapState, config: MapConfig, fusion: FusionConfig) -> MapState:
     """Instance-geometry fusion: drop instance voxels the global surface does not support.
 

@@ -15,6 +15,7 @@ import jax
 
 from fmfusion_jax import host_memory
 from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.engine.saved_steps import clear_executables
 from fmfusion_jax.errors import DataError, UserError
 from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 from fmfusion_jax.io.scene import Scene
@@ -164,6 +165,7 @@ def run_and_export(
         result = fusion.finalize()  # trims the C heap (`Mapper.finalize`)
         if last_in_process:
             jax.clear_caches()
+            clear_executables()
             host_memory.trim_heap()  # the compiled steps just dropped, before the outputs' temporaries
         try:
             timings_ms = getattr(detection_source, "timings_ms", None)

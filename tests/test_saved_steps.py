@@ -1,0 +1,104 @@
+"""Steps saved whole (`engine.saved_steps`, `compile_cache.ExecutableStore`): a later process loads them without
+tracing, and they compute what the jitted function computes."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fmfusion_jax import compile_cache
+from fmfusion_jax.engine.saved_steps import saved_step
+
+_SCRIPT = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    from fmfusion_jax import compile_cache
+    from fmfusion_jax.engine.saved_steps import saved_step
+
+    traces = []
+
+    @saved_step(static_argnames=("power",), donate_argnames=("state",))
+    def update(state, frame, power):
+        traces.append(1)  # runs only while tracing
+        return state + frame**power, (state * frame).sum()
+
+    compile_cache.enable_compile_cache(sys.argv[1])
+    state, total = update(np.arange(6.0, dtype=np.float32), np.full(6, 2.0, np.float32), power=3)
+    print(len(traces), state.tolist(), float(total))
+    """
+)
+
+
+def test_a_later_process_loads_the_step_without_tracing_it(tmp_path):
+    folder = tmp_path / "cache"
+    script = tmp_path / "step.py"
+    script.write_text(_SCRIPT)
+    env = {k: v for k, v in os.environ.items() if k != compile_cache.ENV}
+    runs = [subprocess.run([sys.executable, str(script), str(folder)], capture_output=True, text=True, env=env) for _ in range(2)]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+    first, second = (run.stdout.split(" ", 1) for run in runs)
+    assert first[0] == "1" and second[0] == "0"  # traced once, by the first process only
+    assert first[1] == second[1]
+    assert first[1].strip() == f"{[float(x + 8) for x in range(6)]} 30.0"
+    assert len(list(folder.glob("fmfusion-update-*.step"))) == 1
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    store = compile_cache.ExecutableStore(tmp_path)
+    monkeypatch.setattr(compile_cache, "_STORE", store)
+    return store
+
+
+def _step():
+    @saved_step(static_argnames=("scale",))
+    def scaled_sum(x, y, scale):
+        return (x * scale + y).sum(), x - y
+
+    return scaled_sum
+
+
+def test_a_saved_step_computes_what_its_jitted_function_computes(store):
+    step = _step()
+    x, y = jnp.arange(5.0), jnp.ones(5)
+    expected = step.__wrapped__(x, y, 3.0)
+    got = step(x, y, 3.0)
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+    step(x, y, 3.0)
+    step(np.arange(5.0, dtype=np.float32), y, 3.0)  # a host array of the same type: the same executable
+    assert step._cache_size() == 1
+    np.testing.assert_array_equal(step(x, y, scale=2.0)[0], ((x * 2 + y).sum()))  # another static value: another one
+    assert step._cache_size() == 2
+    # inside another trace the step is traced into the caller
+    np.testing.assert_array_equal(jax.jit(lambda a: step(a, y, 3.0)[0])(x), expected[0])
+    assert len(step._executables) == 2  # traced into the caller's executable: none of the step's own
+
+
+def test_a_damaged_file_is_compiled_again_and_replaced(store):
+    step = _step()
+    x, y = jnp.arange(4.0), jnp.ones(4)
+    step(x, y, 2.0)
+    (saved,) = store.folder.glob("fmfusion-scaled_sum-*.step")
+    saved.write_bytes(b"not a step")
+    step.clear()
+    jax.clear_caches()  # as in a new process: compiled anew (a program this process has compiled is not saved again)
+    np.testing.assert_array_equal(step(x, y, 2.0)[0], (x * 2 + y).sum())
+    assert saved.read_bytes() != b"not a step"
+
+
+def test_without_a_store_the_step_is_its_jitted_function(monkeypatch, tmp_path):
+    monkeypatch.setattr(compile_cache, "_STORE", None)
+    step = _step()
+    step(jnp.arange(3.0), jnp.ones(3), 1.0)
+    assert step._cache_size() == 1  # the jit's own entry
+    assert not list(tmp_path.iterdir())
