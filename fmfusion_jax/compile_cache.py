@@ -106,22 +106,26 @@ class ExecutableStore:
     def __init__(self, folder: str | Path):
         self.folder = Path(folder)
 
-    def path(self, name: str, key: str) -> Path:
-        """The file of step `name` under `key` (the step's static arguments and its arguments' types)."""
-        digest = hashlib.sha256(f"{self.FORMAT}|{name}|{key}|{_code_digest()}|{_environment()}".encode()).hexdigest()
+    def path(self, name: str, key: str, source: str | None = None) -> Path:
+        """The file of step `name` under `key` (the step's static arguments and its arguments' types), defined in the
+        file `source` (its content is in the key too: a step may be defined outside the package)."""
+        text = f"{self.FORMAT}|{name}|{key}|{_code_digest()}|{_file_digest(source)}|{_environment()}"
+        digest = hashlib.sha256(text.encode()).hexdigest()
         return self.folder / f"fmfusion-{name.rsplit('.', 1)[-1]}-{digest[:40]}.step"
 
-    def load_or_compile(self, name: str, key: str, compile_step: Callable[[], Any]) -> Any:
-        """The executable of step `name` under `key`: loaded, or `compile_step()` (a `jax.stages.Compiled`) saved."""
+    def load_or_compile(self, name: str, key: str, compile_step: Callable[[], Any], source: str | None = None) -> Any:
+        """The executable of step `name` (defined in the file `source`) under `key`: loaded, or `compile_step()` (a
+        `jax.stages.Compiled`) saved."""
         from jax.experimental import serialize_executable  # lazy: JAX
 
-        path = self.path(name, key)
+        path = self.path(name, key, source)
         if path.is_file():
             try:
                 payload, in_tree, out_tree = pickle.loads(path.read_bytes())
                 return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
-            except Exception as error:  # noqa: BLE001 - a damaged or foreign file: compile instead (and replace it)
-                log.info("saved step %s unreadable (%s): compiling it", path, error)
+            except Exception as error:  # noqa: BLE001 - a damaged file: compile instead
+                log.info("saved step %s unreadable (%s): removed, compiling the step", path, error)
+                path.unlink(missing_ok=True)  # ours (named by this store): saved again when next compiled anew
         misses = _compiled_here()
         compiled = compile_step()
         if _compiled_here() == misses:
@@ -189,6 +193,17 @@ def _code_digest() -> str:
     for path in sorted([*root.glob("*.py"), *(root / "engine").rglob("*.py")]):
         digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()
+
+
+@functools.cache
+def _file_digest(path: str | None) -> str:
+    """SHA-256 of a file's content (empty without a file)."""
+    if path is None:
+        return ""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return ""
 
 
 @functools.cache

@@ -36,6 +36,7 @@ class SavedStep:
     def __init__(self, jitted: Any, fn: Callable[..., Any], static_argnames: tuple[str, ...]):
         self._jitted = jitted
         self._name = f"{fn.__module__}.{fn.__qualname__}"
+        self._source = inspect.getsourcefile(fn)  # in the key: a step defined outside the package's digested source
         self._static_names = frozenset(static_argnames)
         parameters = list(inspect.signature(fn).parameters)
         self._static_positions = frozenset(i for i, name in enumerate(parameters) if name in self._static_names)
@@ -64,7 +65,9 @@ class SavedStep:
         executable = self._executables.get(key)
         if executable is None:
             described = repr((statics, str(tree), key[2]))
-            executable = store.load_or_compile(self._name, described, lambda: self._jitted.lower(*args, **kwargs).compile())
+            executable = store.load_or_compile(
+                self._name, described, lambda: self._jitted.lower(*args, **kwargs).compile(), source=self._source
+            )
             self._executables[key] = executable
         return executable(*dynamic_args, **dynamic_kwargs)
 
