@@ -23,8 +23,10 @@ CPU's features, `XLA_FLAGS` and JAX's settings.
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import hashlib
+import json
 import logging
 import os
 import pickle
@@ -91,6 +93,8 @@ def use_compile_cache() -> None:
 
     if not getattr(jax.config, "jax_compilation_cache_dir", None):
         enable_compile_cache()
+    if _STORE is not None:
+        _STORE.prefetch()  # the steps the last process used, loaded while this one opens and sizes its scene
 
 
 class ExecutableStore:
@@ -102,9 +106,63 @@ class ExecutableStore:
 
     #: Bumped when what a file holds changes.
     FORMAT = 1
+    #: The steps the last process loaded or saved, in the order it first used them (`prefetch` loads them ahead).
+    MANIFEST = "fmfusion-steps-used.json"
 
     def __init__(self, folder: str | Path):
         self.folder = Path(folder)
+        self._used: list[str] = []
+        self._prefetched: dict[str, concurrent.futures.Future] = {}
+        self._lock = threading.Lock()
+
+    def prefetch(self) -> None:
+        """Starts loading, in a background thread, the steps the last process used (its manifest, when it ran the
+        same code): a run's first frame then finds them loaded, while the scene is opened and sized. A step loaded
+        ahead that this process does not ask for costs only that thread's time. Once per store."""
+        with self._lock:
+            if self._prefetched or self._used:
+                return
+            try:
+                manifest = json.loads((self.folder / self.MANIFEST).read_text())
+            except (OSError, ValueError):
+                return
+            if not isinstance(manifest, dict) or manifest.get("code") != _code_digest():
+                return
+            names = [name for name in manifest.get("steps", []) if isinstance(name, str) and (self.folder / name).is_file()]
+            self._prefetched = {name: concurrent.futures.Future() for name in names}
+        if names:
+            threading.Thread(target=self._load_ahead, args=(names,), name="fmfusion-steps", daemon=True).start()
+
+    def _load_ahead(self, names: list[str]) -> None:
+        for name in names:
+            future = self._prefetched.get(name)
+            if future is None or not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(_load_step(self.folder / name))
+            except Exception as error:  # noqa: BLE001 - reported where the step is asked for (compiled instead)
+                future.set_exception(error)
+
+    def forget_prefetched(self) -> None:
+        """Drops the steps loaded ahead that nothing asked for (`engine.saved_steps.clear_executables`)."""
+        with self._lock:
+            for future in self._prefetched.values():
+                future.cancel()
+            self._prefetched = {}
+
+    def _note_used(self, path: Path) -> None:
+        """Adds the step to this process's manifest (written at once: a process may end any time)."""
+        with self._lock:
+            if path.name in self._used:
+                return
+            self._used.append(path.name)
+            text = json.dumps({"code": _code_digest(), "steps": self._used})
+        try:
+            partial = self.folder / f"{self.MANIFEST}.{os.getpid()}.partial"
+            partial.write_text(text)
+            os.replace(partial, self.folder / self.MANIFEST)
+        except OSError as error:
+            log.info("steps used not noted (%s)", error)
 
     def path(self, name: str, key: str, source: str | None = None) -> Path:
         """The file of step `name` under `key` (the step's static arguments and its arguments' types), defined in the
@@ -119,10 +177,20 @@ class ExecutableStore:
         from jax.experimental import serialize_executable  # lazy: JAX
 
         path = self.path(name, key, source)
+        with self._lock:
+            ahead = self._prefetched.pop(path.name, None)
+        if ahead is not None and not ahead.cancelled():
+            try:
+                compiled = ahead.result()
+                self._note_used(path)
+                return compiled
+            except Exception:  # noqa: BLE001 - read again below, where a damaged file is handled
+                pass
         if path.is_file():
             try:
-                payload, in_tree, out_tree = pickle.loads(path.read_bytes())
-                return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+                compiled = _load_step(path)
+                self._note_used(path)
+                return compiled
             except Exception as error:  # noqa: BLE001 - a damaged file: compile instead
                 log.info("saved step %s unreadable (%s): removed, compiling the step", path, error)
                 path.unlink(missing_ok=True)  # ours (named by this store): saved again when next compiled anew
@@ -138,9 +206,18 @@ class ExecutableStore:
             partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
             partial.write_bytes(data)
             os.replace(partial, path)  # whole or not at all: processes side by side may write the same step
+            self._note_used(path)
         except Exception as error:  # noqa: BLE001 - a backend that cannot serialize, a full disk: not saved
             log.info("step %s not saved (%s)", name, error)
         return compiled
+
+
+def _load_step(path: Path) -> Any:
+    """The executable saved in `path` (a `jax.stages.Compiled`)."""
+    from jax.experimental import serialize_executable  # lazy: JAX
+
+    payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+    return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
 
 
 _STORE: ExecutableStore | None = None

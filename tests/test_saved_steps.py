@@ -3,6 +3,7 @@ tracing, and they compute what the jitted function computes."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -31,6 +32,7 @@ _SCRIPT = textwrap.dedent(
         return state + frame**power, (state * frame).sum()
 
     compile_cache.enable_compile_cache(sys.argv[1])
+    compile_cache.use_compile_cache()  # as a Mapper starts: the steps of the last process loaded ahead
     state, total = update(np.arange(6.0, dtype=np.float32), np.full(6, 2.0, np.float32), power=3)
     print(len(traces), state.tolist(), float(total))
     """
@@ -49,7 +51,8 @@ def test_a_later_process_loads_the_step_without_tracing_it(tmp_path):
     assert first[0] == "1" and second[0] == "0"  # traced once, by the first process only
     assert first[1] == second[1]
     assert first[1].strip() == f"{[float(x + 8) for x in range(6)]} 30.0"
-    assert len(list(folder.glob("fmfusion-update-*.step"))) == 1
+    (saved,) = folder.glob("fmfusion-update-*.step")
+    assert json.loads((folder / compile_cache.ExecutableStore.MANIFEST).read_text())["steps"] == [saved.name]
     # an edit of the step's source: the saved executable is not used, the new code runs
     script.write_text(_SCRIPT.replace("state + frame**power", "state - frame**power"))
     edited = subprocess.run([sys.executable, str(script), str(folder)], capture_output=True, text=True, env=env)
@@ -107,3 +110,25 @@ def test_without_a_store_the_step_is_its_jitted_function(monkeypatch, tmp_path):
     step(jnp.arange(3.0), jnp.ones(3), 1.0)
     assert step._cache_size() == 1  # the jit's own entry
     assert not list(tmp_path.iterdir())
+
+
+def test_the_steps_the_last_process_used_are_loaded_ahead(store, monkeypatch):
+    step = _step()
+    x, y = jnp.arange(7.0), jnp.ones(7)
+    expected = step(x, y, 5.0)
+    (saved,) = store.folder.glob("fmfusion-scaled_sum-*.step")
+    later = compile_cache.ExecutableStore(store.folder)  # the next process's store
+    later.prefetch()
+    assert list(later._prefetched) == [saved.name]  # the manifest's steps, being loaded
+    monkeypatch.setattr(compile_cache, "_STORE", later)
+    step.clear()
+
+    class NotCompiled:
+        def lower(self, *args, **kwargs):
+            raise AssertionError("loaded ahead: nothing to trace or compile")
+
+    monkeypatch.setattr(step, "_jitted", NotCompiled())
+    got = step(x, y, 5.0)
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+    assert not later._prefetched  # taken

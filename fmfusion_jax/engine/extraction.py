@@ -256,6 +256,11 @@ def extract_surface_points(state, config: MapConfig, min_weight: float = 1.0, ch
     return _voxel_to_world(np.concatenate(points), config), np.clip(np.round(np.concatenate(colors)), 0, 255).astype(np.uint8)
 
 
+#: Pool rows taken at a time by `extract_instance_points` and `extract_surface_voxels` (their temporaries are a few
+#: bytes per voxel of a slice, not of the pool).
+POOL_SLICE_BLOCKS = 2048
+
+
 def extract_instance_points(
     state,
     config: MapConfig,
@@ -286,31 +291,31 @@ def extract_instance_points(
     if len(host["coords"]) == 0:
         return {}
 
-    ids, weights = host["instance_id"], host["instance_weight"]
-    keep = (ids >= 0) & (weights >= min_weight)
-    if min_share > 0:
-        held = np.where(ids >= 0, weights, 0.0)
-        strongest = held[..., 0].copy()  # slot by slot: numpy reduces a short last axis ~7x slower
-        for slot in range(1, held.shape[-1]):
-            np.maximum(strongest, held[..., slot], out=strongest)
-        del held
-        keep &= weights >= min_share * strongest[..., None]
-    if on_surface:
-        band = config.voxel_size if surface_band is None else surface_band
-        surface = (host["weight"] >= min_tsdf_weight) & (np.abs(host["tsdf"]) * config.sdf_trunc <= band)
-        keep &= surface[..., None]
-    block, voxel, _ = np.nonzero(keep)
-    inst = ids[keep]
-    g = host["coords"][block] * config.block_size + voxel_offsets(config.block_size)[voxel]
-    points = _voxel_to_world(g.astype(np.float64), config)
+    offsets = voxel_offsets(config.block_size)
+    band = config.voxel_size if surface_band is None else surface_band
+    parts: list[tuple[np.ndarray, np.ndarray]] = []
+    for start in range(0, len(host["coords"]), POOL_SLICE_BLOCKS):  # a slice of the pool at a time: small temporaries
+        rows = slice(start, start + POOL_SLICE_BLOCKS)
+        ids, weights = host["instance_id"][rows], host["instance_weight"][rows]
+        keep = (ids >= 0) & (weights >= min_weight)
+        if min_share > 0:
+            held = np.where(ids >= 0, weights, 0.0)
+            strongest = held[..., 0].copy()  # slot by slot: numpy reduces a short last axis ~7x slower
+            for slot in range(1, held.shape[-1]):
+                np.maximum(strongest, held[..., slot], out=strongest)
+            keep &= weights >= min_share * strongest[..., None]
+        if on_surface:
+            tsdf, weight = host["tsdf"][rows], host["weight"][rows]
+            keep &= ((weight >= min_tsdf_weight) & (np.abs(tsdf) * config.sdf_trunc <= band))[..., None]
+        block, voxel, _ = np.nonzero(keep)
+        g = host["coords"][rows][block] * config.block_size + offsets[voxel]
+        parts.append((ids[keep], _voxel_to_world(g.astype(np.float64), config)))
+    inst = np.concatenate([p[0] for p in parts])
+    points = np.concatenate([p[1] for p in parts])
     order = np.argsort(inst, kind="stable")
     inst, points = inst[order], points[order]
     unique, starts = np.unique(inst, return_index=True)
     return {int(i): p for i, p in zip(unique, np.split(points, starts[1:]))}
-
-
-#: Pool rows taken at a time by `extract_surface_voxels` (its temporaries are a few bytes per voxel of a slice).
-SURFACE_SLICE_BLOCKS = 2048
 
 
 def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, band: float | None = None):
@@ -335,8 +340,8 @@ def extract_surface_voxels(state, config: MapConfig, min_weight: float = 1.0, ba
     offsets = voxel_offsets(config.block_size)
     across = _crossings_between_blocks(host, config.block_size, min_weight)
     points, colors = [np.zeros((0, 3), np.float32)], [np.zeros((0, 3), np.uint8)]
-    for start in range(0, len(host["coords"]), SURFACE_SLICE_BLOCKS):
-        rows = slice(start, start + SURFACE_SLICE_BLOCKS)
+    for start in range(0, len(host["coords"]), POOL_SLICE_BLOCKS):
+        rows = slice(start, start + POOL_SLICE_BLOCKS)
         tsdf = host["tsdf"][rows]
         surface = _surface_mask(tsdf, host["weight"][rows] >= min_weight, limit, config.block_size) | across[rows]
         block, voxel = np.nonzero(surface)

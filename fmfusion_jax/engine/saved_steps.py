@@ -99,3 +99,6 @@ def clear_executables() -> None:
     """Drops every saved step's executables held in this process (with `jax.clear_caches()`: all compiled code)."""
     for step in _STEPS:
         step.clear()
+    store = compile_cache.executable_store()
+    if store is not None:
+        store.forget_prefetched()
