@@ -70,11 +70,17 @@ def _inside_share(points: np.ndarray, center: np.ndarray, extent: np.ndarray, ya
 Box = tuple[np.ndarray, np.ndarray, float]
 
 
-def _gap(a: Box, b: Box) -> float:
-    """Distance between two boxes, approximated from sample points reaching their faces (0 when they overlap)."""
+def _face_samples(box: Box) -> np.ndarray:
+    """`_gap`'s sample points of a box: a 7^3 grid reaching its faces."""
+    return _samples(*box, n=7, closed=True)
+
+
+def _gap(a: Box, b: Box, samples_a: np.ndarray | None = None, samples_b: np.ndarray | None = None) -> float:
+    """Distance between two boxes, approximated from sample points reaching their faces (0 when they overlap);
+    `samples_*`: their `_face_samples`, when the caller made them already."""
     gaps = []
-    for one, other in ((a, b), (b, a)):
-        local = _to_local(_samples(*one, n=7, closed=True), other[0], other[2])
+    for one, samples, other in ((a, samples_a, b), (b, samples_b, a)):
+        local = _to_local(_face_samples(one) if samples is None else samples, other[0], other[2])
         gaps.append(float(np.min(np.linalg.norm(np.maximum(np.abs(local) - other[1] / 2, 0.0), axis=1))))
     return min(gaps)
 
@@ -140,12 +146,13 @@ def build_scene_graph(records: Sequence[dict], settings: GraphSettings = GraphSe
             score = 1.0 - max(0.0, bottoms[ia] - floor_z) / settings.floor_gap
             edges.append({"source": ia, "relation": "on", "target": FLOOR_NODE, "score": round(max(score, 0.01), 3)})
 
+    face_samples = {r["id"]: _face_samples(boxes[r["id"]]) for r in objects}  # once per box, not per pair
     for i, a in enumerate(objects):
         for b in objects[i + 1 :]:
             ia, ib = a["id"], b["id"]
             if {(ia, ib), (ib, ia)} & (supported | contained):
                 continue
-            gap = _gap(boxes[ia], boxes[ib])
+            gap = _gap(boxes[ia], boxes[ib], face_samples[ia], face_samples[ib])
             if gap < settings.near_distance:
                 score = round(1.0 - gap / settings.near_distance, 3)
                 edges.append({"source": ia, "relation": "near", "target": ib, "score": score})
