@@ -362,6 +362,8 @@ def _crossings_between_blocks(host: dict, bs: int, min_weight: float) -> np.ndar
     linear = ((coords[:, 0] - low[0]) * span[1] + (coords[:, 1] - low[1])) * span[2] + (coords[:, 2] - low[2])
     order = np.argsort(linear)
     face = np.stack(np.meshgrid(np.arange(bs), np.arange(bs), indexing="ij"), -1).reshape(-1, 2)
+    voxels = marked.shape[1]
+    tsdf, observed, flat = host["tsdf"].reshape(-1), (host["weight"] >= min_weight).reshape(-1), marked.reshape(-1)
     for axis in range(3):
         step = np.zeros(3, np.int64)
         step[axis] = 1
@@ -372,12 +374,13 @@ def _crossings_between_blocks(host: dict, bs: int, min_weight: float) -> np.ndar
         last, first = (np.insert(face, axis, value, axis=1) for value in (bs - 1, 0))
         last_voxel = local_voxel_index(last[:, 0], last[:, 1], last[:, 2], bs)
         first_voxel = local_voxel_index(first[:, 0], first[:, 1], first[:, 2], bs)
-        at_last, at_first = (here[:, None], last_voxel[None, :]), (there[:, None], first_voxel[None, :])
-        t_last, t_first = host["tsdf"][at_last], host["tsdf"][at_first]
-        valid = (host["weight"][at_last] >= min_weight) & (host["weight"][at_first] >= min_weight)
-        change = valid & ((t_last >= 0) != (t_first >= 0))
-        marked[at_last] |= change & (t_last >= 0)
-        marked[at_first] |= change & (t_first >= 0)
+        # flat indices into the (B, V) rows: `np.take` on them is ~3x quicker than indexing with two arrays
+        at_last = here[:, None] * voxels + last_voxel[None, :]
+        at_first = there[:, None] * voxels + first_voxel[None, :]
+        t_last, t_first = np.take(tsdf, at_last), np.take(tsdf, at_first)
+        change = np.take(observed, at_last) & np.take(observed, at_first) & ((t_last >= 0) != (t_first >= 0))
+        flat[at_last] |= change & (t_last >= 0)  # a voxel once per axis: no index repeats
+        flat[at_first] |= change & (t_first >= 0)
     return marked
 
 
