@@ -229,7 +229,8 @@ def executable_store() -> ExecutableStore | None:
     return _STORE
 
 
-_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # compiled, or loaded from JAX's cache
+#: JAX's monitoring event of a program compiled, or loaded from JAX's cache (`host_memory.compilations` counts it too).
+BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 _CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
 _events: dict[tuple[int, str], int] | None = None
 
@@ -246,7 +247,7 @@ def _compiled_here() -> int:
         jax.monitoring.register_event_listener(_count_event)
         jax.monitoring.register_event_duration_secs_listener(_count_duration_event)
     thread = threading.get_ident()
-    return _events.get((thread, _COMPILE_EVENT), 0) - _events.get((thread, _CACHE_HIT_EVENT), 0)
+    return _events.get((thread, BACKEND_COMPILE_EVENT), 0) - _events.get((thread, _CACHE_HIT_EVENT), 0)
 
 
 def _count_event(event: str, **kwargs: Any) -> None:
@@ -256,7 +257,7 @@ def _count_event(event: str, **kwargs: Any) -> None:
 
 
 def _count_duration_event(event: str, duration_secs: float, **kwargs: Any) -> None:
-    if event == _COMPILE_EVENT and _events is not None:
+    if event == BACKEND_COMPILE_EVENT and _events is not None:
         key = (threading.get_ident(), event)
         _events[key] = _events.get(key, 0) + 1
 

@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from fmfusion_jax.compile_cache import BACKEND_COMPILE_EVENT
+
 if TYPE_CHECKING:
     import jax
 
@@ -92,8 +94,6 @@ def trim_heap() -> None:
         libc.malloc_trim(0)
 
 
-#: JAX's monitoring event for an executable compiled or loaded from the compile cache.
-_BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 _compiled = 0
 _listening = False
 
@@ -112,7 +112,7 @@ def compilations() -> int:
 
 def _count_compilation(event: str, duration_secs: float, **kwargs: str | int) -> None:
     global _compiled
-    if event == _BACKEND_COMPILE_EVENT:
+    if event == BACKEND_COMPILE_EVENT:
         _compiled += 1
 
 

@@ -75,12 +75,12 @@ def _face_samples(box: Box) -> np.ndarray:
     return _samples(*box, n=7, closed=True)
 
 
-def _gap(a: Box, b: Box, samples_a: np.ndarray | None = None, samples_b: np.ndarray | None = None) -> float:
+def _gap(a: Box, b: Box, samples_a: np.ndarray, samples_b: np.ndarray) -> float:
     """Distance between two boxes, approximated from sample points reaching their faces (0 when they overlap);
-    `samples_*`: their `_face_samples`, when the caller made them already."""
+    `samples_*`: their `_face_samples` (made once per box)."""
     gaps = []
-    for one, samples, other in ((a, samples_a, b), (b, samples_b, a)):
-        local = _to_local(_face_samples(one) if samples is None else samples, other[0], other[2])
+    for samples, other in ((samples_a, b), (samples_b, a)):
+        local = _to_local(samples, other[0], other[2])
         gaps.append(float(np.min(np.linalg.norm(np.maximum(np.abs(local) - other[1] / 2, 0.0), axis=1))))
     return min(gaps)
 

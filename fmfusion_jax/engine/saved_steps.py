@@ -21,9 +21,12 @@ from fmfusion_jax import compile_cache
 
 def _signature(leaf: Any) -> tuple:
     """What a compiled step depends on of one argument leaf: shape, dtype, weak type (a host value and a device
-    array of one type share the executable, which takes both)."""
-    aval = leaf.aval if isinstance(leaf, jax.Array) else jax.typeof(leaf)
-    return (aval.shape, str(aval.dtype), aval.weak_type)
+    array of one type share the executable, which takes both). Read from the array's attributes: every call of a
+    step makes one per leaf (~0.3 us each, against ~2 us through its `aval`)."""
+    if isinstance(leaf, jax.Array):
+        return (leaf.shape, leaf.dtype, leaf.weak_type)
+    aval = jax.typeof(leaf)
+    return (aval.shape, aval.dtype, aval.weak_type)
 
 
 class SavedStep:
@@ -72,7 +75,7 @@ class SavedStep:
         return executable(*dynamic_args, **dynamic_kwargs)
 
     def clear(self) -> None:
-        """Drops the executables held (`jax.clear_caches` drops the jitted function's)."""
+        """Drops the executables this step holds (`clear_executables` drops every step's, and JAX's)."""
         self._executables.clear()
 
     def _cache_size(self) -> int:
@@ -96,7 +99,9 @@ def saved_step(*, static_argnames: tuple[str, ...] = (), donate_argnames: tuple[
 
 
 def clear_executables() -> None:
-    """Drops every saved step's executables held in this process (with `jax.clear_caches()`: all compiled code)."""
+    """Drops all compiled code this process holds: JAX's caches (`jax.clear_caches()`), every saved step's
+    executables and the steps loaded ahead."""
+    jax.clear_caches()
     for step in _STEPS:
         step.clear()
     store = compile_cache.executable_store()

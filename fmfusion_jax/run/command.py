@@ -11,8 +11,6 @@ import time
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 
-import jax
-
 from fmfusion_jax import host_memory
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine.saved_steps import clear_executables
@@ -164,7 +162,6 @@ def run_and_export(
             log.warning("interrupted at frame %d of %d: writing the map so far into %s", fusion.position, len(scene), staging)
         result = fusion.finalize()  # trims the C heap (`Mapper.finalize`)
         if last_in_process:
-            jax.clear_caches()
             clear_executables()
             host_memory.trim_heap()  # the compiled steps just dropped, before the outputs' temporaries
         try:
