@@ -130,13 +130,15 @@ class ExecutableStore:
                 return
             names = [name for name in manifest.get("steps", []) if isinstance(name, str) and (self.folder / name).is_file()]
             self._prefetched = {name: concurrent.futures.Future() for name in names}
-        if names:
-            threading.Thread(target=self._load_ahead, args=(names,), name="fmfusion-steps", daemon=True).start()
+            ahead = list(self._prefetched.items())
+        if ahead:
+            threading.Thread(target=self._load_ahead, args=(ahead,), name="fmfusion-steps", daemon=True).start()
 
-    def _load_ahead(self, names: list[str]) -> None:
-        for name in names:
-            future = self._prefetched.get(name)
-            if future is None or not future.set_running_or_notify_cancel():
+    def _load_ahead(self, ahead: list[tuple[str, concurrent.futures.Future]]) -> None:
+        # the futures themselves, not the dict's entries: a step asked for before its turn has been taken out of the
+        # dict by `load_or_compile`, which waits on its future
+        for name, future in ahead:
+            if not future.set_running_or_notify_cancel():
                 continue
             try:
                 future.set_result(_load_step(self.folder / name))

@@ -132,3 +132,41 @@ def test_the_steps_the_last_process_used_are_loaded_ahead(store, monkeypatch):
     np.testing.assert_array_equal(got[0], expected[0])
     np.testing.assert_array_equal(got[1], expected[1])
     assert not later._prefetched  # taken
+
+
+def test_a_step_asked_for_before_its_turn_to_be_loaded_ahead_is_still_loaded(tmp_path, monkeypatch):
+    """The loading thread works through the manifest in order; a step taken out of the queue by `load_or_compile`
+    while an earlier one is still loading must still get its executable (it waited forever: a hung run)."""
+    import threading
+
+    store = compile_cache.ExecutableStore(tmp_path)
+    first, second = store.path("first", "key"), store.path("second", "key")
+    for path in (first, second):
+        path.write_bytes(b"saved")
+    manifest = {"code": compile_cache._code_digest(), "steps": [first.name, second.name]}
+    (tmp_path / store.MANIFEST).write_text(json.dumps(manifest))
+    release = threading.Event()
+
+    def load_step(path):
+        if path.name == first.name:
+            release.wait(10)  # the first step loads slowly
+        return f"executable of {path.name}"
+
+    monkeypatch.setattr(compile_cache, "_load_step", load_step)
+    store.prefetch()
+    got = []
+
+    def ask():
+        got.append(store.load_or_compile("second", "key", lambda: pytest.fail("saved: nothing to compile")))
+
+    asking = threading.Thread(target=ask, daemon=True)
+    asking.start()
+    for _ in range(1000):  # until the second step is taken out of the queue
+        with store._lock:
+            if second.name not in store._prefetched:
+                break
+        asking.join(0.01)
+    release.set()
+    asking.join(10)
+    assert not asking.is_alive(), "load_or_compile waited for a step the loading thread skipped"
+    assert got == [f"executable of {second.name}"]
