@@ -13,6 +13,9 @@ from fmfusion_jax.engine import instance_volume as iv
 from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.extraction import (
+    _chunks,
+    _dilated_by_one,
+    _host_blocks,
     _pool_blocks,
     _raster_blocks,
     _sample_linear,
@@ -270,3 +273,33 @@ def test_colours_on_edges_are_the_trilinear_samples_bit_for_bit(seed, share_insi
     points[inside] = rng.uniform(0, 8, (int(inside.sum()), 3)).astype(np.float32)
     points[: n // 10] = np.floor(points[: n // 10])  # on a voxel: no fractional coordinate
     np.testing.assert_array_equal(_sample_on_edges(volume, points), _sample_linear(volume, points))
+
+
+@pytest.mark.parametrize("chunk_blocks", [1, 2, 3])
+def test_pool_colours_are_the_dense_colour_volume_bit_for_bit(chunk_blocks):
+    """The mesh reads its vertices' colours from the pool rows (`_PoolColors`): every voxel of every chunk, the
+    apron and the unallocated blocks (0) included, as the dense volume holds it."""
+    blocks = sphere_blocks(lambda x, y, z: x < 0.1)
+    host = _host_blocks(blocks)
+    dense = _chunks(host, SPHERE_CONFIG, chunk_blocks, 1.0, dense_color=True)
+    pooled = _chunks(host, SPHERE_CONFIG, chunk_blocks, 1.0, dense_color=False)
+    checked = 0
+    for (origin_a, tsdf_a, valid_a, color_a), (origin_b, tsdf_b, valid_b, color_b) in zip(dense, pooled, strict=True):
+        np.testing.assert_array_equal(origin_a, origin_b)
+        np.testing.assert_array_equal(tsdf_a, tsdf_b)
+        np.testing.assert_array_equal(valid_a, valid_b)
+        assert color_b.shape == color_a.shape
+        x, y, z = (axis.reshape(-1) for axis in np.indices(color_a.shape[:3]))
+        np.testing.assert_array_equal(color_b[x, y, z], color_a[x, y, z])
+        checked += int((color_a[x, y, z] != 0).any(axis=1).sum())
+    assert checked > 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), m=st.integers(1, 6), share=st.floats(0.0, 1.0))
+def test_cube_corners_are_the_or_over_each_voxels_cubes(seed, m, share):
+    cube = np.random.default_rng(seed).uniform(size=(m, m, m)) < share
+    expected = np.zeros((m + 1,) * 3, bool)
+    for d in np.ndindex(2, 2, 2):
+        expected[d[0] : d[0] + m, d[1] : d[1] + m, d[2] : d[2] + m] |= cube
+    np.testing.assert_array_equal(_dilated_by_one(cube), expected)
