@@ -351,16 +351,16 @@ def rasterize_panels(panels: list[OverviewPanel], panel_width: int = 800) -> Pan
     """Draws the panels in one top-down view (the long part of `render_overview`; the title is not needed yet)."""
     pad = _PANEL_PAD
     everything = [layer.points for panel in panels for layer in panel.layers if len(layer.points)]
-    all_points = np.concatenate(everything) if everything else np.zeros((0, 3), np.float32)
-    cut = height_cut(all_points[:, 2])
-    xy_all = all_points[all_points[:, 2] <= cut][:, :2]
+    # the heights, then the kept points' two top-down columns, joined (not every point's three): the same values
+    cut = height_cut(np.concatenate([p[:, 2] for p in everything]) if everything else np.zeros(0, np.float32))
+    xy_all = np.concatenate([p[:, :2][p[:, 2] <= cut] for p in everything]) if everything else np.zeros((0, 2), np.float32)
     rotation = view_rotation(xy_all)
     xy_all = xy_all @ rotation.T
     if len(xy_all):
         lo, hi = np.percentile(xy_all, 0.05, axis=0), np.percentile(xy_all, 99.95, axis=0)
     else:
         lo, hi = np.zeros(2), np.ones(2)
-    del everything, all_points, xy_all  # the view is fixed: these copies of every point go before the splats
+    del everything, xy_all  # the view is fixed: these copies of every point go before the splats
     extent = np.maximum(hi - lo, 0.5)
     scale = (panel_width - 2 * pad) / extent[0]
     panel_height = min(int(np.ceil(extent[1] * scale)) + 2 * pad, 2 * panel_width)
