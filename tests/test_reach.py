@@ -47,3 +47,18 @@ def test_no_detection_sees_nothing(room):
     reach = detector_reach(scene_dir, empty)
     assert not any(o.seen for o in reach.objects) and reach.ceiling_map50() == 0.0
     assert any(o.frames_visible > 0 for o in reach.objects)  # in view, never detected
+
+
+@pytest.mark.parametrize("no_progress", [False, True])
+def test_eval_with_detections_prints_the_reach_with_a_bar_unless_told_not_to(room, capsys, no_progress):
+    from fmfusion_jax.cli import main
+
+    scene_dir, detections, root = room
+    as_predictions = root / f"gt-as-predictions-{no_progress}"
+    assert main(["eval", "--gt", str(scene_dir), "--export-gt", str(as_predictions)]) == 0
+    capsys.readouterr()
+    argv = ["eval", str(as_predictions), "--gt", str(scene_dir), "--detections", str(detections)]
+    assert main(argv + (["--no-progress"] if no_progress else [])) == 0
+    out, err = capsys.readouterr()
+    assert "Detector reach" in out
+    assert ("detector reach" in err) is not no_progress

@@ -40,9 +40,11 @@ def run_eval(
     explain_dir: Path | None = None,
     detections: Path | None = None,
     export_gt: Path | None = None,
+    progress: bool = True,
 ) -> int:
     """`fmfusion eval`: scores `predictions` (files or folders) against `ground_truth` and prints the table;
-    with `export_gt`, writes the ground truth as predictions instead. Returns the exit status."""
+    with `export_gt`, writes the ground truth as predictions instead. Returns the exit status. `progress`: a
+    progress bar while the detector's reach is measured (`detections`), the one long step."""
     if not ground_truth:
         raise UserError("no ground truth: pass --gt with a ScanNet scene folder, a benchmark gt .txt, or a folder of them")
     sources = _find_ground_truth(ground_truth)
@@ -60,7 +62,7 @@ def run_eval(
     pairs = _pair(_find_predictions(predictions), sources)
     if detections is not None and (len(pairs) != 1 or pairs[0][1].kind != "scene"):
         raise UserError("--detections needs exactly one scene, given as its scene folder (--gt SCENE)")
-    return _evaluate(pairs, labels_tsv, json_path, explain_dir, detections)
+    return _evaluate(pairs, labels_tsv, json_path, explain_dir, detections, progress)
 
 
 def _evaluate(
@@ -69,6 +71,7 @@ def _evaluate(
     json_path: Path | None,
     explain_dir: Path | None = None,
     detections: Path | None = None,
+    progress: bool = True,
 ) -> int:
 
     scenes, names, meshes = [], [], []
@@ -103,14 +106,14 @@ def _evaluate(
         print(f"wrote {json_path}")
     found = _explain(scenes, names, meshes, explain_dir) if explain_dir is not None else None
     if detections is not None:
-        _reach(pairs[0][1].path, detections, found, explain_dir)
+        _reach(pairs[0][1].path, detections, found, explain_dir, progress)
     return 0
 
 
-def _reach(scene_dir: Path, detections: Path, found: dict[int, bool] | None, out_dir: Path | None) -> None:
+def _reach(scene_dir: Path, detections: Path, found: dict[int, bool] | None, out_dir: Path | None, progress: bool = True) -> None:
     """The detector's reach (`likelihood.reach`) printed, and written beside the error analysis."""
 
-    reach = detector_reach(scene_dir, detections, progress=True)
+    reach = detector_reach(scene_dir, detections, progress=progress)
     text = reach.markdown(found)
     print(text)
     if out_dir is not None:

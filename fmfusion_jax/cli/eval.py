@@ -96,6 +96,7 @@ def register(subparsers) -> None:
         help="instead of evaluating, write each GT scene's instances as benchmark-format "
         "predictions (confidence 1) into OUT_DIR, to check that ground truth scores 1.0",
     )
+    options.add_no_progress(parser, "no progress bar while the detector's reach is measured (--detections)")
     parser.set_defaults(func=run)
 
 
@@ -106,4 +107,13 @@ def run(args: argparse.Namespace) -> int:
     if explain_dir is _EXPLAIN_DEFAULT:
         explain_dir = args.json.parent if args.json is not None else Path("explain")
     predictions = [*args.pred, *args.pred_option]
-    return run_eval(predictions, args.gt, args.labels_tsv, args.json, explain_dir, args.detections, args.export_gt)
+    return run_eval(
+        predictions,
+        args.gt,
+        args.labels_tsv,
+        args.json,
+        explain_dir,
+        args.detections,
+        args.export_gt,
+        progress=not args.no_progress,
+    )
