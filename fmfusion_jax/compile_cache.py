@@ -118,9 +118,12 @@ class ExecutableStore:
     def prefetch(self) -> None:
         """Starts loading, in a background thread, the steps the last process used (its manifest, when it ran the
         same code): a run's first frame then finds them loaded, while the scene is opened and sized. A step loaded
-        ahead that this process does not ask for costs only that thread's time. Once per store."""
-        with self._lock:
-            if self._prefetched or self._used:
+        ahead that this process does not ask for costs only that thread's time. Once per store, and never while a
+        loading thread of this process is still at work (a run that failed early, then the next run in the same
+        process, with a store of its own: `enable_compile_cache` makes one per command)."""
+        global _LOADER
+        with self._lock, _LOADER_LOCK:
+            if self._prefetched or self._used or (_LOADER is not None and _LOADER.is_alive()):
                 return
             try:
                 manifest = json.loads((self.folder / self.MANIFEST).read_text())
@@ -131,8 +134,9 @@ class ExecutableStore:
             names = [name for name in manifest.get("steps", []) if isinstance(name, str) and (self.folder / name).is_file()]
             self._prefetched = {name: concurrent.futures.Future() for name in names}
             ahead = list(self._prefetched.items())
-        if ahead:
-            threading.Thread(target=self._load_ahead, args=(ahead,), name="fmfusion-steps", daemon=True).start()
+            if ahead:
+                _LOADER = threading.Thread(target=self._load_ahead, args=(ahead,), name="fmfusion-steps", daemon=True)
+                _LOADER.start()
 
     def _load_ahead(self, ahead: list[tuple[str, concurrent.futures.Future]]) -> None:
         # the futures themselves, not the dict's entries: a step asked for before its turn has been taken out of the
@@ -196,15 +200,18 @@ class ExecutableStore:
             except Exception as error:  # noqa: BLE001 - a damaged file: compile instead
                 log.info("saved step %s unreadable (%s): removed, compiling the step", path, error)
                 path.unlink(missing_ok=True)  # ours (named by this store): saved again when next compiled anew
-        misses = _compiled_here()
-        compiled = compile_step()
-        if _compiled_here() == misses:
+        with XLA_TURNS:
+            misses = _compiled_here()
+            compiled = compile_step()
+            compiled_here = _compiled_here() != misses
+        if not compiled_here:
             # Not compiled here but found (in JAX's cache, or as the same program compiled before in this process):
             # such an executable saved again does not run (XLA's CPU executables lose kernels: "Function ... not
             # found"). It is saved by a process that compiles it.
             return compiled
         try:
-            data = pickle.dumps(serialize_executable.serialize(compiled))
+            with XLA_TURNS:
+                data = pickle.dumps(serialize_executable.serialize(compiled))
             partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
             partial.write_bytes(data)
             os.replace(partial, path)  # whole or not at all: processes side by side may write the same step
@@ -219,10 +226,20 @@ def _load_step(path: Path) -> Any:
     from jax.experimental import serialize_executable  # lazy: JAX
 
     payload, in_tree, out_tree = pickle.loads(path.read_bytes())
-    return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    with XLA_TURNS:
+        return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+
+
+#: Taken while a saved step is deserialized, compiled or serialized: XLA's CPU client aborted the process ("Fatal
+#: Python error: Aborted", in CI) with two threads deserializing steps while a third compiled one (a run that failed
+#: early left its loading thread at work, and the next run in the same process started another). They take turns.
+XLA_TURNS = threading.Lock()
 
 
 _STORE: ExecutableStore | None = None
+#: The thread loading steps ahead (`ExecutableStore.prefetch`), one per process at a time.
+_LOADER: threading.Thread | None = None
+_LOADER_LOCK = threading.Lock()
 
 
 def executable_store() -> ExecutableStore | None:

@@ -170,3 +170,59 @@ def test_a_step_asked_for_before_its_turn_to_be_loaded_ahead_is_still_loaded(tmp
     asking.join(10)
     assert not asking.is_alive(), "load_or_compile waited for a step the loading thread skipped"
     assert got == [f"executable of {second.name}"]
+
+
+def test_a_second_run_does_not_load_ahead_beside_a_loading_thread_still_at_work(tmp_path, monkeypatch):
+    """A run that fails early leaves its loading thread at work; the next run in the same process must not start
+    another beside it (two threads deserializing while a third compiled aborted the process in CI)."""
+    import threading
+
+    store = compile_cache.ExecutableStore(tmp_path)
+    steps = [store.path(name, "key") for name in ("first", "second")]
+    for path in steps:
+        path.write_bytes(b"saved")
+    (tmp_path / store.MANIFEST).write_text(json.dumps({"code": compile_cache._code_digest(), "steps": [p.name for p in steps]}))
+    release, loading, most = threading.Event(), [], [0]
+
+    def load_step(path):
+        loading.append(path.name)
+        most[0] = max(most[0], sum(t.name == "fmfusion-steps" and t.is_alive() for t in threading.enumerate()))
+        release.wait(10)
+        return f"executable of {path.name}"
+
+    monkeypatch.setattr(compile_cache, "_load_step", load_step)
+    store.prefetch()  # the first run
+    first_loader = compile_cache._LOADER
+    store.forget_prefetched()  # it failed: clear_executables
+    next_run = compile_cache.ExecutableStore(tmp_path)  # each command makes a store of its own
+    next_run.prefetch()  # while the first run's first step is still loading
+    assert compile_cache._LOADER is first_loader and not next_run._prefetched
+    release.set()
+    first_loader.join(10)
+    assert most[0] == 1 and loading == [steps[0].name]  # the second step's future was cancelled: not loaded
+
+
+def test_saved_steps_are_deserialized_compiled_and_serialized_in_turns(store, monkeypatch):
+    """XLA's CPU client is not to deserialize, compile or serialize two saved steps at once (`XLA_TURNS`)."""
+    from jax.experimental import serialize_executable
+
+    held = []
+    for name in ("serialize", "deserialize_and_load"):
+        original = getattr(serialize_executable, name)
+
+        def checked(*args, original=original, name=name):
+            held.append((name, compile_cache.XLA_TURNS.locked()))
+            return original(*args)
+
+        monkeypatch.setattr(serialize_executable, name, checked)
+    step = _step()
+    x, y = jnp.arange(6.0), jnp.ones(6)
+    compiled = step(x, y, 4.0)  # compiled and saved
+
+    (saved,) = store.folder.glob("fmfusion-scaled_sum-*.step")
+    loaded = compile_cache._load_step(saved)
+    np.testing.assert_array_equal(loaded(x, y)[0], compiled[0])
+    turn_during_compile = []
+    store.load_or_compile("other", "key", lambda: turn_during_compile.append(compile_cache.XLA_TURNS.locked()) or loaded)
+    assert held and all(locked for _, locked in held) and {name for name, _ in held} == {"serialize", "deserialize_and_load"}
+    assert turn_during_compile == [True]
