@@ -277,21 +277,23 @@ def test_colours_on_edges_are_the_trilinear_samples_bit_for_bit(seed, share_insi
 
 @pytest.mark.parametrize("chunk_blocks", [1, 2, 3])
 def test_pool_colours_are_the_dense_colour_volume_bit_for_bit(chunk_blocks):
-    """The mesh reads its vertices' colours from the pool rows (`_PoolColors`): every voxel of every chunk, the
-    apron and the unallocated blocks (0) included, as the dense volume holds it."""
+    """The chunks' colours are read from the pool rows (`_PoolColors`): every voxel of every chunk, the apron and
+    the unallocated blocks (0) included, as a dense volume of the pool's blocks holds it."""
     blocks = sphere_blocks(lambda x, y, z: x < 0.1)
     host = _host_blocks(blocks)
-    dense = _chunks(host, SPHERE_CONFIG, chunk_blocks, 1.0, dense_color=True)
-    pooled = _chunks(host, SPHERE_CONFIG, chunk_blocks, 1.0, dense_color=False)
+    bs = SPHERE_CONFIG.block_size
+    row_of = {tuple(c): i for i, c in enumerate(host["coords"].tolist())}
+    raster = _raster_blocks(host["color"], bs)  # (B, bs, bs, bs, 3)
     checked = 0
-    for (origin_a, tsdf_a, valid_a, color_a), (origin_b, tsdf_b, valid_b, color_b) in zip(dense, pooled, strict=True):
-        np.testing.assert_array_equal(origin_a, origin_b)
-        np.testing.assert_array_equal(tsdf_a, tsdf_b)
-        np.testing.assert_array_equal(valid_a, valid_b)
-        assert color_b.shape == color_a.shape
-        x, y, z = (axis.reshape(-1) for axis in np.indices(color_a.shape[:3]))
-        np.testing.assert_array_equal(color_b[x, y, z], color_a[x, y, z])
-        checked += int((color_a[x, y, z] != 0).any(axis=1).sum())
+    for origin, _, _, color in _chunks(host, SPHERE_CONFIG, chunk_blocks, 1.0):
+        x, y, z = (axis.reshape(-1) for axis in np.indices(color.shape[:3]))
+        voxel = np.stack([x, y, z], axis=1) + origin
+        row = np.array([row_of.get(tuple(b), -1) for b in (voxel // bs).tolist()])
+        local = voxel % bs
+        expected = raster[np.maximum(row, 0), local[:, 0], local[:, 1], local[:, 2]].astype(np.float32)
+        expected[row < 0] = 0.0
+        np.testing.assert_array_equal(color[x, y, z], expected)
+        checked += int((expected != 0).any(axis=1).sum())
     assert checked > 0
 
 

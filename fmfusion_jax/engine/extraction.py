@@ -51,10 +51,11 @@ class _PoolColors:
     coordinates, as `_sample_linear` indexes a volume): the same values as the dense volume (half precision widened,
     0 in unallocated blocks) without building it, 4.5 MiB a chunk of which a mesh's vertices read a few per cent."""
 
-    def __init__(self, color_rows: np.ndarray, row_of_block: np.ndarray, bs: int, n: int):
-        self.color_rows, self.row_of_block, self.bs = color_rows, row_of_block, bs
+    def __init__(self, color_rows: np.ndarray, row_of_block: np.ndarray, local: np.ndarray, n: int):
+        """`row_of_block`: the pool row of each of the chunk's blocks (-1: none); `local` `(bs, bs, bs)`: a block's
+        raster voxel -> its pool column."""
+        self.color_rows, self.row_of_block, self.local, self.bs = color_rows, row_of_block, local, local.shape[0]
         self.shape, self.ndim = (n, n, n, color_rows.shape[-1]), 4
-        self.local = _raster_blocks(np.arange(bs**3)[None], bs)[0]  # (bs, bs, bs): raster voxel -> pool column
 
     def __getitem__(self, index: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
         x, y, z = index
@@ -65,11 +66,11 @@ class _PoolColors:
         return values
 
 
-def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float, dense_color: bool = True) -> Iterator[tuple]:
+def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float) -> Iterator[tuple]:
     """Yield `(origin_voxel int[3], tsdf, valid, color)` dense volumes of `chunk_blocks * bs + 1` voxels
-    per axis: the chunk's blocks plus the first voxel layer of the neighbours on the + sides. Without
-    `dense_color` the colour is a `_PoolColors`, read where it is indexed. The tsdf volume is overwritten by the
-    next chunk: a caller copies what it keeps."""
+    per axis: the chunk's blocks plus the first voxel layer of the neighbours on the + sides; the colour is a
+    `_PoolColors`, read where it is indexed. The tsdf volume is overwritten by the next chunk: a caller copies
+    what it keeps."""
     bs = config.block_size
     coords = host["coords"]
     if len(coords) == 0:
@@ -95,6 +96,7 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float,
     # one pair of volumes refilled for every chunk: fresh ones cost their page faults each time (~10 % of a mesh)
     vol_t = np.empty((size, size, size), np.float32)
     vol_w = np.empty((size, size, size), np.float32)
+    local = _raster_blocks(np.arange(bs**3)[None], bs)[0]
     for group in np.split(np.arange(len(block_ids)), starts):
         chunk = chunk_ids[group[0]]
         if not np.any(np.all(rel[group] < chunk_blocks, axis=1)):
@@ -104,20 +106,13 @@ def _chunks(host: dict, config: MapConfig, chunk_blocks: int, min_weight: float,
         # the chunk's blocks, put in raster order here (not the whole pool up front), written at once through
         # block-major views of the volumes
         b, r = block_ids[group], rel[group]
-        dense: list[tuple[np.ndarray, str]] = [(vol_t, "tsdf"), (vol_w, "weight")]
-        color: np.ndarray | _PoolColors
-        if dense_color:
-            color = np.zeros((size, size, size, 3), np.float32)
-            dense.append((color, "color"))
-        else:
-            row_of_block = np.full((chunk_blocks + 1,) * 3, -1, np.int64)
-            row_of_block[r[:, 0], r[:, 1], r[:, 2]] = b
-            color = _PoolColors(host["color"], row_of_block, bs, n)
-        for volume, name in dense:
+        for volume, name in ((vol_t, "tsdf"), (vol_w, "weight")):
             values = _raster_blocks(host[name][b], bs)
             _block_view(volume, chunk_blocks + 1, bs)[r[:, 0], r[:, 1], r[:, 2]] = values
+        row_of_block = np.full((chunk_blocks + 1,) * 3, -1, np.int64)
+        row_of_block[r[:, 0], r[:, 1], r[:, 2]] = b
         valid = (vol_w >= min_weight)[:n, :n, :n]
-        yield chunk * chunk_blocks * bs, vol_t[:n, :n, :n], valid, color[:n, :n, :n] if isinstance(color, np.ndarray) else color
+        yield chunk * chunk_blocks * bs, vol_t[:n, :n, :n], valid, _PoolColors(host["color"], row_of_block, local, n)
 
 
 def _packed_rows(key: np.ndarray) -> np.ndarray:
@@ -222,7 +217,7 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
     host = _host_blocks(state)
     verts, faces, colors = [], [], []
     offset = 0
-    for origin, tsdf, valid, color in _chunks(host, config, chunk_blocks, min_weight, dense_color=False):
+    for origin, tsdf, valid, color in _chunks(host, config, chunk_blocks, min_weight):
         # cube (i, j, k) -> (i+1, j+1, k+1) is usable iff its 8 corners are valid (an AND over the 2x2x2
         # neighbourhood, one axis at a time); skimage reads the mask at the cube's upper corner.
         pairs = valid[:-1] & valid[1:]
