@@ -261,6 +261,20 @@ class ExportConfig(_Section):
         "counter front, or a cabinet seen from the front only) (0: no sheets)",
         ge=0,
     )
+    structure_label_factor: Float = knob(
+        1.0,
+        "a surface's existence x (1 - this x the share of its open-set label scores that name a wall or the floor, "
+        "each label split over the classes as its likelihood row): a patch of wall fused as a door; one that this "
+        "brings below min_existence is exported as the wall or floor (0: labels not used)",
+        ge=0,
+        le=1,
+    )
+    surface_thickness: Float = knob(
+        3.0,
+        "voxels; an instance at most this thick is a surface, which may be a piece of a wall or the floor: only "
+        "then do its structure labels count against it (structure_label_factor)",
+        ge=0,
+    )
     sheet_factor: Float = knob(0.5, "a sheet's existence is multiplied by this (0: sheets are never exported)", ge=0, le=1)
     flat_classes: tuple[str, ...] = knob(
         ("wall", "floor", "door", "window", "picture", "curtain", "shower curtain"),

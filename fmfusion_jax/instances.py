@@ -113,27 +113,75 @@ def thickness(points: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(centred.T @ centred / len(points))[0], 0.0)))
 
 
+def structure_label_votes(open_label_histogram: np.ndarray, likelihood: np.ndarray, structure: list[int]) -> np.ndarray:
+    """`(len(structure),)` shares of an instance's open-set label scores that name each structure class (wall,
+    floor); their sum is in [0, 1].
+
+    Each label's votes are split over the classes as its row of `likelihood (O, C)` says (`p(class | label)`
+    under a uniform prior): "wall" and "tile wall" go 0.9 to the wall, "carpet" 0.74 to the floor, "door" 0.1 to
+    the wall. The additive fusion weighs a label by its row's sum, and the published rows of "wall" and "tile
+    wall" sum to 0.09 against 0.57 for "closet": a patch of wall detected as "wall" most of the time and as
+    "closet" or "door" now and then fuses as a door. Its labels still say wall. `open_label_histogram (O,)`:
+    summed detection scores per label. Zeros for an empty histogram."""
+    hist = np.asarray(open_label_histogram, np.float64).reshape(-1)
+    total = hist.sum()
+    if total <= 0 or not structure:
+        return np.zeros(len(structure))
+    rows = np.asarray(likelihood, np.float64)
+    by_class = rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12)
+    return np.clip(hist @ by_class[:, structure] / total, 0.0, 1.0)
+
+
+def as_structure(instance: MapInstance, votes: np.ndarray, structure: list[int]) -> MapInstance:
+    """The instance as a piece of the room's structure: its distribution is its labels' structure `votes` over the
+    `structure` classes (normalized), so that it is exported, merged (floors) and claims mesh vertices as walls and
+    floors do, not as an object."""
+    distribution = np.zeros_like(instance.distribution)
+    distribution[structure] = votes / votes.sum()
+    return dataclasses.replace(instance, distribution=distribution)
+
+
 def score_existence(
-    instances: list[MapInstance], label_sets: LabelSets, export: ExportConfig, voxel_size: float
+    instances: list[MapInstance],
+    label_sets: LabelSets,
+    export: ExportConfig,
+    voxel_size: float,
+    likelihood: np.ndarray | None = None,
 ) -> list[MapInstance]:
     """Each instance with its `existence` (`existence_probability`), times `export.sheet_factor` for a sheet of a
-    volumetric class.
+    volumetric class, times `1 - export.structure_label_factor * share` for a surface whose labels name the
+    structure (`structure_label_votes`, when the fusion's `likelihood (O, C)` is given).
 
     A sheet is an instance whose points are at most `export.planar_thickness` voxels thick (`thickness`): the
     surface of a wall, a counter front or the floor, which the detector called a cabinet, a bookshelf or a
     bed. Objects of those classes stand out of the surfaces they rest on; doors, windows, pictures, curtains
     (`export.flat_classes`), walls and floors may be flat. Weaker evidence, not a veto: a kitchen cabinet seen
-    only from the front is a sheet too, and the detector finds it again and again."""
+    only from the front is a sheet too, and the detector finds it again and again.
+
+    A surface is at most `export.surface_thickness` voxels thick: it may be a piece of a wall or the floor, and
+    where its labels say so (share of its label scores voting wall or floor), its existence as an object falls by
+    that share. An object with volume keeps its existence whatever its labels say (a detector that calls a toilet
+    a wall is wrong about the label, not about the object). A surface that its structure labels bring below
+    `export.min_existence` (it had the evidence without them) is a piece of that structure (`as_structure`)."""
     rate = detector_hit_rate(np.array([i.observations for i in instances]), np.array([i.missed for i in instances]))
     flat = {label_sets.class_index(name) for name in export.flat_classes if name in label_sets.class_names}
     sheet = export.planar_thickness * voxel_size
+    structure = [label_sets.class_index(name) for name in STRUCTURE_CLASSES if name in label_sets.class_names]
+    use_labels = likelihood is not None and export.structure_label_factor > 0 and bool(structure)
     out = []
     for inst in instances:
         existence = existence_probability(
             inst.observations, inst.missed, rate, export.support_observations, export.existence_prior
         )
-        if sheet > 0 and inst.class_index not in flat and thickness(inst.points) <= sheet:
+        thick = thickness(inst.points)
+        if sheet > 0 and inst.class_index not in flat and thick <= sheet:
             existence *= export.sheet_factor
+        if use_labels and inst.class_index not in structure and thick <= export.surface_thickness * voxel_size:
+            votes = structure_label_votes(inst.open_label_histogram, likelihood, structure)
+            object_existence = existence * max(0.0, 1.0 - export.structure_label_factor * float(votes.sum()))
+            if object_existence < export.min_existence <= existence:
+                inst = as_structure(inst, votes, structure)
+            existence = object_existence
         out.append(dataclasses.replace(inst, existence=existence))
     return out
 

@@ -243,3 +243,75 @@ def test_the_curtain_context_leaves_no_twin_class_to_offer_as_an_alternative():
     # the reference's rule (one way) leaves them as they were
     reference = postprocess_instances(instances, LABELS, ExportConfig(min_points=200, curtain_by_context=False))
     assert {inst.instance_id: inst for inst in reference}[2].distribution[shower] > 0.3
+
+
+def test_structure_label_votes_split_each_label_by_its_likelihood_row():
+    from fmfusion_jax.instances import structure_label_votes
+    from fmfusion_jax.labels import load_likelihood
+
+    likelihood = load_likelihood()
+    structure = [LABELS.class_index("wall"), LABELS.class_index("floor")]
+
+    def structure_label_share(*args):
+        return float(structure_label_votes(*args).sum())
+
+    hist = np.zeros(LABELS.num_open)
+    hist[LABELS.open_labels.index("wall")] = 8 * 0.5
+    hist[LABELS.open_labels.index("closet")] = 2 * 0.5
+    row = lambda name: likelihood[LABELS.open_labels.index(name)]  # noqa: E731
+    expected = (4.0 * row("wall")[structure].sum() / row("wall").sum() + row("closet")[structure].sum() / row("closet").sum()) / 5.0
+    assert abs(structure_label_share(hist, likelihood, structure) - expected) < 1e-9
+    assert expected > 0.6  # a patch of wall that "closet" labels now and then would fuse as a door
+    door = np.zeros(LABELS.num_open)
+    door[LABELS.open_labels.index("door")] = 3.0
+    assert structure_label_share(door, likelihood, structure) < 0.15
+    assert structure_label_share(np.zeros(LABELS.num_open), likelihood, structure) == 0.0
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(0, 5, allow_subnormal=False), min_size=38, max_size=38), st.floats(0.01, 10))
+def test_structure_label_votes_are_shares_and_ignore_the_histogram_scale(values, scale):
+    from fmfusion_jax.instances import structure_label_votes
+
+    def structure_label_share(*args):
+        votes = structure_label_votes(*args)
+        assert votes.shape == (2,) and (votes >= 0).all()
+        return float(votes.sum())
+    from fmfusion_jax.labels import load_likelihood
+
+    likelihood, structure = load_likelihood(), [0, 1]
+    hist = np.asarray(values)
+    share = structure_label_share(hist, likelihood, structure)
+    assert 0.0 <= share <= 1.0
+    assert abs(structure_label_share(scale * hist, likelihood, structure) - share) < 1e-9
+
+
+def test_existence_falls_with_the_structure_share_of_the_labels():
+    from fmfusion_jax.labels import load_likelihood
+
+    wall_labels = np.zeros(LABELS.num_open)
+    wall_labels[LABELS.open_labels.index("tile wall")] = 5.0
+    door_labels = np.zeros(LABELS.num_open)
+    door_labels[LABELS.open_labels.index("door")] = 5.0
+    rng = np.random.default_rng(2)
+    sheet = np.c_[rng.uniform(0, 1, (400, 2)), np.full(400, 2.0)].astype(np.float32)  # one voxel layer: a surface
+    solid = rng.uniform(0, 0.5, (400, 3)).astype(np.float32)
+    instances = [
+        dataclasses.replace(make_instance(k, "door", [0, 0, 0], 400), points=points, observations=20, open_label_histogram=h)
+        for k, (h, points) in enumerate([(wall_labels, sheet), (door_labels, sheet), (wall_labels, solid)])
+    ]
+    on = ExportConfig(structure_label_factor=1.0)
+    off = ExportConfig(structure_label_factor=0.0)
+    likelihood = load_likelihood()
+    scored_on = [i.existence for i in score_existence(instances, LABELS, on, 0.02, likelihood)]
+    scored_off = [i.existence for i in score_existence(instances, LABELS, off, 0.02, likelihood)]
+    assert scored_off[0] == scored_off[1] == scored_off[2] > 0.9
+    assert scored_on[0] < 0.2 < 0.85 < scored_on[1]  # the wall's patch, not the door, loses its existence
+    assert scored_on[2] == scored_off[2]  # an object with volume keeps it, whatever its labels say
+    classes = [LABELS.class_names[i.class_index] for i in score_existence(instances, LABELS, on, 0.02, likelihood)]
+    assert classes == ["wall", "door", "door"]  # the patch its labels took the existence of is a piece of the wall
+    exported = postprocess_instances(score_existence(instances, LABELS, on, 0.02, likelihood), LABELS, on)
+    assert [LABELS.class_names[i.class_index] for i in exported] == ["wall", "door", "door"]  # kept, as the wall
+    weak = [dataclasses.replace(instances[0], missed=200), *instances[1:]]  # no evidence even without its labels
+    assert [LABELS.class_names[i.class_index] for i in score_existence(weak, LABELS, on, 0.02, likelihood)][0] == "door"
+    assert [i.existence for i in score_existence(instances, LABELS, on, 0.02)] == scored_off  # no likelihood: not used

@@ -13,6 +13,7 @@ from fmfusion_jax.engine import extraction, step
 from fmfusion_jax.instances import MapInstance, drop_far_specks, postprocess_instances, score_existence
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.mapping.builder import FusionResult
+from fmfusion_jax.mapping.engine_configs import fusion_likelihood
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ def extract_map_instances(
         for k in np.flatnonzero(np.asarray(table.valid))
         if k in points
     ]
-    instances = score_existence(instances, label_sets, export, voxel_size)
+    instances = score_existence(instances, label_sets, export, voxel_size, fusion_likelihood(result.config))
     if postprocess:
         instances = postprocess_instances(instances, label_sets, result.config.export)
     return instances
