@@ -167,7 +167,7 @@ def score_existence(
     flat = {label_sets.class_index(name) for name in export.flat_classes if name in label_sets.class_names}
     sheet = export.planar_thickness * voxel_size
     structure = [label_sets.class_index(name) for name in STRUCTURE_CLASSES if name in label_sets.class_names]
-    use_labels = likelihood is not None and export.structure_label_factor > 0 and bool(structure)
+    use_labels = export.structure_label_factor > 0 and bool(structure)
     out = []
     for inst in instances:
         existence = existence_probability(
@@ -176,7 +176,12 @@ def score_existence(
         thick = thickness(inst.points)
         if sheet > 0 and inst.class_index not in flat and thick <= sheet:
             existence *= export.sheet_factor
-        if use_labels and inst.class_index not in structure and thick <= export.surface_thickness * voxel_size:
+        if (
+            likelihood is not None
+            and use_labels
+            and inst.class_index not in structure
+            and thick <= export.surface_thickness * voxel_size
+        ):
             votes = structure_label_votes(inst.open_label_histogram, likelihood, structure)
             object_existence = existence * max(0.0, 1.0 - export.structure_label_factor * float(votes.sum()))
             if object_existence < export.min_existence <= existence:
