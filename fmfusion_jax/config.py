@@ -263,9 +263,9 @@ class ExportConfig(_Section):
     )
     structure_label_factor: Float = knob(
         1.0,
-        "a surface's existence x (1 - this x the share of its open-set label scores that name a wall or the floor, "
-        "each label split over the classes as its likelihood row): a patch of wall fused as a door; one that this "
-        "brings below min_existence is exported as the wall or floor (0: labels not used)",
+        "a surface whose existence x (1 - this x the share of its open-set label scores that name a wall or the "
+        "floor, each label split over the classes as its likelihood row) falls below min_existence is exported as "
+        "the wall or floor: a patch of wall fused as a door (0: labels not used)",
         ge=0,
         le=1,
     )

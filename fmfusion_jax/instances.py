@@ -149,8 +149,8 @@ def score_existence(
     likelihood: np.ndarray | None = None,
 ) -> list[MapInstance]:
     """Each instance with its `existence` (`existence_probability`), times `export.sheet_factor` for a sheet of a
-    volumetric class, times `1 - export.structure_label_factor * share` for a surface whose labels name the
-    structure (`structure_label_votes`, when the fusion's `likelihood (O, C)` is given).
+    volumetric class; a surface whose labels name the structure (`structure_label_votes`, when the fusion's
+    `likelihood (O, C)` is given) may be a piece of it (below).
 
     A sheet is an instance whose points are at most `export.planar_thickness` voxels thick (`thickness`): the
     surface of a wall, a counter front or the floor, which the detector called a cabinet, a bookshelf or a
@@ -158,11 +158,13 @@ def score_existence(
     (`export.flat_classes`), walls and floors may be flat. Weaker evidence, not a veto: a kitchen cabinet seen
     only from the front is a sheet too, and the detector finds it again and again.
 
-    A surface is at most `export.surface_thickness` voxels thick: it may be a piece of a wall or the floor, and
-    where its labels say so (share of its label scores voting wall or floor), its existence as an object falls by
-    that share. An object with volume keeps its existence whatever its labels say (a detector that calls a toilet
-    a wall is wrong about the label, not about the object). A surface that its structure labels bring below
-    `export.min_existence` (it had the evidence without them) is a piece of that structure (`as_structure`)."""
+    A surface is at most `export.surface_thickness` voxels thick: it may be a piece of a wall or the floor. When its
+    existence times `1 - export.structure_label_factor * share` (share of its label scores voting wall or floor)
+    falls below `export.min_existence` and its existence alone reached it, it is a piece of that structure
+    (`as_structure`, at the lowered existence). The labels decide that and nothing else: a surface they leave an
+    object keeps its existence and rank, as true doors carry wall labels too (the detections of the wall they are
+    set into are associated to them). An object with volume is never judged by them (a detector that calls a
+    toilet a wall is wrong about the label, not about the object)."""
     rate = detector_hit_rate(np.array([i.observations for i in instances]), np.array([i.missed for i in instances]))
     flat = {label_sets.class_index(name) for name in export.flat_classes if name in label_sets.class_names}
     sheet = export.planar_thickness * voxel_size
@@ -185,8 +187,7 @@ def score_existence(
             votes = structure_label_votes(inst.open_label_histogram, likelihood, structure)
             object_existence = existence * max(0.0, 1.0 - export.structure_label_factor * float(votes.sum()))
             if object_existence < export.min_existence <= existence:
-                inst = as_structure(inst, votes, structure)
-            existence = object_existence
+                inst, existence = as_structure(inst, votes, structure), object_existence
         out.append(dataclasses.replace(inst, existence=existence))
     return out
 

@@ -313,6 +313,7 @@ def test_existence_falls_with_the_structure_share_of_the_labels():
     assert scored_off[0] == scored_off[1] == scored_off[2] > 0.9
     assert scored_on[0] < 0.2 < 0.85 < scored_on[1]  # the wall's patch, not the door, loses its existence
     assert scored_on[2] == scored_off[2]  # an object with volume keeps it, whatever its labels say
+    assert scored_on[1] == scored_off[1]  # a surface its labels leave an object keeps its rank (true doors carry wall labels)
     classes = [LABELS.class_names[i.class_index] for i in score_existence(instances, LABELS, on, 0.02, likelihood)]
     assert classes == ["wall", "door", "door"]  # the patch its labels took the existence of is a piece of the wall
     exported = postprocess_instances(score_existence(instances, LABELS, on, 0.02, likelihood), LABELS, on)
