@@ -114,22 +114,21 @@ def thickness(points: np.ndarray) -> float:
 
 
 def structure_label_votes(open_label_histogram: np.ndarray, likelihood: np.ndarray, structure: list[int]) -> np.ndarray:
-    """`(len(structure),)` shares of an instance's open-set label scores that name each structure class (wall,
-    floor); their sum is in [0, 1].
+    """`(..., len(structure))` shares of an instance's open-set label scores that name each structure class (wall,
+    floor); their sum is in [0, 1]. `open_label_histogram (..., O)`: one instance's, or a stack of them.
 
     Each label's votes are split over the classes as its row of `likelihood (O, C)` says (`p(class | label)`
     under a uniform prior): "wall" and "tile wall" go 0.9 to the wall, "carpet" 0.74 to the floor, "door" 0.1 to
     the wall. The additive fusion weighs a label by its row's sum, and the published rows of "wall" and "tile
     wall" sum to 0.09 against 0.57 for "closet": a patch of wall detected as "wall" most of the time and as
-    "closet" or "door" now and then fuses as a door. Its labels still say wall. `open_label_histogram (O,)`:
-    summed detection scores per label. Zeros for an empty histogram."""
-    hist = np.asarray(open_label_histogram, np.float64).reshape(-1)
-    total = hist.sum()
-    if total <= 0 or not structure:
-        return np.zeros(len(structure))
+    "closet" or "door" now and then fuses as a door. Its labels still say wall. A histogram holds the summed
+    detection scores per label; an empty one has no votes."""
+    hist = np.asarray(open_label_histogram, np.float64)
     rows = np.asarray(likelihood, np.float64)
     by_class = rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12)
-    return np.clip(hist @ by_class[:, structure] / total, 0.0, 1.0)
+    total = hist.sum(axis=-1, keepdims=True)
+    votes = (hist @ by_class[:, structure]) / np.where(total > 0, total, 1.0)
+    return np.clip(np.where(total > 0, votes, 0.0), 0.0, 1.0)
 
 
 def as_structure(instance: MapInstance, votes: np.ndarray, structure: list[int]) -> MapInstance:
@@ -169,22 +168,19 @@ def score_existence(
     flat = {label_sets.class_index(name) for name in export.flat_classes if name in label_sets.class_names}
     sheet = export.planar_thickness * voxel_size
     structure = [label_sets.class_index(name) for name in STRUCTURE_CLASSES if name in label_sets.class_names]
-    use_labels = export.structure_label_factor > 0 and bool(structure)
+    votes_of = None  # (N, len(structure)): every instance's structure votes, made in one product
+    if likelihood is not None and export.structure_label_factor > 0 and structure and instances:
+        votes_of = structure_label_votes(np.stack([i.open_label_histogram for i in instances]), likelihood, structure)
     out = []
-    for inst in instances:
+    for k, inst in enumerate(instances):
         existence = existence_probability(
             inst.observations, inst.missed, rate, export.support_observations, export.existence_prior
         )
         thick = thickness(inst.points)
         if sheet > 0 and inst.class_index not in flat and thick <= sheet:
             existence *= export.sheet_factor
-        if (
-            likelihood is not None
-            and use_labels
-            and inst.class_index not in structure
-            and thick <= export.surface_thickness * voxel_size
-        ):
-            votes = structure_label_votes(inst.open_label_histogram, likelihood, structure)
+        if votes_of is not None and inst.class_index not in structure and thick <= export.surface_thickness * voxel_size:
+            votes = votes_of[k]
             object_existence = existence * max(0.0, 1.0 - export.structure_label_factor * float(votes.sum()))
             if object_existence < export.min_existence <= existence:
                 inst, existence = as_structure(inst, votes, structure), object_existence

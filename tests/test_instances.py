@@ -12,9 +12,10 @@ from fmfusion_jax.instances import (
     existence_probability,
     postprocess_instances,
     score_existence,
+    structure_label_votes,
     thickness,
 )
-from fmfusion_jax.labels import load_label_sets
+from fmfusion_jax.labels import load_label_sets, load_likelihood
 
 LABELS = load_label_sets()
 
@@ -245,16 +246,16 @@ def test_the_curtain_context_leaves_no_twin_class_to_offer_as_an_alternative():
     assert {inst.instance_id: inst for inst in reference}[2].distribution[shower] > 0.3
 
 
-def test_structure_label_votes_split_each_label_by_its_likelihood_row():
-    from fmfusion_jax.instances import structure_label_votes
-    from fmfusion_jax.labels import load_likelihood
+def structure_label_share(hist, likelihood, structure):
+    """The votes of `structure_label_votes`, checked to be non-negative shares, summed."""
+    votes = structure_label_votes(hist, likelihood, structure)
+    assert votes.shape == (len(structure),) and (votes >= 0).all()
+    return float(votes.sum())
 
+
+def test_structure_label_votes_split_each_label_by_its_likelihood_row():
     likelihood = load_likelihood()
     structure = [LABELS.class_index("wall"), LABELS.class_index("floor")]
-
-    def structure_label_share(*args):
-        return float(structure_label_votes(*args).sum())
-
     hist = np.zeros(LABELS.num_open)
     hist[LABELS.open_labels.index("wall")] = 8 * 0.5
     hist[LABELS.open_labels.index("closet")] = 2 * 0.5
@@ -275,15 +276,6 @@ def test_structure_label_votes_split_each_label_by_its_likelihood_row():
 @settings(max_examples=50, deadline=None)
 @given(st.lists(st.floats(0, 5, allow_subnormal=False), min_size=38, max_size=38), st.floats(0.01, 10))
 def test_structure_label_votes_are_shares_and_ignore_the_histogram_scale(values, scale):
-    from fmfusion_jax.instances import structure_label_votes
-
-    def structure_label_share(*args):
-        votes = structure_label_votes(*args)
-        assert votes.shape == (2,) and (votes >= 0).all()
-        return float(votes.sum())
-
-    from fmfusion_jax.labels import load_likelihood
-
     likelihood, structure = load_likelihood(), [0, 1]
     hist = np.asarray(values)
     share = structure_label_share(hist, likelihood, structure)
@@ -292,8 +284,6 @@ def test_structure_label_votes_are_shares_and_ignore_the_histogram_scale(values,
 
 
 def test_existence_falls_with_the_structure_share_of_the_labels():
-    from fmfusion_jax.labels import load_likelihood
-
     wall_labels = np.zeros(LABELS.num_open)
     wall_labels[LABELS.open_labels.index("tile wall")] = 5.0
     door_labels = np.zeros(LABELS.num_open)

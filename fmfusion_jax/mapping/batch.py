@@ -151,8 +151,9 @@ class MapperBatch:
                 stats = jax.device_get(stats)
                 for i, progress in enumerate(self._progress):
                     progress.add_refinement("final", jax.tree.map(lambda x, i=i: x[i], stats))
+            likelihood = np.asarray(self._likelihood)
             self._results = [
-                progress.result(self._map_state(i), self.map_config, self.fusion_config, self.config, StageTimer())
+                progress.result(self._map_state(i), self.map_config, self.fusion_config, self.config, StageTimer(), likelihood)
                 for i, progress in enumerate(self._progress)
             ]
         return self._results

@@ -43,6 +43,9 @@ class FusionResult:
     frames_integrated: int
     detection_frames: int
     counters: dict[str, int]
+    #: `(O, C)` the likelihood the labels were fused with (the export reads the labels' votes by it); None: the
+    #: config's (`engine_configs.fusion_likelihood`).
+    likelihood: np.ndarray | None = None
 
     def floor(self) -> tuple[tuple[float, float, float], float] | None:
         """`(up, height)` of the floor the fusion found (`engine.support`), or None (floor filter off, or no
@@ -109,11 +112,25 @@ class FusionProgress:
         self.counters.update({k: int(v) for k, v in progress.get("counters", {}).items()})
 
     def result(
-        self, state: MapState, map_config: MapConfig, fusion_config: step.FusionConfig, config: PipelineConfig, timer: StageTimer
+        self,
+        state: MapState,
+        map_config: MapConfig,
+        fusion_config: step.FusionConfig,
+        config: PipelineConfig,
+        timer: StageTimer,
+        likelihood: np.ndarray | None = None,
     ) -> FusionResult:
-        """`state` as a `FusionResult` with these counts."""
+        """`state` as a `FusionResult` with these counts (`likelihood`: the `(O, C)` matrix fused with)."""
         return FusionResult(
-            state, map_config, fusion_config, config, timer, self.frames_integrated, self.detection_frames, dict(self.counters)
+            state,
+            map_config,
+            fusion_config,
+            config,
+            timer,
+            self.frames_integrated,
+            self.detection_frames,
+            dict(self.counters),
+            likelihood,
         )
 
 
@@ -281,7 +298,9 @@ class MapBuilder:
     def snapshot(self, state: MapState) -> FusionResult:
         """`state` (this builder's, or a copy of it) with the builder's configs, timings and counts."""
         self.flush()
-        return self.progress.result(state, self.map_config, self.fusion_config, self.config, self.timer)
+        return self.progress.result(
+            state, self.map_config, self.fusion_config, self.config, self.timer, np.asarray(self.likelihood)
+        )
 
     def result(self) -> FusionResult:
         """Finalizes (geometry fusion and post-merge when refinement is on) and returns the map."""

@@ -43,7 +43,8 @@ def extract_map_instances(
         for k in np.flatnonzero(np.asarray(table.valid))
         if k in points
     ]
-    instances = score_existence(instances, label_sets, export, voxel_size, fusion_likelihood(result.config))
+    likelihood = fusion_likelihood(result.config) if result.likelihood is None else result.likelihood
+    instances = score_existence(instances, label_sets, export, voxel_size, likelihood)
     if postprocess:
         instances = postprocess_instances(instances, label_sets, result.config.export)
     return instances
