@@ -148,6 +148,12 @@ class AssociationConfig(_Section):
         "projection_overlap", "|mask and projection| / |projection| (reference Python), or iou", "engine"
     )
     threshold: Float = knob(0.5, "match above this (reference Python: 0.5; its C++: IoU 0.3)", "engine", gt=0, le=1)
+    rank: Literal["iou", "score"] = knob(
+        "iou",
+        "the pairs above the threshold match best first by this: iou (a mask over several instances goes to the one "
+        "of its size, not to a small one inside it), or the metric's own score (reference)",
+        "engine",
+    )
     pixel_stride: Int = knob(2, "pixels sampled for projection, association and instance integration", "shape", ge=1)
     min_projected_pixels: Int = knob(
         800, "an instance is in view (active) above this many full-resolution pixels", "engine", ge=0

@@ -230,6 +230,36 @@ def test_match_detections_matches_greedy_reference(seed, one_to_one):
 
 
 @CHECK
+@given(seeds, st.booleans())
+def test_match_detections_by_rank_matches_greedy_reference(seed, one_to_one):
+    """Pairs pass by their score and match best first by their rank (association.rank: iou)."""
+    rng = np.random.default_rng(seed)
+    scores = rng.random((N, K)).astype(np.float32)
+    rank = rng.random((N, K)).astype(np.float32)
+    rank[rng.random((N, K)) < 0.2] = 0.5  # ties
+    valid_det, valid_inst = rng.random(N) < 0.8, rng.random(K) < 0.7
+    got = np.asarray(A.match_detections(scores, valid_det, valid_inst, 0.4, one_to_one=one_to_one, rank=rank))
+    np.testing.assert_array_equal(got, R.match_detections(scores, valid_det, valid_inst, 0.4, one_to_one, rank))
+    m = got >= 0
+    assert (scores[m, got[m]] > 0.4).all()
+
+
+def test_a_mask_over_a_small_instance_goes_to_the_instance_of_its_size_by_iou():
+    """A wall's mask covers a door's projection whole and most of the wall's: by overlap the door takes it, by
+    IoU the wall."""
+    det = np.zeros((8, 8), np.int32)  # detection 0 everywhere
+    seen = np.full((8, 8), 1, np.int32)  # instance 1 (the wall) ...
+    seen[2:4, 2:4] = 0  # ... around instance 0 (the door)
+    det[:, 7] = -1  # the wall's instance seen a little beyond the mask: overlap 52 / 60 against the door's 4 / 4
+    counts = A.association_scores(det, seen[..., None], 1, 2)
+    overlap = A.association_score_matrix(*counts, metric="projection_overlap")
+    iou = A.association_score_matrix(*counts, metric="iou")
+    valid_det, valid_inst = np.ones(1, bool), np.ones(2, bool)
+    assert int(A.match_detections(overlap, valid_det, valid_inst, 0.5)[0]) == 0
+    assert int(A.match_detections(overlap, valid_det, valid_inst, 0.5, rank=iou)[0]) == 1
+
+
+@CHECK
 @given(seeds)
 def test_projection_overlap_matching_is_one_to_one_anyway(seed):
     """Disjoint detection masks: at most one detection covers more than half a projected instance."""

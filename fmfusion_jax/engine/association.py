@@ -100,12 +100,19 @@ def association_score_matrix(
 
 @functools.partial(jax.jit, static_argnames=("one_to_one",))
 def match_detections(
-    scores: jax.Array, valid_det: jax.Array, valid_inst: jax.Array, threshold: float, one_to_one: bool = True
+    scores: jax.Array,
+    valid_det: jax.Array,
+    valid_inst: jax.Array,
+    threshold: float,
+    one_to_one: bool = True,
+    rank: jax.Array | None = None,
 ) -> jax.Array:
     """Matches detections to instances: `(N,)` int32 instance index or -1.
 
     A pair is a candidate when both are valid and its score is strictly above `threshold` (the paper:
-    "larger than a threshold").
+    "larger than a threshold"). Candidates are taken best first by `rank` `(N, K)` (default: `scores`): with
+    projection-overlap scores and IoU ranks, a wall's mask that covers a door's projection whole (overlap 1)
+    goes to the wall's instance, of its own size, and not to the door.
 
     one_to_one=True (default): deterministic greedy assignment by descending score; each instance takes
     at most one detection. Rounds of a loop (one per detection that has a candidate) each take the best
@@ -121,7 +128,8 @@ def match_detections(
     the weaker one to a new instance, which the merge step can join later if semantics and volume agree.
     """
     n, k = scores.shape
-    cand = jnp.where(valid_det[:, None] & valid_inst[None, :] & (scores > threshold), scores, -jnp.inf)
+    order = scores if rank is None else rank
+    cand = jnp.where(valid_det[:, None] & valid_inst[None, :] & (scores > threshold), order, -jnp.inf)
     if not one_to_one:
         best = jnp.argmax(cand, axis=1).astype(jnp.int32)
         return jnp.where(jnp.max(cand, axis=1) > -jnp.inf, best, -1)

@@ -43,7 +43,15 @@ from fmfusion_jax.engine.tsdf import integrate_tsdf
 #: Fields of `FusionConfig` that choose code paths (static: a change compiles another step); every other
 #: field is a threshold, traced (a change reuses the compiled step, and the thresholds can be differentiated
 #: or swept without recompiling).
-FUSION_MODES = ("association_metric", "label_mode", "contrary_vote_weight", "separate_min_frames", "floor_up", "floor_class")
+FUSION_MODES = (
+    "association_metric",
+    "association_rank",
+    "label_mode",
+    "contrary_vote_weight",
+    "separate_min_frames",
+    "floor_up",
+    "floor_class",
+)
 
 
 @functools.partial(
@@ -78,6 +86,7 @@ class FusionConfig:
 
     association_metric: str  # "projection_overlap" or "iou"
     association_threshold: float
+    association_rank: str  # "score" (the metric's) or "iou": the order in which the pairs above the threshold match
     min_projected_pixels: float  # full-resolution pixels for an instance to count as in view
     depth_low: float  # a detection's pixels keep depth between these quantiles of its mask
     depth_high: float
@@ -283,7 +292,10 @@ def associate(
     scores = association.association_score_matrix(
         counts.intersection, counts.det_area, counts.inst_area, fusion.association_metric
     )
-    matched = association.match_detections(scores, valid_det, inst_valid, fusion.association_threshold)
+    rank = None
+    if fusion.association_rank == "iou" and fusion.association_metric != "iou":
+        rank = association.association_score_matrix(counts.intersection, counts.det_area, counts.inst_area, "iou")
+    matched = association.match_detections(scores, valid_det, inst_valid, fusion.association_threshold, rank=rank)
     return Matches(counts, valid_det, association.assign_detections(matched, valid_det, inst_valid))
 
 

@@ -78,6 +78,7 @@ def build_fusion_config(config: PipelineConfig, label_sets: LabelSets | None = N
     return step.FusionConfig(
         association_metric=config.association.metric,
         association_threshold=config.association.threshold,
+        association_rank=config.association.rank,
         min_projected_pixels=float(config.association.min_projected_pixels),
         depth_low=lo,
         depth_high=hi,

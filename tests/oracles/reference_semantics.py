@@ -83,10 +83,11 @@ def association_score_matrix(inter, det_area, inst_area, metric):
     return out
 
 
-def match_detections(scores, valid_det, valid_inst, threshold, one_to_one=True):
+def match_detections(scores, valid_det, valid_inst, threshold, one_to_one=True, rank=None):
     n, k = scores.shape
+    rank = scores if rank is None else rank
     cands = [
-        (-float(scores[i, j]), i, j)
+        (-float(rank[i, j]), i, j)
         for i in range(n)
         for j in range(k)
         if valid_det[i] and valid_inst[j] and scores[i, j] > threshold
