@@ -268,12 +268,13 @@ class ExportConfig(_Section):
         ge=0,
     )
     structure_label_factor: Float = knob(
-        1.0,
+        2.5,
         "a surface whose existence x (1 - this x the share of its open-set label scores that name a wall or the "
-        "floor, each label split over the classes as its likelihood row) falls below min_existence is exported as "
-        "the wall or floor: a patch of wall fused as a door (0: labels not used)",
+        "floor, each label split over the classes as its likelihood row, beyond the share an object of its class "
+        "shows under the likelihood's column) falls below min_existence is exported as the wall or floor: a patch "
+        "of wall fused as a bookshelf (0: labels not used)",
         ge=0,
-        le=1,
+        le=10,
     )
     surface_thickness: Float = knob(
         3.0,

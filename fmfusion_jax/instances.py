@@ -131,6 +131,17 @@ def structure_label_votes(open_label_histogram: np.ndarray, likelihood: np.ndarr
     return np.clip(np.where(total > 0, votes, 0.0), 0.0, 1.0)
 
 
+def expected_structure_share(likelihood: np.ndarray, structure: list[int]) -> np.ndarray:
+    """`(C,)` the structure share (`structure_label_votes`, summed) of an object of each class whose labels come as
+    its column of `likelihood (O, C)` says (`p(label | class)`: the column normalized). A door's detections name
+    the wall now and then (0.12 under the published matrix), a bookshelf's hardly (0.04): the same share says more
+    against a bookshelf than against a door."""
+    rows = np.asarray(likelihood, np.float64)
+    by_class = rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12)
+    columns = rows / np.maximum(rows.sum(axis=0, keepdims=True), 1e-12)
+    return np.clip(columns.T @ by_class[:, structure].sum(axis=1), 0.0, 1.0)
+
+
 def as_structure(instance: MapInstance, votes: np.ndarray, structure: list[int]) -> MapInstance:
     """The instance as a piece of the room's structure: its distribution is its labels' structure `votes` over the
     `structure` classes (normalized), so that it is exported, merged (floors) and claims mesh vertices as walls and
@@ -158,12 +169,12 @@ def score_existence(
     only from the front is a sheet too, and the detector finds it again and again.
 
     A surface is at most `export.surface_thickness` voxels thick: it may be a piece of a wall or the floor. When its
-    existence times `1 - export.structure_label_factor * share` (share of its label scores voting wall or floor)
-    falls below `export.min_existence` and its existence alone reached it, it is a piece of that structure
-    (`as_structure`, at the lowered existence). The labels decide that and nothing else: a surface they leave an
-    object keeps its existence and rank, as true doors carry wall labels too (the detections of the wall they are
-    set into are associated to them). An object with volume is never judged by them (a detector that calls a
-    toilet a wall is wrong about the label, not about the object)."""
+    existence times `1 - export.structure_label_factor * excess` falls below `export.min_existence` and its
+    existence alone reached it, it is a piece of that structure (`as_structure`, at the lowered existence). The
+    excess is the share of its label scores voting wall or floor beyond what an object of its fused class shows
+    (`expected_structure_share`): doors' detections name the wall now and then, bookshelves' hardly. The labels
+    decide that and nothing else: a surface they leave an object keeps its existence and rank. An object with volume
+    is never judged by them (a detector that calls a toilet a wall is wrong about the label, not about the object)."""
     rate = detector_hit_rate(np.array([i.observations for i in instances]), np.array([i.missed for i in instances]))
     flat = {label_sets.class_index(name) for name in export.flat_classes if name in label_sets.class_names}
     sheet = export.planar_thickness * voxel_size
@@ -171,6 +182,7 @@ def score_existence(
     votes_of = None  # (N, len(structure)): every instance's structure votes, made in one product
     if likelihood is not None and export.structure_label_factor > 0 and structure and instances:
         votes_of = structure_label_votes(np.stack([i.open_label_histogram for i in instances]), likelihood, structure)
+        expected = expected_structure_share(likelihood, structure)
     out = []
     for k, inst in enumerate(instances):
         existence = existence_probability(
@@ -181,7 +193,8 @@ def score_existence(
             existence *= export.sheet_factor
         if votes_of is not None and inst.class_index not in structure and thick <= export.surface_thickness * voxel_size:
             votes = votes_of[k]
-            object_existence = existence * max(0.0, 1.0 - export.structure_label_factor * float(votes.sum()))
+            excess = max(0.0, float(votes.sum()) - float(expected[inst.class_index]))
+            object_existence = existence * max(0.0, 1.0 - export.structure_label_factor * excess)
             if object_existence < export.min_existence <= existence:
                 inst, existence = as_structure(inst, votes, structure), object_existence
         out.append(dataclasses.replace(inst, existence=existence))

@@ -10,6 +10,7 @@ from fmfusion_jax.instances import (
     detector_hit_rate,
     drop_far_specks,
     existence_probability,
+    expected_structure_share,
     postprocess_instances,
     score_existence,
     structure_label_votes,
@@ -295,7 +296,7 @@ def test_existence_falls_with_the_structure_share_of_the_labels():
         dataclasses.replace(make_instance(k, "door", [0, 0, 0], 400), points=points, observations=20, open_label_histogram=h)
         for k, (h, points) in enumerate([(wall_labels, sheet), (door_labels, sheet), (wall_labels, solid)])
     ]
-    on = ExportConfig(structure_label_factor=1.0)
+    on = ExportConfig(structure_label_factor=2.5)
     off = ExportConfig(structure_label_factor=0.0)
     likelihood = load_likelihood()
     scored_on = [i.existence for i in score_existence(instances, LABELS, on, 0.02, likelihood)]
@@ -311,3 +312,38 @@ def test_existence_falls_with_the_structure_share_of_the_labels():
     weak = [dataclasses.replace(instances[0], missed=200), *instances[1:]]  # no evidence even without its labels
     assert [LABELS.class_names[i.class_index] for i in score_existence(weak, LABELS, on, 0.02, likelihood)][0] == "door"
     assert [i.existence for i in score_existence(instances, LABELS, on, 0.02)] == scored_off  # no likelihood: not used
+
+
+def test_expected_structure_share_follows_the_likelihood_columns():
+    """The oracle: each class's column normalized, times each label's structure part (its row normalized, wall and
+    floor summed)."""
+    likelihood = np.array([[0.9, 0.0, 0.1], [0.0, 0.5, 0.5], [0.3, 0.0, 0.3]])  # labels x (wall, door, shelf)
+    expected = expected_structure_share(likelihood, [0])
+    row_part = np.array([0.9, 0.0, 0.5])  # label 0: 0.9 of its row is wall, label 1: none, label 2: half
+    columns = likelihood / likelihood.sum(axis=0)
+    np.testing.assert_allclose(expected, columns.T @ row_part)
+    assert expected[1] == 0.0  # a door labelled only by a label with no wall in its row
+    published = expected_structure_share(load_likelihood(), [LABELS.class_index("wall"), LABELS.class_index("floor")])
+    assert ((published >= 0) & (published <= 1)).all()
+    assert published[LABELS.class_index("door")] > 2 * published[LABELS.class_index("curtain")]
+
+
+def test_the_same_wall_labels_leave_a_door_and_take_a_curtain():
+    """A door's own detections name the wall now and then: a share that a door shows keeps a door-class surface,
+    and makes a curtain-class one a piece of the wall."""
+    likelihood = load_likelihood()
+    structure = [LABELS.class_index("wall"), LABELS.class_index("floor")]
+    hist = np.zeros(LABELS.num_open)
+    hist[LABELS.open_labels.index("door")] = 6.0
+    hist[LABELS.open_labels.index("tile wall")] = 3.0
+    share = structure_label_share(hist, likelihood, structure)
+    expected = expected_structure_share(likelihood, structure)
+    assert expected[LABELS.class_index("curtain")] + 0.3 < share < expected[LABELS.class_index("door")] + 0.3
+    rng = np.random.default_rng(5)
+    sheet = np.c_[rng.uniform(0, 1, (400, 2)), np.full(400, 2.0)].astype(np.float32)
+    instances = [
+        dataclasses.replace(make_instance(k, name, [0, 0, 0], 400), points=sheet, observations=20, open_label_histogram=hist)
+        for k, name in enumerate(["door", "curtain"])
+    ]
+    scored = score_existence(instances, LABELS, ExportConfig(structure_label_factor=2.5), 0.02, likelihood)
+    assert [LABELS.class_names[i.class_index] for i in scored] == ["door", "wall"]
