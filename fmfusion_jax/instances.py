@@ -113,6 +113,13 @@ def thickness(points: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(centred.T @ centred / len(points))[0], 0.0)))
 
 
+def _label_structure_parts(likelihood: np.ndarray, structure: list[int]) -> np.ndarray:
+    """`(O, len(structure))` the part of each label's row of `likelihood (O, C)` (normalized: `p(class | label)`
+    under a uniform prior) on each structure class."""
+    rows = np.asarray(likelihood, np.float64)
+    return (rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12))[:, structure]
+
+
 def structure_label_votes(open_label_histogram: np.ndarray, likelihood: np.ndarray, structure: list[int]) -> np.ndarray:
     """`(..., len(structure))` shares of an instance's open-set label scores that name each structure class (wall,
     floor); their sum is in [0, 1]. `open_label_histogram (..., O)`: one instance's, or a stack of them.
@@ -124,10 +131,8 @@ def structure_label_votes(open_label_histogram: np.ndarray, likelihood: np.ndarr
     "closet" or "door" now and then fuses as a door. Its labels still say wall. A histogram holds the summed
     detection scores per label; an empty one has no votes."""
     hist = np.asarray(open_label_histogram, np.float64)
-    rows = np.asarray(likelihood, np.float64)
-    by_class = rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12)
     total = hist.sum(axis=-1, keepdims=True)
-    votes = (hist @ by_class[:, structure]) / np.where(total > 0, total, 1.0)
+    votes = (hist @ _label_structure_parts(likelihood, structure)) / np.where(total > 0, total, 1.0)
     return np.clip(np.where(total > 0, votes, 0.0), 0.0, 1.0)
 
 
@@ -137,9 +142,8 @@ def expected_structure_share(likelihood: np.ndarray, structure: list[int]) -> np
     the wall now and then (0.12 under the published matrix), a bookshelf's hardly (0.04): the same share says more
     against a bookshelf than against a door."""
     rows = np.asarray(likelihood, np.float64)
-    by_class = rows / np.maximum(rows.sum(axis=1, keepdims=True), 1e-12)
     columns = rows / np.maximum(rows.sum(axis=0, keepdims=True), 1e-12)
-    return np.clip(columns.T @ by_class[:, structure].sum(axis=1), 0.0, 1.0)
+    return np.clip(columns.T @ _label_structure_parts(likelihood, structure).sum(axis=1), 0.0, 1.0)
 
 
 def as_structure(instance: MapInstance, votes: np.ndarray, structure: list[int]) -> MapInstance:

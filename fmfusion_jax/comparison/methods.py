@@ -63,8 +63,8 @@ class Method:
 #: Config overrides that restore the map of v0.1 (before the robustness work): matches in the reference's score
 #: order, membership by hits alone, no reunion of fragments, no veto of merges the detector contradicts,
 #: confidence = class probability, export of any slot by the nearest point, no floor filter, one class per
-#: instance in the benchmark files. (The motion
-#: schedule needs no override: the experiments' configs fix the detection stride.)
+#: instance in the benchmark files. (The motion schedule needs no override: the experiments' configs fix the
+#: detection stride.)
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
     "association.rank=score",
     "detections.floor_up_axis=none",

@@ -114,7 +114,7 @@ def match_detections(
     projection-overlap scores and IoU ranks, a wall's mask that covers a door's projection whole (overlap 1)
     goes to the wall's instance, of its own size, and not to the door.
 
-    one_to_one=True (default): deterministic greedy assignment by descending score; each instance takes
+    one_to_one=True (default): deterministic greedy assignment by descending rank; each instance takes
     at most one detection. Rounds of a loop (one per detection that has a candidate) each take the best
     remaining candidate (ties: lower detection index, then lower instance index) and retire its detection
     and instance.
