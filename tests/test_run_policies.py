@@ -152,6 +152,45 @@ def test_a_run_writes_only_the_outputs_asked_for(room, tmp_path, capsys):
     assert not (tmp_path / "cli").exists()
 
 
+#: Run in a fresh process: a saved map's outputs written after `preload_writer_modules`, printing the modules that
+#: the writing itself imported (outside the standard library).
+_WRITER_IMPORTS = """
+import sys
+from pathlib import Path
+from fmfusion_jax.io.scene import open_scene
+from fmfusion_jax.mapping.builder import FusionResult
+from fmfusion_jax.mapping.engine_configs import build_fusion_config
+from fmfusion_jax.mapping.map_file import read_map_file
+from fmfusion_jax.mapping.telemetry import StageTimer
+from fmfusion_jax.run import outputs
+from fmfusion_jax.run.command import write_outputs
+
+scene_dir, map_file, out = sys.argv[1:]
+saved = read_map_file(map_file)
+result = FusionResult(saved.state, saved.map_config, build_fusion_config(saved.config), saved.config,
+                      StageTimer(enabled=False), 14, 14, {})
+scene = open_scene(Path(scene_dir))
+result.floor()  # compiled here: not an import of the writers
+outputs.preload_writer_modules().join()
+before = set(sys.modules)
+write_outputs(result, scene, Path(out))
+new = {m.split(".")[0] for m in set(sys.modules) - before} - set(sys.stdlib_module_names)
+print("new:", " ".join(sorted(n for n in new if not n.startswith("_"))))
+"""
+
+
+def test_the_writers_import_nothing_once_their_modules_are_preloaded(room, tmp_path):
+    """`fmfusion run` imports the writers' modules while it fuses (`outputs.preload_writer_modules`): a module a
+    writer imports that `WRITER_MODULES` lacks would be imported on the outputs' critical path again."""
+    out = tmp_path / "out"
+    assert _run(room, out).complete
+    command = [sys.executable, "-c", _WRITER_IMPORTS, str(room[0]), str(out / "map_state.npz"), str(tmp_path / "again")]
+    done = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "new:"
+    assert (tmp_path / "again" / "overview.png").is_file() and (tmp_path / "again" / "report.json").is_file()
+
+
 def test_bad_frames_are_skipped_and_listed_or_stop_the_run(room, tmp_path):
     scene_dir, detections, config = room
     broken = tmp_path / "scene"

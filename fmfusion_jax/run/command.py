@@ -132,6 +132,7 @@ def run_and_export(
     """
     start = time.perf_counter()
     out_dir = prepare_output_dir(out_dir, create=False)
+    outputs.preload_writer_modules()  # beside the compile and the reading, off the outputs' critical path
     with OutputLock(out_dir):
         staging = partial_dir(out_dir)
         checkpoint = Checkpoint(staging, checkpoint_every)

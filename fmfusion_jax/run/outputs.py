@@ -11,10 +11,12 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import functools
+import importlib
 import json
 import logging
 import statistics
 import sys
+import threading
 import time
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
@@ -521,6 +523,39 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
 
 #: Every file and folder the writers may write: removed before a run writes into a folder again.
 OUTPUT_NAMES: tuple[str, ...] = tuple(file.rstrip("/") for writer in OUTPUT_WRITERS for file in writer.files)
+
+
+#: The modules the writers and their shared values import when they first run (lazily, so that `fmfusion --help` and
+#: the commands that write no map stay fast): ~0.3 s of imports that `preload_writer_modules` moves off the outputs'
+#: critical path. `tests/test_run_policies.py` checks that writing a run's outputs after it imports nothing more.
+WRITER_MODULES: tuple[str, ...] = (
+    "scipy.ndimage",  # `instances.drop_far_specks`
+    "skimage.measure._marching_cubes_lewiner",  # `engine.extraction.extract_mesh`
+    "fmfusion_jax.mapping.export",
+    "fmfusion_jax.mapping.map_file",
+    "fmfusion_jax.io.map_outputs",
+    "fmfusion_jax.io.vertex_transfer",
+    "fmfusion_jax.scene_graph",
+    "fmfusion_jax.viz.overview",
+    "fmfusion_jax.evaluation.explain_report",
+)
+
+
+def preload_writer_modules() -> threading.Thread:
+    """Imports `WRITER_MODULES` in a daemon thread, started while a map is fused (the imports overlap the compile and
+    the frames' reading, which release the GIL) so that the writers find them loaded; returns the thread. A module
+    that fails to import is left to its writer, which reports the error where it matters."""
+
+    def load() -> None:
+        for name in WRITER_MODULES:
+            try:
+                importlib.import_module(name)
+            except Exception as error:  # the writer that needs it raises it again, with context
+                log.debug("preloading %s failed: %s", name, error)
+
+    thread = threading.Thread(target=load, name="fmfusion-preload", daemon=True)
+    thread.start()
+    return thread
 
 
 def select_writers(names: Collection[str] | None = None) -> list[OutputWriter]:
