@@ -162,13 +162,13 @@ def test_a_bounded_map_grows_its_instance_table_to_the_same_map(room, monkeypatc
     big = Mapper(config, bounds=scene.bounds(), expected_blocks=6000)  # starts at 256 rows: never grows here
     for frame in frames:
         big.integrate(frame, folder.get(frame.name))
-    monkeypatch.setattr(mapper_module, "INITIAL_INSTANCE_ROWS", 8)
-    assert mapper_module.initial_instance_rows(4, 1024) == 8
+    monkeypatch.setattr(mapper_module, "INITIAL_INSTANCE_ROWS", 16)
+    assert mapper_module.initial_instance_rows(4, 1024) == 16
     small = Mapper(config, bounds=scene.bounds(), expected_blocks=6000, time_stages=True)
     for frame in frames:
         small.integrate(frame, folder.get(frame.name))
     assert big.growths == 0 and big.map_config.instance_capacity == 256
-    assert small.growths >= 1 and small.map_config.instance_capacity > 8
+    assert small.growths >= 1 and small.map_config.instance_capacity > 16
     assert len(big.instances()) >= 2 and _key(small.instances()) == _key(big.instances())
     timer = small.finalize().timings
     fused = len(timer.samples_ms["fusion"])
