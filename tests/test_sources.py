@@ -59,7 +59,8 @@ def test_one_chooser_for_files_and_clear_errors(room, tmp_path):
 def test_the_mapper_calls_a_source_on_due_frames_only(room):
     scene_dir, detections, _ = room
     folder = DetectionFolder(detections)
-    frames = list(open_scene(scene_dir).frames())
+    scene = open_scene(scene_dir)
+    frames = list(scene.frames())
     config = as_config({"base": "demo", "detections": {"schedule": "every", "every": 3}})
     called: list[str] = []
 
@@ -68,7 +69,7 @@ def test_the_mapper_calls_a_source_on_due_frames_only(room):
         return folder.get(frame.name)
 
     # sized from the scene's bounds: one layout compiled, not one per growth (the growth is test_mapper's)
-    bounds = open_scene(scene_dir).bounds()
+    bounds = scene.bounds()
     by_source, by_detections = Mapper(config, bounds=bounds), Mapper(config, bounds=bounds)
     fused = [by_source.integrate(frame, source) for frame in frames]
     for frame in frames:
