@@ -123,10 +123,11 @@ def _packed_rows(key: np.ndarray) -> np.ndarray:
     bits = [int(span).bit_length() for span in key.max(axis=0) - low]
     if sum(bits) > 64:
         return key
-    shifted = key - low  # non-negative: read as unsigned below without a copy
-    packed = shifted[:, 0].view(np.uint64) << np.uint64(bits[1] + bits[2])
-    packed |= shifted[:, 1].view(np.uint64) << np.uint64(bits[2])
-    packed |= shifted[:, 2].view(np.uint64)
+    # column by column (non-negative once shifted: read as unsigned without a copy): one column's temporaries at a
+    # time, not a shifted copy of all three
+    packed = (key[:, 0] - low[0]).view(np.uint64) << np.uint64(bits[1] + bits[2])
+    packed |= (key[:, 1] - low[1]).view(np.uint64) << np.uint64(bits[2])
+    packed |= (key[:, 2] - low[2]).view(np.uint64)
     return packed
 
 
@@ -139,7 +140,10 @@ def _block_view(volume: np.ndarray, blocks: int, bs: int) -> np.ndarray:
 
 def _voxel_to_world(g: np.ndarray, config: MapConfig) -> np.ndarray:
     """World coordinates of (fractional) global voxel coordinates (voxel centres at integers)."""
-    return (np.asarray(config.grid_origin) + (g + 0.5) * config.voxel_size).astype(np.float32)
+    world = g + 0.5  # one temporary, then in place: the same values as `origin + (g + 0.5) * voxel_size`
+    world *= config.voxel_size
+    world += np.asarray(config.grid_origin)
+    return world.astype(np.float32)
 
 
 def _sample_linear(volume: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -252,13 +256,17 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
     del colors
     # merge the copies of vertices on chunk faces (identical coordinates: same values, same arithmetic)
     key = g * 4096  # rounded in place: the vertices' temporaries are tens of MiB each at the outputs' peak
-    packed = _packed_rows(np.round(key, out=key).astype(np.int64))
+    whole = np.round(key, out=key).astype(np.int64)
     del key
+    packed = _packed_rows(whole)
+    del whole
     _, first, inverse = np.unique(packed, axis=0 if packed.ndim == 2 else None, return_index=True, return_inverse=True)
     del packed
     f = inverse.reshape(-1).astype(np.int32)[f]
     del inverse
-    return _voxel_to_world(g[first], config), f, c[first]
+    kept = g[first]
+    del g
+    return _voxel_to_world(kept, config), f, c[first]
 
 
 def extract_surface_points(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks: int = 8):
