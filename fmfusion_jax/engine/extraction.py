@@ -256,10 +256,10 @@ def extract_mesh(state, config: MapConfig, min_weight: float = 1.0, chunk_blocks
     del colors
     # merge the copies of vertices on chunk faces (identical coordinates: same values, same arithmetic)
     key = g * 4096  # rounded in place: the vertices' temporaries are tens of MiB each at the outputs' peak
-    whole = np.round(key, out=key).astype(np.int64)
+    rounded = np.round(key, out=key).astype(np.int64)
     del key
-    packed = _packed_rows(whole)
-    del whole
+    packed = _packed_rows(rounded)
+    del rounded
     _, first, inverse = np.unique(packed, axis=0 if packed.ndim == 2 else None, return_index=True, return_inverse=True)
     del packed
     f = inverse.reshape(-1).astype(np.int32)[f]
