@@ -42,20 +42,20 @@ def _ply_columns(points: np.ndarray, colors: np.ndarray | None, channels: tuple[
 
 def _write_ply(path: Path, comment: str, elements: list[tuple[str, int, list[PlyColumn]]]) -> None:
     """A binary little-endian PLY of `(element name, count, columns)`; a PLY type `list uchar int` is a list property
-    (its NumPy type holds the count and the items)."""
+    (its NumPy type holds the count and the items). Each element's rows are packed and written in turn, straight
+    from the packed array: a mesh's blocks are tens of MiB, and no two are held at once."""
     header = ["ply", "format binary_little_endian 1.0", f"comment {comment}"]
-    blocks = []
     for element, count, columns in elements:
         header.append(f"element {element} {count}")
         header += [f"property {ply_type} {name}" for name, _, ply_type, _ in columns]
-        block = np.empty(count, np.dtype([(name, code) for name, code, _, _ in columns]))
-        for name, _, _, values in columns:
-            block[name] = values
-        blocks.append(block.tobytes())
     with open(path, "wb") as stream:
         stream.write(("\n".join([*header, "end_header"]) + "\n").encode("ascii"))
-        for block_bytes in blocks:
-            stream.write(block_bytes)
+        for _, count, columns in elements:
+            block = np.empty(count, np.dtype([(name, code) for name, code, _, _ in columns]))
+            for name, _, _, values in columns:
+                block[name] = values
+            stream.write(block.view(np.uint8))
+            del block
 
 
 def write_point_cloud(
