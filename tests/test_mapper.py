@@ -32,6 +32,7 @@ from fmfusion_jax.types import FrameDetections
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fuse_with_mapper.py"
 SPEC = GeneratedSceneSpec(seed=5, num_objects=4, num_frames=16, width=320, height=240)
+ROOM_OVERRIDES = ["refinement.geometry_fusion_every=3"]
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +41,7 @@ def room(tmp_path_factory):
     root = tmp_path_factory.mktemp("mapper")
     scene_dir = generated_scene(SPEC, root)
     detections = simulated_detections(scene_dir, root / "detections", demo_noise(0, SPEC.width, SPEC.height))
-    config = demo_config(SPEC.num_frames, SPEC.width, SPEC.height, ["refinement.geometry_fusion_every=3"])
+    config = demo_config(SPEC.num_frames, SPEC.width, SPEC.height, ROOM_OVERRIDES)
     return scene_dir, detections, config
 
 
@@ -429,6 +430,10 @@ def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
     from fmfusion_jax.mapping.batch import MapperBatch
 
     scene_dir, detections, config = room
+    # pools sized to these rooms (~5,400 blocks): each vmapped step selects whole pools, so their size sets its time
+    config = demo_config(
+        SPEC.num_frames, SPEC.width, SPEC.height, [*ROOM_OVERRIDES, "tsdf.block_capacity=6144", "tsdf.max_touched_blocks=3072"]
+    )
     other_spec = dataclasses.replace(SPEC, seed=6, num_frames=10)
     other_dir = generated_scene(other_spec, tmp_path)
     other_detections = simulated_detections(other_dir, tmp_path / "detections", demo_noise(1, SPEC.width, SPEC.height))
@@ -457,6 +462,8 @@ def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a.points, b.points)
         assert results[i].detection_frames == single.detection_frames
+        blocks = results[i].state.blocks
+        assert int(blocks.dropped_blocks) == int(blocks.touched_overflow) == 0
         assert results[i].frames_integrated == len(frames)
         assert _key(batch.mapper(i).instances()) == _key(got)
     with pytest.raises(UserError, match="expected 2 frames"):
