@@ -13,9 +13,21 @@ from pathlib import Path
 import pytest
 
 from fmfusion_jax import cli
+from fmfusion_jax.simulation.demo_setup import demo_config
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene
 
 SPECS = [GeneratedSceneSpec(seed=seed, num_objects=3, num_frames=12, width=160, height=120) for seed in (1, 2, 3)]
+_SCALED = demo_config(12, 160, 120)  # demo.yaml's pixel counts are for 640 x 480: unscaled, these rooms map nothing
+CONFIG = ["--config", "demo"] + [
+    item
+    for key, value in (
+        ("detections.every", _SCALED.detections.every),
+        ("detections.min_mask_pixels", _SCALED.detections.min_mask_pixels),
+        ("association.min_projected_pixels", _SCALED.association.min_projected_pixels),
+        ("export.min_points", _SCALED.export.min_points),
+    )
+    for item in ("--set", f"{key}={value}")
+]
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +46,7 @@ def local_run(dataset, tmp_path_factory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("local") / "out"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        code = cli.main(
-            ["batch", str(dataset / "split.txt"), "--simulate", "--out", str(out), "--workers", "2", "--config", "demo"]
-        )
+        code = cli.main(["batch", str(dataset / "split.txt"), "--simulate", "--out", str(out), "--workers", "2", *CONFIG])
     assert code == 0
     return out, printed.getvalue()
 
@@ -54,6 +64,7 @@ def test_local_batch_pools_like_eval_and_resumes(dataset, local_run, tmp_path, c
     records = _records(out)
     assert sorted(records) == sorted(p.name for p in dataset.iterdir() if p.is_dir())
     assert all(r["status"] == "ok" and r["frames"] == 12 for r in records.values())
+    assert all(r["instances"] > 0 for r in records.values())  # the executors are compared on maps with instances
     assert "3 scenes: 3 ok, 0 failed" in printed and (out / "batch.md").is_file() and (out / "batch.csv").is_file()
 
     # the pooled score is `fmfusion eval` over the three prediction folders together
@@ -68,7 +79,7 @@ def test_local_batch_pools_like_eval_and_resumes(dataset, local_run, tmp_path, c
     capsys.readouterr()
     first = sorted(records)[0]
     stamp = (out / first / "run.json").stat().st_mtime_ns
-    assert cli.main(["batch", str(dataset), "--simulate", "--out", str(out), "--config", "demo", "--resume"]) == 0
+    assert cli.main(["batch", str(dataset), "--simulate", "--out", str(out), *CONFIG, "--resume"]) == 0
     assert "3 scenes, 0 to run (3 done before)" in capsys.readouterr().err
     assert (out / first / "run.json").stat().st_mtime_ns == stamp
 
@@ -80,7 +91,7 @@ def test_a_failed_scene_is_recorded_and_the_batch_goes_on(dataset, tmp_path):
     for pose in (broken / "pose").iterdir():
         pose.write_text("not a pose")
     out = tmp_path / "out"
-    assert cli.main(["batch", str(data), "--simulate", "--out", str(out), "--config", "demo", "--no-progress"]) == 1
+    assert cli.main(["batch", str(data), "--simulate", "--out", str(out), *CONFIG, "--no-progress"]) == 1
     records = _records(out)
     assert records[broken.name]["status"] == "failed" and "not a list of numbers" in records[broken.name]["error"]
     assert sum(r["status"] == "ok" for r in records.values()) == 2
@@ -90,21 +101,25 @@ def test_a_failed_scene_is_recorded_and_the_batch_goes_on(dataset, tmp_path):
 def test_scene_time_and_memory_limits_stop_a_scene_and_say_why(dataset, tmp_path):
     out = tmp_path / "out"
     argv = ["batch", str(dataset), "--simulate", "--out", str(out)]  # each scene runs for seconds, in 100s of MiB
-    assert cli.main([*argv, "--config", "demo", "--no-progress", "--scene-memory", "0.05"]) == 1
+    assert cli.main([*argv, *CONFIG, "--no-progress", "--scene-memory", "0.05"]) == 1
     assert {r["status"] for r in _records(out).values()} == {"memory"}  # a JAX process alone holds more
     assert "over the scene memory limit (51 MiB)" in (out / "batch.md").read_text()
-    assert cli.main([*argv, "--config", "demo", "--no-progress", "--scene-timeout", "0.5"]) == 1
+    assert cli.main([*argv, *CONFIG, "--no-progress", "--scene-timeout", "0.5"]) == 1
     assert {r["status"] for r in _records(out).values()} == {"timeout"}
 
 
-def test_vmapped_executor_gives_the_local_results(dataset, local_run, tmp_path):
-    """--batch 3: the three rooms fused in one vmapped step (one block layout covering all three)."""
+def test_vmapped_executor_gives_the_local_results(dataset, local_run, tmp_path, caplog):
+    """--batch 3: the three rooms fused in one vmapped step (one block layout covering all three); on a CPU, with
+    a warning that one process per scene is faster there."""
+    import jax
+
     out = tmp_path / "vmapped"
-    argv = ["batch", str(dataset), "--simulate", "--out", str(out), "--config", "demo", "--batch", "3", "--no-progress"]
+    argv = ["batch", str(dataset), "--simulate", "--out", str(out), *CONFIG, "--batch", "3", "--no-progress"]
     assert cli.main(argv) == 0
     records = _records(out)
     assert all(len(r["batched_with"]) == 3 for r in records.values())
     assert {k: _key(r) for k, r in records.items()} == {k: _key(r) for k, r in _records(local_run[0]).items()}
+    assert ("built for a GPU: on this CPU it is slower" in caplog.text) == (jax.default_backend() == "cpu")
 
 
 def test_ray_executor_gives_the_local_results(dataset, local_run, tmp_path):
@@ -112,7 +127,7 @@ def test_ray_executor_gives_the_local_results(dataset, local_run, tmp_path):
     distributed = tmp_path / "ray"
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        argv = ["batch", str(dataset), "--simulate", "--out", str(distributed), "--config", "demo", "--ray", "auto"]
+        argv = ["batch", str(dataset), "--simulate", "--out", str(distributed), *CONFIG, "--ray", "auto"]
         assert cli.main([*argv, "--no-progress"]) == 0
     finally:
         ray.shutdown()
