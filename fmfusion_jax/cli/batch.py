@@ -40,7 +40,12 @@ def register(subparsers) -> None:
     parser.add_argument("--ray", metavar="ADDRESS", help="run one Ray task per scene on this cluster (auto, local or an address)")
     parser.add_argument("--ray-cpus", type=float, default=1.0, metavar="N", help="CPUs a scene's Ray task declares")
     parser.add_argument("--ray-gpus", type=float, default=0.0, metavar="N", help="GPUs a scene's Ray task declares")
-    parser.add_argument("--batch", type=int, metavar="K", help="fuse K scenes at once in this process, vmapped on one device")
+    parser.add_argument(
+        "--batch",
+        type=int,
+        metavar="K",
+        help="fuse K scenes at once in this process, vmapped on one device (built for a GPU: on a CPU, --workers is faster)",
+    )
     parser.add_argument("--resume", action="store_true", help="skip the scenes whose outputs are complete")
     parser.add_argument("--scene-timeout", type=float, metavar="S", help="stop a scene after S seconds (recorded as timeout)")
     parser.add_argument(
