@@ -54,7 +54,7 @@ def _write_ply(path: Path, comment: str, elements: list[tuple[str, int, list[Ply
             block = np.empty(count, np.dtype([(name, code) for name, code, _, _ in columns]))
             for name, _, _, values in columns:
                 block[name] = values
-            stream.write(block.view(np.uint8))
+            stream.write(block.view(np.uint8).data)
             del block
 
 
