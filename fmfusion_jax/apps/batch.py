@@ -359,18 +359,16 @@ class Batch:
                 report(result)
 
 
-def warn_vmapped_on_cpu() -> bool:
-    """Warns (and returns True) when `--batch` would run on the CPU backend: the vmapped step is built for a GPU,
+def warn_vmapped_on_cpu() -> None:
+    """Warns when `--batch` would run on the CPU backend: the vmapped step is built for a GPU,
     where the maps' steps run side by side; on a CPU each of its selects and scatters walks every map's whole pool,
     so separate processes are faster (3 generated rooms of 12 frames at 160 x 120 on a 2-core VM, warm compile
     cache: `--batch 3` 29.5 s, `--workers 1` 17.6 s, `--workers 2` 13.7 s)."""
-    if jax.default_backend() != "cpu":
-        return False
-    log.warning(
-        "--batch fuses the scenes in one vmapped step, which is built for a GPU: on this CPU it is slower than "
-        "one process per scene (--workers N, N up to the cores)"
-    )
-    return True
+    if jax.default_backend() == "cpu":
+        log.warning(
+            "--batch fuses the scenes in one vmapped step, which is built for a GPU: on this CPU it is slower than "
+            "one process per scene (--workers N, N up to the cores)"
+        )
 
 
 def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
