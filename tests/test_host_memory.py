@@ -7,6 +7,8 @@ Uses the analytic box room of `test_pipeline` (clean detections), 160x120 frames
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
 import sys
 
 import jax
@@ -101,3 +103,15 @@ def test_compilations_count_each_new_step_once():
     step(np.ones(7, np.float32)).block_until_ready()
     assert after_first >= before + 1
     assert host_memory.compilations() == after_first
+
+
+def test_the_command_caps_the_heap_arenas_unless_the_environment_chose():
+    """`limit_malloc_arenas` (the `fmfusion` entry calls it) sets glibc's cap in a fresh process; a
+    `MALLOC_ARENA_MAX` in the environment is the user's choice and is left to glibc."""
+    code = "from fmfusion_jax import host_memory; print(host_memory.limit_malloc_arenas())"
+    env = {key: value for key, value in os.environ.items() if key != "MALLOC_ARENA_MAX"}
+    for chosen, expected in ((None, "True"), ("4", "False")):
+        if chosen is not None:
+            env["MALLOC_ARENA_MAX"] = chosen
+        done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0 and done.stdout.strip() == expected, done.stderr

@@ -109,7 +109,10 @@ def main(argv: list[str] | None = None, *, exit_at_once_on_interrupt: bool = Fal
 
 
 def entry() -> None:
-    """The `fmfusion` console command."""
+    """The `fmfusion` console command (a process of its own: its threads share the C heap's arenas)."""
+    from fmfusion_jax import host_memory
+
+    host_memory.limit_malloc_arenas()
     sys.exit(main(exit_at_once_on_interrupt=True))
 
 
