@@ -13,21 +13,12 @@ from pathlib import Path
 import pytest
 
 from fmfusion_jax import cli
-from fmfusion_jax.simulation.demo_setup import demo_config
+from fmfusion_jax.simulation.demo_setup import demo_overrides
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene
 
 SPECS = [GeneratedSceneSpec(seed=seed, num_objects=3, num_frames=12, width=160, height=120) for seed in (1, 2, 3)]
-_SCALED = demo_config(12, 160, 120)  # demo.yaml's pixel counts are for 640 x 480: unscaled, these rooms map nothing
-CONFIG = ["--config", "demo"] + [
-    item
-    for key, value in (
-        ("detections.every", _SCALED.detections.every),
-        ("detections.min_mask_pixels", _SCALED.detections.min_mask_pixels),
-        ("association.min_projected_pixels", _SCALED.association.min_projected_pixels),
-        ("export.min_points", _SCALED.export.min_points),
-    )
-    for item in ("--set", f"{key}={value}")
-]
+# demo.yaml's pixel counts are for 640 x 480: unscaled, these rooms map nothing
+CONFIG = ["--config", "demo"] + [item for override in demo_overrides(12, 160, 120) for item in ("--set", override)]
 
 
 @pytest.fixture(scope="module")

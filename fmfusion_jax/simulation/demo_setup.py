@@ -29,14 +29,26 @@ def demo_config(
     overrides: Sequence[str] = (),
     room_size: Sequence[float] | None = None,
 ) -> PipelineConfig:
-    """`configs/demo.yaml` for a demo of `num_frames` frames of `width x height`, then `overrides`.
+    """`configs/demo.yaml` for a demo of `num_frames` frames of `width x height` (`demo_overrides`), then
+    `overrides` (`--set` overrides win over the scaling)."""
+    return load_config("demo", demo_overrides(num_frames, width, height, room_size) + list(overrides))
+
+
+def demo_overrides(
+    num_frames: int = DEFAULT_FRAMES,
+    width: int = DEFAULT_WIDTH,
+    height: int = DEFAULT_HEIGHT,
+    room_size: Sequence[float] | None = None,
+) -> list[str]:
+    """The `KEY=VALUE` overrides that scale `configs/demo.yaml` to `num_frames` frames of `width x height` (what
+    `demo_config` applies; `fmfusion batch --config demo` takes them as `--set`).
 
     demo.yaml holds the values for 120 frames of 640x480. Over a longer loop consecutive frames are
     closer, so the detection stride (detections.every; refinement is counted in detection frames) grows in
     proportion to the frame count; pixel counts (detections.min_mask_pixels, association.min_projected_pixels) follow
     the image area, and so does export.min_points below 640x480 (instance voxels come from sampled
     pixels). With `room_size` (W, D, H metres), the block pool grows with the room's surface beyond the
-    default room's. `--set` overrides win over this scaling.
+    default room's.
     """
     config = load_config("demo")
     frames_scale = num_frames / DEFAULT_FRAMES
@@ -51,7 +63,7 @@ def demo_config(
     if room_size is not None:
         surface_scale = max(1.0, _surface_area(room_size) / _surface_area(DEFAULT_ROOM))
         scaled["tsdf.block_capacity"] = 1024 * -(-round(config.tsdf.block_capacity * surface_scale) // 1024)
-    return load_config("demo", [f"{key}={value}" for key, value in scaled.items()] + list(overrides))
+    return [f"{key}={value}" for key, value in scaled.items()]
 
 
 def demo_noise(seed: int, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT):
