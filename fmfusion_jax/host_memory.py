@@ -96,7 +96,8 @@ def limit_malloc_arenas(arenas: int = COMMAND_MALLOC_ARENAS) -> bool:
     """Caps the C heap's arenas at `arenas` for the threads that first allocate after the call (glibc's
     `mallopt(M_ARENA_MAX)`), so that threads share their freed memory: each thread otherwise keeps an arena of its
     own, and the memory one writer thread freed is not reused by the other (scene0000_00's `fmfusion run`, peak RSS
-    over 6 alternating runs: 1032-1064 MiB with glibc's default, 918-1004 MiB with 2; wall within 1 %). For a
+    over 6 alternating runs: 1032-1064 MiB with glibc's default, 918-1004 MiB with 2, wall within 1 %; in a slower
+    sitting both peaked alike, 881-924 MiB: the gain depends on how the writers' steps overlap). For a
     process of its own, called before JAX starts its threads: the `fmfusion` command, not the library (a process's
     allocator is its owner's choice). Returns whether the cap was set: not on other C libraries, nor when the
     environment sets `MALLOC_ARENA_MAX` (the user's choice stands)."""
