@@ -41,6 +41,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from fmfusion_jax.engine import _geometry as geo
 from fmfusion_jax.engine.config import MapConfig
@@ -216,25 +217,29 @@ def _raycast(
     # the trilinear crossing may lie up to about a voxel outside the nearest samples' bracket
     voxel = 1.0 / jnp.sqrt(direction[0] ** 2 + direction[1] ** 2 + direction[2] ** 2)
     low, high = t_before - voxel, t_after + voxel
-    ok = hit
-    for _ in range(NEWTON_STEPS):
+
+    def newton(_, carry):
+        depth, ok, _ = carry
         q = [origin[a] + depth * direction[a] for a in range(3)]
         f, gradient, seen = trilinear_tsdf(blocks, q[0], q[1], q[2], config)
         slope = gradient[0] * direction[0] + gradient[1] * direction[1] + gradient[2] * direction[2]  # df / dt
         ok = ok & seen & (slope < 0)
-        depth = jnp.clip(depth - f / jnp.where(ok, slope, -1.0), low, high)
+        return jnp.clip(depth - f / jnp.where(ok, slope, -1.0), low, high), ok, f
+
+    # a loop, not unrolled: one copy of the trilinear lookups in the compiled step
+    depth, ok, f = jax.lax.fori_loop(0, NEWTON_STEPS, newton, (depth, hit, jnp.zeros_like(depth)))
     # the last Newton step started near the surface (else the ray left the bracket: an edge, a thin part)
     ok = ok & (jnp.abs(f) * config.sdf_trunc <= NEAR_SURFACE_VOXELS * config.voxel_size)
     if with_normals:
         # the normal: central differences of the trilinear TSDF one voxel apart (the gradient inside one cell is
         # noisier: 2.8 degrees off the rendered normals against 1.1 after five frames)
         q = [origin[a] + depth * direction[a] for a in range(3)]
-        gradient = []
-        for a in range(3):
-            f_ahead, _, ok_ahead = trilinear_tsdf(blocks, q[0] + (a == 0), q[1] + (a == 1), q[2] + (a == 2), config)
-            f_behind, _, ok_behind = trilinear_tsdf(blocks, q[0] - (a == 0), q[1] - (a == 1), q[2] - (a == 2), config)
-            gradient.append(f_ahead - f_behind)
-            ok = ok & ok_ahead & ok_behind
+        # the six samples in one call, `(6, N)`: one voxel ahead along x, y, z, then behind (one copy of the
+        # trilinear lookups in the compiled step instead of six; the same points, normals equal to float32 rounding)
+        step = np.concatenate([np.eye(3, dtype=np.float32), -np.eye(3, dtype=np.float32)])[:, :, None]  # (6, 3, 1)
+        f_six, _, ok_six = trilinear_tsdf(blocks, *(q[a][None] + step[:, a] for a in range(3)), config)
+        gradient = [f_six[a] - f_six[3 + a] for a in range(3)]
+        ok = ok & jnp.all(ok_six, axis=0)
         normal_world = jnp.stack(gradient, axis=-1)
         norm = jnp.linalg.norm(normal_world, axis=-1)
         ok = ok & (norm > 1e-6)
