@@ -236,8 +236,8 @@ def _raycast(
         q = [origin[a] + depth * direction[a] for a in range(3)]
         # the six samples in one call, `(6, N)`: one voxel ahead along x, y, z, then behind (one copy of the
         # trilinear lookups in the compiled step instead of six; the same points, normals equal to float32 rounding)
-        step = np.concatenate([np.eye(3, dtype=np.float32), -np.eye(3, dtype=np.float32)])[:, :, None]  # (6, 3, 1)
-        six = [q[a][None] + step[:, a] for a in range(3)]
+        offsets = np.vstack([np.eye(3, dtype=np.float32), -np.eye(3, dtype=np.float32)])[:, :, None]  # (6, 3, 1)
+        six = [q[a][None] + offsets[:, a] for a in range(3)]
         f_six, _, ok_six = trilinear_tsdf(blocks, six[0], six[1], six[2], config)
         gradient = [f_six[a] - f_six[3 + a] for a in range(3)]
         ok = ok & jnp.all(ok_six, axis=0)
