@@ -68,8 +68,10 @@ def test_top_level_exports():
         fmfusion_jax.NotAThing  # noqa: B018
 
 
-def test_example_grows_the_same_map_as_fmfusion_run(room):
-    """The example's growing Mapper and `fmfusion run`'s map sized from the scene's bounds: identical instances."""
+def test_example_gives_the_map_of_fmfusion_run(room):
+    """The example's Mapper without bounds and `fmfusion run`'s map sized from the scene's bounds: identical
+    instances. Its first frame sized it for a room: it never grew in this one, and it holds less than the config's
+    capacities."""
     scene_dir, detections, config = room
     mapper = _load_example().fuse(scene_dir, detections, config, progress=False)
     scene = open_scene(scene_dir, depth_max=config.dataset.depth_max)
@@ -78,11 +80,38 @@ def test_example_grows_the_same_map_as_fmfusion_run(room):
     expected = extract_map_instances(reference)
     assert len(expected) >= 3
     assert _key(mapper.instances()) == _key(expected)
-    assert mapper.detection_frames == reference.detection_frames and mapper.growths >= 1
-    # it grew from a small allocation: well under the config's capacities
+    assert mapper.detection_frames == reference.detection_frames and mapper.growths == 0
     full = build_map_config(config, *open_scene(scene_dir).bounds(), SPEC.height, SPEC.width)
     assert mapper.map_config.memory_bytes() < full.memory_bytes()
     assert mapper.frames_integrated == SPEC.num_frames
+
+
+def test_a_map_without_bounds_starts_room_sized_from_its_first_frame(room, monkeypatch):
+    """The first frame sizes a growing map for the room around it (every growth recompiles the steps): an index
+    reaching two depth ranges beyond the frame's blocks and a pool of eight times them. Every block the room's
+    frames touch fits, so this room never grows; a smaller ceiling caps the pool."""
+    import fmfusion_jax.mapping.capacity as capacity
+
+    scene_dir, _, config = room
+    frames = _frames(scene_dir, config)
+    layout = build_map_config(config, np.zeros(3), np.ones(3), SPEC.height, SPEC.width)
+    count, lo, hi = frame_block_extent(frames[0], layout)
+    first = capacity.growing_map_config(layout, count, lo, hi, 256)
+    room_blocks = np.unique(np.concatenate([frame_block_keys(frame, layout) for frame in frames]), axis=0)
+    index_lo, index_hi = growth.bounds_block_range(first)
+    reach = int(np.ceil(2 * layout.depth_max / layout.block_length))
+    np.testing.assert_array_equal(index_lo, lo - reach)
+    np.testing.assert_array_equal(index_hi, hi + reach)
+    assert (room_blocks >= index_lo).all() and (room_blocks < index_hi).all()
+    assert first.block_capacity == 8192 >= 8 * count and first.block_capacity > len(room_blocks) > 4 * count
+    assert first.instance_capacity == 256 and first.grid_origin == tuple((index_lo * layout.block_length).tolist())
+    far = capacity.growing_map_config(dataclasses.replace(layout, depth_max=12.0), count, lo, hi, 256)  # 24 m reach
+    assert np.prod(far.grid_shape) <= capacity.FIRST_INDEX_CELLS < np.prod(np.asarray(far.grid_shape) + 2)
+    small_ceiling = dataclasses.replace(layout, block_capacity=4096)
+    assert capacity.growing_map_config(small_ceiling, count, lo, hi, 256).block_capacity == 4096
+    monkeypatch.setattr(capacity, "FIRST_POOL_FACTOR", 2)
+    assert capacity.growing_map_config(layout, count, lo, hi, 256).block_capacity == 2048
+    assert capacity.growing_map_config(layout, 0, np.zeros(3), np.zeros(3), 256).block_capacity == capacity.MIN_POOL_BLOCKS
 
 
 def test_for_scene_is_the_map_fmfusion_run_fuses_into(room):
@@ -220,14 +249,19 @@ def test_frame_block_extent_counts_the_distinct_blocks_of_a_frame(room):
     assert frame_block_extent(blank, layout)[0] == 0 and len(frame_block_keys(blank, layout)) == 0
 
 
-def test_frames_prepared_in_a_reader_thread_make_the_same_map(room):
+def test_frames_prepared_in_a_reader_thread_make_the_same_map(room, monkeypatch):
     """`Mapper.prepare` counts the growth check's block extent and packs the detections ahead, in other threads as
     `fmfusion run`'s readers do: the map is the one plain frames make. A frame prepared under other block
     parameters (here a wider truncation band) is counted again: the first frame sizes the map, so its stale extent
     would size it wrong. Frames prepared without detections take them at `integrate`, never twice."""
+    import fmfusion_jax.mapping.capacity as capacity
+
     scene_dir, detections, config = room
     folder = DetectionFolder(detections)
     frames = _frames(scene_dir, config)
+    # a first pool too small for this room, so that the growth check reads the prepared extents too (it grows
+    # into the layout the room-sized first pool has: one more layout to compile, not two)
+    monkeypatch.setattr(capacity, "FIRST_POOL_FACTOR", 2)
     plain, fed_prepared = Mapper(config), Mapper(config)
     wider = config.model_copy(update={"tsdf": config.tsdf.model_copy(update={"sdf_trunc": 3 * config.tsdf.sdf_trunc})})
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as reader:

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.engine import growth
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.state import MapState
 from fmfusion_jax.mapping.engine_configs import build_map_config
@@ -98,6 +99,21 @@ INDEX_PAD_BLOCKS = 8
 
 #: Smallest voxel-block pool a growing map starts with.
 MIN_POOL_BLOCKS = 1024
+
+
+#: A growing map's first pool holds this many times the blocks of its first frame. A room allocates tens of times
+#: what one view shows (scene0000_00: 19,405 blocks, 592 in its first frame); from 2x the pool grew twice there,
+#: from 8x once (every growth recompiles the steps, seconds on a CPU; a pool row takes memory once filled).
+FIRST_POOL_FACTOR = 8
+
+
+#: A growing map's first index reaches this many depth ranges (`dataset.depth_max`) beyond its first frame's
+#: blocks on every side: the camera walks on and sees that far again. An index cell is 4 bytes: ~12 MiB at 4 m and
+#: 12.5 cm blocks. From 1 m of padding the index grew six times on scene0000_00, from this not at all.
+FIRST_INDEX_REACH = 2.0
+
+#: ... within this many index cells (16 MiB): a long depth range or small blocks reach less far at first.
+FIRST_INDEX_CELLS = 1 << 22
 
 
 #: Rows the instance table starts with (with or without bounds): a room's live instances fit (scene0000_00
@@ -207,6 +223,21 @@ def initial_pool_blocks(expected_blocks: int, ceiling: int) -> int:
     """The pool a map expected to use `expected_blocks` starts with: the power of two above 1.25x that (a
     sample of the frames sees most of a room, not all), at least `MIN_POOL_BLOCKS`, at most `ceiling`."""
     return min(ceiling, max(MIN_POOL_BLOCKS, _next_power_of_two(int(np.ceil(1.25 * expected_blocks)))))
+
+
+def growing_map_config(layout: MapConfig, first_blocks: int, lo: np.ndarray, hi: np.ndarray, instance_rows: int) -> MapConfig:
+    """The map a `Mapper` without bounds starts with, from its first frame's `frame_block_extent` (`first_blocks`
+    distinct blocks in `[lo, hi)`): the index over those blocks and `FIRST_INDEX_REACH` depth ranges around them
+    (within `FIRST_INDEX_CELLS`), the pool for `FIRST_POOL_FACTOR` times the blocks (at least `MIN_POOL_BLOCKS`, at
+    most the config's) and `instance_rows` rows. `layout`: the config's map for these frames (its capacities are the
+    ceilings of growth)."""
+    extent = np.asarray(hi, np.int64) - np.asarray(lo, np.int64)
+    reach = max(INDEX_PAD_BLOCKS, int(np.ceil(FIRST_INDEX_REACH * layout.depth_max / layout.block_length)))
+    while reach > INDEX_PAD_BLOCKS and np.prod(extent + 2 * reach) > FIRST_INDEX_CELLS:
+        reach -= 1
+    pool = min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(FIRST_POOL_FACTOR * first_blocks + 1)))
+    indexed = growth.config_for_block_range(layout, np.asarray(lo) - reach, np.asarray(hi) + reach)
+    return dataclasses.replace(indexed, block_capacity=pool, instance_capacity=instance_rows)
 
 
 def bounded_map_config(

@@ -7,14 +7,15 @@
     mapper.finalize()                                # geometry fusion + post-merge, once
     mapper.extract_mesh().export("mesh.ply"); mapper.save("map.npz"); Mapper.load("map.npz")
 
-Without `bounds`, the map grows as the camera explores: the block index, the voxel-block pool and the instance
-table start small and are enlarged (the pool four times while far below its ceiling, then by doubling; the index a
-side by its whole extent: a handful of recompiles per run, each logged) before a
-frame that would not fit. The voxel lattice is fixed (origins on whole blocks), so a grown map equals one
-allocated at its final size. With `bounds` (as `fmfusion run` passes the scene's), the index is fixed; the pool
-starts at `expected_blocks` (the config's capacity when not given) and grows the same way, and so does the
-instance table (from `INITIAL_INSTANCE_ROWS`: its pairwise merge tests cost K^2, so a table sized to the
-map's instances rather than to the ceiling makes the merge several times faster, with the same map). The
+Without `bounds`, the map grows as the camera explores: the first frame sizes a room around what it sees
+(`capacity.growing_map_config`: an index reaching two depth ranges beyond it, a pool of 8 times its blocks), and the
+block index, the pool and the instance table are enlarged (the pool four times while far below its ceiling, then by
+doubling; the index a side by its whole extent: a recompile each, logged) before a frame that would not fit. The
+voxel lattice is fixed (origins on whole blocks), so a grown map equals one allocated at its final size. With
+`bounds` (as `fmfusion run` passes the scene's), the index is fixed; the pool starts at `expected_blocks` (the
+config's capacity when not given) and grows the same way, and so does the instance table (from
+`INITIAL_INSTANCE_ROWS`: its pairwise merge tests cost K^2, so a table sized to the map's instances rather than to
+the ceiling makes the merge several times faster, with the same map). The
 config's capacities are the ceiling of growth.
 """
 
@@ -44,12 +45,12 @@ from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.mapping.builder import FusionResult, MapBuilder
 from fmfusion_jax.mapping.capacity import (
     INDEX_PAD_BLOCKS,
-    MIN_POOL_BLOCKS,
     MapSizes,
     _extent_parameters,
     _next_power_of_two,
     bounded_map_config,
     frame_block_extent,
+    growing_map_config,
     initial_instance_rows,
     scene_extent,
 )
@@ -428,13 +429,10 @@ class Mapper:
                 expected = max(expected, self._block_extent(frame, index, prepared)[0])
             map_config = bounded_map_config(self.config, self._bounds, height, width, expected)
         else:
-            # the frame's blocks padded (a frame without depth: the padding around the origin)
+            # around the frame's blocks (a frame without depth: around the origin), room-sized: few growths
             count, lo, hi = self._block_extent(frame, layout, prepared)
-            map_config = dataclasses.replace(
-                growth.config_for_block_range(layout, lo - INDEX_PAD_BLOCKS, hi + INDEX_PAD_BLOCKS),
-                block_capacity=min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(2 * count + 1))),
-                instance_capacity=initial_instance_rows(self.config.detections.max_detections, layout.instance_capacity),
-            )
+            rows = initial_instance_rows(self.config.detections.max_detections, layout.instance_capacity)
+            map_config = growing_map_config(layout, count, lo, hi, rows)
         self._builder = MapBuilder(
             self.config,
             map_config,
