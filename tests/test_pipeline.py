@@ -195,8 +195,9 @@ def test_the_label_image_and_the_mask_stack_make_the_same_map(room_frames):
                 clean_detections(frame), LABELS.open_labels, 12, 100, stride=stride if as_image else 1, as_image=as_image
             )
             assert (batch.masks is None) == as_image
+            # the builder's compiled layout (the origin in the state): the label image's step is the other tests'
             state, _ = step.fuse_detections(
-                state, frame_inputs(frame, map_config), batch, builder.likelihood, map_config, builder.fusion_config
+                state, frame_inputs(frame, map_config), batch, builder.likelihood, builder.step_config, builder.fusion_config
             )
         maps.append(jax.device_get(state))
     assert int(maps[1].instances.valid.sum()) >= 3

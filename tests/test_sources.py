@@ -68,9 +68,8 @@ def test_the_mapper_calls_a_source_on_due_frames_only(room):
         called.append(frame.name)
         return folder.get(frame.name)
 
-    # sized from the scene's bounds: one layout compiled, not one per growth (the growth is test_mapper's)
-    bounds = scene.bounds()
-    by_source, by_detections = Mapper(config, bounds=bounds), Mapper(config, bounds=bounds)
+    # sized as `fmfusion run` sizes a map: the layout other tests' runs of a generated room compile (no growth)
+    by_source, by_detections = Mapper.for_scene(scene, config), Mapper.for_scene(scene, config)
     fused = [by_source.integrate(frame, source) for frame in frames]
     for frame in frames:
         by_detections.integrate(frame, folder.get(frame.name))
@@ -88,7 +87,7 @@ def test_scheduled_positions_are_the_frames_the_mapper_fuses(room):
     poses = scene.poses()
     positions = scheduled_positions(poses, motion)
     assert positions[0] == 0 and positions == sorted(set(positions))
-    mapper = Mapper(config.model_copy(update={"detections": motion.detections}), bounds=scene.bounds())
+    mapper = Mapper.for_scene(scene, config.model_copy(update={"detections": motion.detections}))
     folder = DetectionFolder(detections)
     fused = [i for i, frame in enumerate(scene.frames()) if mapper.integrate(frame, folder.get(frame.name))]
     assert fused == positions
