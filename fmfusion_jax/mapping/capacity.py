@@ -231,12 +231,12 @@ def growing_map_config(layout: MapConfig, first_blocks: int, lo: np.ndarray, hi:
     (within `FIRST_INDEX_CELLS`), the pool for `FIRST_POOL_FACTOR` times the blocks (at least `MIN_POOL_BLOCKS`, at
     most the config's) and `instance_rows` rows. `layout`: the config's map for these frames (its capacities are the
     ceilings of growth)."""
-    extent = np.asarray(hi, np.int64) - np.asarray(lo, np.int64)
+    lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
     reach = max(INDEX_PAD_BLOCKS, int(np.ceil(FIRST_INDEX_REACH * layout.depth_max / layout.block_length)))
-    while reach > INDEX_PAD_BLOCKS and np.prod(extent + 2 * reach) > FIRST_INDEX_CELLS:
+    while reach > INDEX_PAD_BLOCKS and np.prod(hi - lo + 2 * reach) > FIRST_INDEX_CELLS:
         reach -= 1
     pool = min(layout.block_capacity, max(MIN_POOL_BLOCKS, _next_power_of_two(FIRST_POOL_FACTOR * first_blocks + 1)))
-    indexed = growth.config_for_block_range(layout, np.asarray(lo) - reach, np.asarray(hi) + reach)
+    indexed = growth.config_for_block_range(layout, lo - reach, hi + reach)
     return dataclasses.replace(indexed, block_capacity=pool, instance_capacity=instance_rows)
 
 
