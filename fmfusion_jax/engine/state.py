@@ -214,6 +214,12 @@ def init_map_state(config: MapConfig) -> MapState:
     )
 
 
+@jax.jit
+def copy_map_state(state: MapState) -> MapState:
+    """`state` in fresh buffers, for a step that donates its input: one compiled program, not a copy per leaf."""
+    return jax.tree.map(jnp.copy, state)
+
+
 __all__ = [
     "INSTANCE_BITS",
     "VoxelBlocks",
@@ -222,6 +228,7 @@ __all__ = [
     "init_voxel_blocks",
     "init_instance_table",
     "init_map_state",
+    "copy_map_state",
     "local_voxel_index",
     "voxel_offsets",
 ]

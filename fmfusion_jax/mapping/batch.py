@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -13,8 +14,9 @@ import numpy as np
 
 from fmfusion_jax.compile_cache import use_compile_cache
 from fmfusion_jax.config import PipelineConfig
+from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.frame import finalize_maps, fuse_frames
-from fmfusion_jax.engine.state import init_map_state
+from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.mapping.builder import FusionProgress, FusionResult
@@ -27,6 +29,19 @@ from fmfusion_jax.mapping.telemetry import StageTimer
 from fmfusion_jax.types import FrameDetections, RGBDFrame
 
 log = logging.getLogger(__name__)
+
+
+@functools.partial(jax.jit, static_argnames=("map_config", "batch_size"))
+def _initial_states(map_config: MapConfig, batch_size: int) -> MapState:
+    """`batch_size` empty maps stacked along a leading axis: one compiled program, not one per leaf of the state."""
+    return jax.tree.map(lambda leaf: jnp.broadcast_to(leaf, (batch_size, *leaf.shape)), init_map_state(map_config))
+
+
+@jax.jit
+def _state_at(states: MapState, index: jax.Array) -> MapState:
+    """Map `index` of stacked states, in fresh buffers: one compiled program for any index, not a slice and a
+    squeeze per leaf."""
+    return jax.tree.map(lambda leaf: leaf[index], states)
 
 
 class MapperBatch:
@@ -66,7 +81,7 @@ class MapperBatch:
         height, width = image_shape
         self.map_config = build_map_config(self.config, *self._bounds, height, width, self.label_sets)
         self._step_config = self.map_config.compiled_layout()  # the steps' static config (the states hold the origin)
-        self.states = jax.tree.map(lambda leaf: jnp.stack([leaf] * batch_size), init_map_state(self.map_config))
+        self.states = _initial_states(self.map_config, batch_size)
         self.fusion_config = build_fusion_config(self.config, self.label_sets)
         if likelihood is None:
             likelihood = fusion_likelihood(self.config)
@@ -164,7 +179,7 @@ class MapperBatch:
         return Mapper.resume(
             self.config,
             self.map_config,
-            jax.tree.map(jnp.copy, self._map_state(index)),
+            self._map_state(index),  # fresh buffers: the Mapper donates them to its next step
             {
                 **progress.as_dict(),
                 "schedule": self._schedules[index].state(),
@@ -175,5 +190,5 @@ class MapperBatch:
             likelihood=np.asarray(self._likelihood),
         )
 
-    def _map_state(self, index: int):
-        return jax.tree.map(lambda leaf: leaf[index], self.states)
+    def _map_state(self, index: int) -> MapState:
+        return _state_at(self.states, index)

@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -38,7 +37,7 @@ from fmfusion_jax.compile_cache import use_compile_cache
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.engine import extraction, growth, step
 from fmfusion_jax.engine.config import MapConfig
-from fmfusion_jax.engine.state import MapState
+from fmfusion_jax.engine.state import MapState, copy_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.instances import MapInstance
 from fmfusion_jax.labels import LabelSets, load_label_sets
@@ -287,7 +286,7 @@ class Mapper:
         if self._result is not None:
             return self._result
         builder = self._require_builder()
-        state = jax.tree.map(jnp.copy, builder.state)  # finalize donates its input: never the live map
+        state = copy_map_state(builder.state)  # finalize donates its input: never the live map
         host_memory.release_unallocated_rows(state)  # the copy's empty rows, before finalize's own temporaries
         if self.config.refinement.enabled:
             state, _ = step.finalize(state, builder.step_config, builder.fusion_config)
