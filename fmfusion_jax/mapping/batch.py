@@ -85,7 +85,7 @@ class MapperBatch:
         self.fusion_config = build_fusion_config(self.config, self.label_sets)
         if likelihood is None:
             likelihood = fusion_likelihood(self.config)
-        self._likelihood = jnp.asarray(likelihood, jnp.float32)
+        self._likelihood = jax.device_put(np.asarray(likelihood, np.float32))  # converted on the host: no cast compiled
         self._adapter = HostAdapter.for_map(self.config, self.map_config, self.label_sets)
         # each map's own counts, cadences, detection schedule and capacity warnings (a `MapBuilder` keeps them
         # for one map); the states live stacked in `states`

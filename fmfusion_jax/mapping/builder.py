@@ -11,7 +11,6 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from fmfusion_jax import host_memory
@@ -165,7 +164,7 @@ class MapBuilder:
         self.fusion_config = build_fusion_config(config, self.label_sets)
         if likelihood is None:
             likelihood = fusion_likelihood(config)
-        self.likelihood = jnp.asarray(likelihood, jnp.float32)
+        self.likelihood = jax.device_put(np.asarray(likelihood, np.float32))  # converted on the host: no cast compiled
         self.state = init_map_state(map_config) if state is None else state
         host_memory.release_unallocated_rows(self.state)  # the pool's empty rows take no memory until filled
         self.timer = StageTimer() if timer is None else timer

@@ -479,7 +479,8 @@ class Mapper:
         if bounds is None or (not full_pool and bounds[0] + 1 > pool) or (not full_table and bounds[1] > rows):
             # unknown, or close to a capacity: the exact sizes after the steps dispatched so far (waits for the device)
             state = builder.state
-            builder.sizes_after = MapSizes(position - 1, int(state.blocks.num_blocks), int(state.instances.valid.sum()))
+            live = int(np.count_nonzero(np.asarray(state.instances.valid)))  # on the host: no reduction compiled for it
+            builder.sizes_after = MapSizes(position - 1, int(state.blocks.num_blocks), live)
             bounds = self._size_bounds(builder)
             assert bounds is not None
         blocks_bound, rows_bound = bounds

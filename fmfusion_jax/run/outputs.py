@@ -22,6 +22,8 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from fmfusion_jax import host_memory
 from fmfusion_jax.config import PipelineConfig
 from fmfusion_jax.errors import UserError
@@ -211,7 +213,7 @@ def capacity_used(result: FusionResult) -> dict[str, int]:
         "block_capacity": result.map_config.block_capacity,
         "dropped_blocks": int(blocks.dropped_blocks),
         "touched_overflow": int(blocks.touched_overflow),
-        "instances_live": int(table.valid.sum()),
+        "instances_live": int(np.count_nonzero(np.asarray(table.valid))),  # on the host: no reduction compiled for it
         "instance_capacity": result.map_config.instance_capacity,
         "table_overflow": int(table.overflow),
     }
