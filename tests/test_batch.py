@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from fmfusion_jax import cli
-from fmfusion_jax.simulation.demo_setup import demo_overrides
+from fmfusion_jax.simulation.demo_setup import demo_config, demo_overrides
 from fmfusion_jax.simulation.scene_sets import GeneratedSceneSpec, generated_scene
 
 SPECS = [GeneratedSceneSpec(seed=seed, num_objects=3, num_frames=12, width=160, height=120) for seed in (1, 2, 3)]
@@ -111,6 +111,12 @@ def test_vmapped_executor_gives_the_local_results(dataset, local_run, tmp_path, 
     assert all(len(r["batched_with"]) == 3 for r in records.values())
     assert {k: _key(r) for k, r in records.items()} == {k: _key(r) for k, r in _records(local_run[0]).items()}
     assert ("built for a GPU: on this CPU it is slower" in caplog.text) == (jax.default_backend() == "cpu")
+    # the pool sized to the scenes (each vmapped step walks every map's whole pool), not the config's, and no
+    # block dropped: the same maps as the local runs'
+    config_pool = demo_config(12, 160, 120).tsdf.block_capacity
+    for record in records.values():
+        used = json.loads((Path(record["out"]) / "run.json").read_text())["capacity_used"]
+        assert used["dropped_blocks"] == 0 and used["blocks"] < used["block_capacity"] < config_pool
 
 
 def test_ray_executor_gives_the_local_results(dataset, local_run, tmp_path):

@@ -20,7 +20,7 @@ from fmfusion_jax.engine import growth
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.mapping.capacity import frame_block_extent, initial_pool_blocks, sample_block_count
+from fmfusion_jax.mapping.capacity import FIXED_POOL_MARGIN, frame_block_extent, initial_pool_blocks, sample_block_count
 from fmfusion_jax.mapping.engine_configs import build_map_config
 from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import as_config
@@ -502,5 +502,10 @@ def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
         assert int(blocks.dropped_blocks) == int(blocks.touched_overflow) == 0
         assert results[i].frames_integrated == len(frames)
         assert _key(batch.mapper(i).instances()) == _key(got)
+    # sized for the blocks a map is expected to use, with the margin of a pool that cannot grow
+    sized = MapperBatch(config, 2, bounds=bounds, image_shape=(SPEC.height, SPEC.width), expected_blocks=2000)
+    assert sized.map_config.block_capacity == 4096 == initial_pool_blocks(2000, 6144, FIXED_POOL_MARGIN)
+    assert initial_pool_blocks(3000, 6144, FIXED_POOL_MARGIN) == 6144  # at most the config's
+    assert sized.map_config == dataclasses.replace(batch.map_config, block_capacity=4096)
     with pytest.raises(UserError, match="expected 2 frames"):
-        MapperBatch(config, 2, bounds=bounds, image_shape=(SPEC.height, SPEC.width)).integrate([None])
+        sized.integrate([None])

@@ -42,6 +42,7 @@ from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 from fmfusion_jax.io.scene import detect_layout, open_dataset_scene
 from fmfusion_jax.mapping.batch import MapperBatch
+from fmfusion_jax.mapping.capacity import scene_extent
 from fmfusion_jax.run.command import write_outputs
 
 log = logging.getLogger(__name__)
@@ -363,7 +364,7 @@ def warn_vmapped_on_cpu() -> None:
     """Warns when `--batch` would run on the CPU backend: the vmapped step is built for a GPU,
     where the maps' steps run side by side; on a CPU each of its selects and scatters walks every map's whole pool,
     so separate processes are faster (3 generated rooms of 12 frames at 160 x 120 on a 2-core VM, warm compile
-    cache: `--batch 3` 29.5 s, `--workers 1` 17.6 s, `--workers 2` 13.7 s)."""
+    cache, with the pool sized to the rooms: `--batch 3` 26.5 s, `--workers 1` 17.9 s, `--workers 2` 13.2 s)."""
     if jax.default_backend() == "cpu":
         log.warning(
             "--batch fuses the scenes in one vmapped step, which is built for a GPU: on this CPU it is slower than "
@@ -388,10 +389,12 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
         if len(shapes) != 1:
             raise UserError(f"scenes of different image sizes {sorted(shapes)} cannot be fused in one batch")
         folders = [DetectionFolder(t.detections, image_shape=next(iter(shapes))) for t in group]
-        bounds = [s.bounds() for s in scenes]
-        lo = np.min([b[0] for b in bounds], axis=0)
-        hi = np.max([b[1] for b in bounds], axis=0)
-        batch = MapperBatch(config, len(group), bounds=(lo, hi), image_shape=next(iter(shapes)))
+        # each scene's bounds and blocks from a sample of its frames, as `fmfusion run` sizes its map
+        extents = [scene_extent(s, config) for s in scenes]
+        lo = np.min([bounds[0] for bounds, _ in extents], axis=0)
+        hi = np.max([bounds[1] for bounds, _ in extents], axis=0)
+        expected = max(blocks for _, blocks in extents)
+        batch = MapperBatch(config, len(group), bounds=(lo, hi), image_shape=next(iter(shapes)), expected_blocks=expected)
         for position in range(max(len(s) for s in scenes)):
             frames = [s.read_frame(position) if position < len(s) else None for s in scenes]
             detections = [f.get(fr.name) if fr is not None else None for f, fr in zip(folders, frames)]

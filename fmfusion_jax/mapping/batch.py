@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from collections.abc import Mapping, Sequence
@@ -20,7 +21,7 @@ from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.mapping.builder import FusionProgress, FusionResult
-from fmfusion_jax.mapping.capacity import CapacityMonitor
+from fmfusion_jax.mapping.capacity import FIXED_POOL_MARGIN, CapacityMonitor, initial_pool_blocks
 from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config, fusion_likelihood
 from fmfusion_jax.mapping.inputs import HostAdapter, as_config
 from fmfusion_jax.mapping.mapper import Mapper
@@ -50,7 +51,10 @@ class MapperBatch:
     or for experiments over seeds and noise models.
 
     All maps share the image size and one block layout: `bounds` must cover every map's scene, each in its own
-    world frame (e.g. the union of the scenes' bounds). The capacities are the config's (no growth). Each map
+    world frame (e.g. the union of the scenes' bounds). The maps do not grow: the instance table is the config's, and
+    so is the block pool unless `expected_blocks` sizes it (the most any map is expected to use, as
+    `capacity.scene_extent` counts it for a scene: the pool takes `FIXED_POOL_MARGIN` times that; each vmapped step
+    walks every map's whole pool, so a pool sized to the scenes is faster and smaller than the config's). Each map
     keeps its own detection schedule and refinement schedule, as a `Mapper` would; map `i` fused here equals a
     `Mapper(config, bounds=bounds)` fed the same frames (`tests/test_mapper.py`).
 
@@ -68,6 +72,7 @@ class MapperBatch:
         *,
         bounds: "tuple[Sequence[float], Sequence[float]]",
         image_shape: tuple[int, int],
+        expected_blocks: int | None = None,
         label_sets: LabelSets | None = None,
         likelihood: np.ndarray | None = None,
     ):
@@ -80,6 +85,9 @@ class MapperBatch:
         self._bounds = (np.asarray(bounds[0], float), np.asarray(bounds[1], float))
         height, width = image_shape
         self.map_config = build_map_config(self.config, *self._bounds, height, width, self.label_sets)
+        if expected_blocks is not None:
+            pool = initial_pool_blocks(expected_blocks, self.map_config.block_capacity, FIXED_POOL_MARGIN)
+            self.map_config = dataclasses.replace(self.map_config, block_capacity=pool)
         self._step_config = self.map_config.compiled_layout()  # the steps' static config (the states hold the origin)
         self.states = _initial_states(self.map_config, batch_size)
         self.fusion_config = build_fusion_config(self.config, self.label_sets)

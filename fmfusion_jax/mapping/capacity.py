@@ -219,10 +219,17 @@ def initial_instance_rows(max_detections: int, ceiling: int) -> int:
     return min(ceiling, max(INITIAL_INSTANCE_ROWS, _next_power_of_two(2 * max_detections)))
 
 
-def initial_pool_blocks(expected_blocks: int, ceiling: int) -> int:
-    """The pool a map expected to use `expected_blocks` starts with: the power of two above 1.25x that (a
-    sample of the frames sees most of a room, not all), at least `MIN_POOL_BLOCKS`, at most `ceiling`."""
-    return min(ceiling, max(MIN_POOL_BLOCKS, _next_power_of_two(int(np.ceil(1.25 * expected_blocks)))))
+#: The margin over the sampled block count (`sample_block_count`) of a pool that grows when it must (a sample of
+#: the frames sees most of a room, not all), and of one that cannot grow (`MapperBatch`): the sample counts 0.7-1.05x
+#: the blocks the frames touch (`tests/test_mapper.py`), so 1.5x the count holds the room (before the rounding up to a
+#: power of two).
+GROWING_POOL_MARGIN, FIXED_POOL_MARGIN = 1.25, 1.5
+
+
+def initial_pool_blocks(expected_blocks: int, ceiling: int, margin: float = GROWING_POOL_MARGIN) -> int:
+    """The pool a map expected to use `expected_blocks` starts with: the power of two above `margin` times that, at
+    least `MIN_POOL_BLOCKS`, at most `ceiling`."""
+    return min(ceiling, max(MIN_POOL_BLOCKS, _next_power_of_two(int(np.ceil(margin * expected_blocks)))))
 
 
 def growing_map_config(layout: MapConfig, first_blocks: int, lo: np.ndarray, hi: np.ndarray, instance_rows: int) -> MapConfig:
