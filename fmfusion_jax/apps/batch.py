@@ -395,6 +395,13 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
         hi = np.max([bounds[1] for bounds, _ in extents], axis=0)
         expected = max(blocks for _, blocks in extents)
         batch = MapperBatch(config, len(group), bounds=(lo, hi), image_shape=next(iter(shapes)), expected_blocks=expected)
+        maps_mib = len(group) * batch.map_config.memory_bytes() / 2**20
+        log.info(
+            "fusing %s in one vmapped step: %s each, ~%.0f MiB of maps",
+            ", ".join(t.name for t in group),
+            batch.map_config.describe(),
+            maps_mib,
+        )
         for position in range(max(len(s) for s in scenes)):
             frames = [s.read_frame(position) if position < len(s) else None for s in scenes]
             detections = [f.get(fr.name) if fr is not None else None for f, fr in zip(folders, frames)]
