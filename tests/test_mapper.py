@@ -7,6 +7,7 @@ import concurrent.futures
 import dataclasses
 import importlib.util
 import time
+import types
 from pathlib import Path
 
 import jax
@@ -20,7 +21,13 @@ from fmfusion_jax.engine import growth
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.scene import open_scene
-from fmfusion_jax.mapping.capacity import FIXED_POOL_MARGIN, frame_block_extent, initial_pool_blocks, sample_block_count
+from fmfusion_jax.mapping.capacity import (
+    FIXED_POOL_MARGIN,
+    frame_block_extent,
+    initial_pool_blocks,
+    sample_block_count,
+    scene_extent,
+)
 from fmfusion_jax.mapping.engine_configs import build_map_config
 from fmfusion_jax.mapping.export import extract_map_instances
 from fmfusion_jax.mapping.inputs import as_config
@@ -502,10 +509,23 @@ def test_batch_of_maps_equals_one_mapper_per_map(room, tmp_path):
         assert int(blocks.dropped_blocks) == int(blocks.touched_overflow) == 0
         assert results[i].frames_integrated == len(frames)
         assert _key(batch.mapper(i).instances()) == _key(got)
-    # sized for the blocks a map is expected to use, with the margin of a pool that cannot grow
+    # sized for the blocks a map is expected to use, with the margin of a pool that cannot grow; `for_scenes` counts
+    # them from a sample of each scene's frames, as `fmfusion batch --batch` does
+    opened = [open_scene(d, depth_max=config.dataset.depth_max) for d in (scene_dir, other_dir)]
+    expected = max(scene_extent(scene, config)[1] for scene in opened)
+    pool = initial_pool_blocks(expected, 6144, FIXED_POOL_MARGIN)
+    assert MapperBatch.for_scenes(opened, config).map_config == dataclasses.replace(batch.map_config, block_capacity=pool)
     sized = MapperBatch(config, 2, bounds=bounds, image_shape=(SPEC.height, SPEC.width), expected_blocks=2000)
     assert sized.map_config.block_capacity == 4096 == initial_pool_blocks(2000, 6144, FIXED_POOL_MARGIN)
     assert initial_pool_blocks(3000, 6144, FIXED_POOL_MARGIN) == 6144  # at most the config's
     assert sized.map_config == dataclasses.replace(batch.map_config, block_capacity=4096)
     with pytest.raises(UserError, match="expected 2 frames"):
         sized.integrate([None])
+
+
+def test_a_batch_of_scenes_of_other_image_sizes_is_refused_before_anything_is_allocated():
+    from fmfusion_jax.mapping.batch import MapperBatch
+
+    scenes = [types.SimpleNamespace(intrinsics=types.SimpleNamespace(height=h, width=w)) for h, w in ((120, 160), (240, 320))]
+    with pytest.raises(UserError, match=r"different image sizes \[\(120, 160\), \(240, 320\)\]"):
+        MapperBatch.for_scenes(scenes, "demo")

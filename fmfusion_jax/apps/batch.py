@@ -31,7 +31,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import numpy as np
 
 from fmfusion_jax.config import load_config
 from fmfusion_jax.errors import DataError, UserError
@@ -42,7 +41,6 @@ from fmfusion_jax.io.detections import DetectionFolder
 from fmfusion_jax.io.ground_truth import load_scannet_ground_truth
 from fmfusion_jax.io.scene import detect_layout, open_dataset_scene
 from fmfusion_jax.mapping.batch import MapperBatch
-from fmfusion_jax.mapping.capacity import scene_extent
 from fmfusion_jax.run.command import write_outputs
 
 log = logging.getLogger(__name__)
@@ -385,16 +383,9 @@ def _fuse_group(group: Sequence[SceneTask], config) -> list[dict[str, Any]]:
                     raise UserError(f"{task.name}: {making[3]}: {outcome['error']}")
         dataset = config.dataset
         scenes = [open_dataset_scene(t.scene, dataset) for t in group]
-        shapes = {(s.intrinsics.height, s.intrinsics.width) for s in scenes}
-        if len(shapes) != 1:
-            raise UserError(f"scenes of different image sizes {sorted(shapes)} cannot be fused in one batch")
-        folders = [DetectionFolder(t.detections, image_shape=next(iter(shapes))) for t in group]
-        # each scene's bounds and blocks from a sample of its frames, as `fmfusion run` sizes its map
-        extents = [scene_extent(s, config) for s in scenes]
-        lo = np.min([bounds[0] for bounds, _ in extents], axis=0)
-        hi = np.max([bounds[1] for bounds, _ in extents], axis=0)
-        expected = max(blocks for _, blocks in extents)
-        batch = MapperBatch(config, len(group), bounds=(lo, hi), image_shape=next(iter(shapes)), expected_blocks=expected)
+        batch = MapperBatch.for_scenes(scenes, config)  # sized from a sample of each scene's frames
+        image_shape = (batch.map_config.image_height, batch.map_config.image_width)
+        folders = [DetectionFolder(t.detections, image_shape=image_shape) for t in group]
         maps_mib = len(group) * batch.map_config.memory_bytes() / 2**20
         log.info(
             "fusing %s in one vmapped step: %s each, ~%.0f MiB of maps",

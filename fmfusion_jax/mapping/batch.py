@@ -21,7 +21,7 @@ from fmfusion_jax.engine.state import MapState, init_map_state
 from fmfusion_jax.errors import UserError
 from fmfusion_jax.labels import LabelSets, load_label_sets
 from fmfusion_jax.mapping.builder import FusionProgress, FusionResult
-from fmfusion_jax.mapping.capacity import FIXED_POOL_MARGIN, CapacityMonitor, initial_pool_blocks
+from fmfusion_jax.mapping.capacity import FIXED_POOL_MARGIN, CapacityMonitor, initial_pool_blocks, scene_extent
 from fmfusion_jax.mapping.engine_configs import build_fusion_config, build_map_config, fusion_likelihood
 from fmfusion_jax.mapping.inputs import HostAdapter, as_config
 from fmfusion_jax.mapping.mapper import Mapper
@@ -101,6 +101,24 @@ class MapperBatch:
         self._monitors = [CapacityMonitor() for _ in range(batch_size)]
         self._schedules = [DetectionSchedule(self.config) for _ in range(batch_size)]
         self._results: list[FusionResult] | None = None
+
+    @classmethod
+    def for_scenes(
+        cls, scenes: Sequence[Any], config: "str | Path | Mapping[str, Any] | PipelineConfig | None" = None, **options: Any
+    ) -> MapperBatch:
+        """A batch for `scenes` (`fmfusion_jax.open_scene`'s `Scene`s of one image size), sized as `fmfusion run` sizes
+        a map: one block index over the union of their bounds and a pool for the most blocks any of them is expected
+        to use, each from a sample of the scene's frames (`capacity.scene_extent`). `options`: `label_sets`,
+        `likelihood`. Scenes of different image sizes are a `UserError`."""
+        pipeline = as_config(config)
+        shapes = {(scene.intrinsics.height, scene.intrinsics.width) for scene in scenes}
+        if len(shapes) != 1:
+            raise UserError(f"scenes of different image sizes {sorted(shapes)} cannot be fused in one batch")
+        extents = [scene_extent(scene, pipeline, label_sets=options.get("label_sets")) for scene in scenes]
+        lo = np.min([bounds[0] for bounds, _ in extents], axis=0)
+        hi = np.max([bounds[1] for bounds, _ in extents], axis=0)
+        expected = max(blocks for _, blocks in extents)
+        return cls(pipeline, len(scenes), bounds=(lo, hi), image_shape=shapes.pop(), expected_blocks=expected, **options)
 
     def integrate(
         self, frames: "Sequence[RGBDFrame | None]", detections: "Sequence[FrameDetections | None] | None" = None
