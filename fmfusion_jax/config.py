@@ -261,6 +261,13 @@ class ExportConfig(_Section):
         ge=0,
         le=1,
     )
+    union_confidence_factor: Float = knob(
+        0.25,
+        "benchmark: two touching instances of one class (a mesh edge joins them) are also submitted as one, at "
+        "this times the lower of their confidences: an object the map holds in two pieces is found (0: off)",
+        ge=0,
+        le=1,
+    )
     planar_thickness: Float = knob(
         1.3,
         "voxels; an instance of a volumetric class at most this thick is a sheet (of wall, floor or "

@@ -62,8 +62,8 @@ class Method:
 
 #: Config overrides that restore the map of v0.1 (before the robustness work): matches in the reference's score
 #: order, membership by hits alone, no reunion of fragments, no veto of merges the detector contradicts,
-#: confidence = class probability, export of any slot by the nearest point, no floor filter, one class per
-#: instance in the benchmark files. (The motion schedule needs no override: the experiments' configs fix the
+#: confidence = class probability, export of any slot by the nearest point, no floor filter, one class and one
+#: mask per instance in the benchmark files. (The motion schedule needs no override: the experiments' configs fix the
 #: detection stride.)
 PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
     "association.rank=score",
@@ -81,6 +81,7 @@ PREVIOUS_MAP_OVERRIDES: tuple[str, ...] = (
     "export.transfer_neighbours=1",
     "export.curtain_by_context=false",
     "export.alternative_class_probability=1",
+    "export.union_confidence_factor=0",
 )
 
 
@@ -90,8 +91,8 @@ METHODS: dict[str, Method] = {
         Method(
             "kimera",
             "Kimera + Cluster-All",
-            # one class per instance, as the paper's baseline submits it
-            ("export.alternative_class_probability=1",),
+            # one class and one mask per instance, as the paper's baseline submits it
+            ("export.alternative_class_probability=1", "export.union_confidence_factor=0"),
             baseline="kimera",
             likelihood="hard association (0.9)",
             refine="Cluster-All",

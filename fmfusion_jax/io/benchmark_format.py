@@ -8,7 +8,9 @@ where the mask path is relative to the folder of `<scene>.txt` and each mask fil
 line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex order. Each line has a mask file of
 its own: the official script keys the predictions by mask file. An instance may come again under another class,
 an *alternative* class hypothesis (the benchmark scores each line on its own, per class), with a copy of its mask:
-read back, a line whose mask equals an earlier line's and whose class differs is such an alternative.
+read back, a line whose mask equals an earlier line's and whose class differs is such an alternative. Two touching
+instances of one class may come again as one, a *union* hypothesis: read back, a line whose mask is the union of two
+earlier instances' masks of its class. Both kinds are hypotheses beside the map's instances (`alternative`).
 """
 
 from __future__ import annotations
@@ -46,8 +48,9 @@ class InstancePredictions:
       masks: `(P, V)` bool, one vertex mask per prediction.
       nyu40_ids: `(P,)` int64 nyu40 class of each prediction.
       confidences: `(P,)` float64 confidence of each prediction.
-      alternative: `(P,)` bool, true for an alternative class hypothesis: the same mask as an earlier
-        prediction (its instance's most likely class), under another class. None: no alternatives.
+      alternative: `(P,)` bool, true for a hypothesis beside the instances: the same mask as an earlier
+        prediction (its instance's most likely class) under another class, or the union of two earlier
+        instances of one class. None: no alternatives.
     """
 
     masks: np.ndarray
@@ -75,12 +78,12 @@ class InstancePredictions:
 
     @property
     def num_instances(self) -> int:
-        """The predicted instances: the predictions less the alternative class hypotheses."""
+        """The predicted instances: the predictions less the alternative class and union hypotheses."""
         return int(np.count_nonzero(~self.alternative))
 
     @property
     def num_predictions(self) -> int:
-        """Every prediction (line of `<scene>.txt`), alternative class hypotheses included."""
+        """Every prediction (line of `<scene>.txt`), alternative class and union hypotheses included."""
         return int(self.masks.shape[0])
 
     def primary(self) -> "InstancePredictions":
@@ -138,7 +141,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
     Raises:
       DataError: naming the file and line of a malformed entry, a missing mask file, a mask whose length is
         not `num_vertices` or whose values are not 0/1, or a mask file listed twice. A line whose mask equals an
-        earlier line's, under another class, is an alternative class hypothesis (`InstancePredictions.alternative`).
+        earlier line's, under another class, is an alternative class hypothesis, and one whose mask is the union of
+        two earlier instances' masks of its class a union hypothesis (both `InstancePredictions.alternative`).
     """
     txt_path = Path(txt_path)
     try:
@@ -147,7 +151,10 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         raise DataError(f"{txt_path}: prediction file not found") from None
     except (OSError, UnicodeDecodeError) as error:
         raise DataError(f"{txt_path}: cannot read the prediction file ({error})") from error
-    masks, ids, confidences, alternative = [], [], [], []
+    masks: list[np.ndarray] = []
+    ids: list[int] = []
+    confidences: list[float] = []
+    alternative: list[bool] = []
     seen: dict[Path, int] = {}  # mask file -> line
     first_class_of: dict[bytes, int] = {}  # a mask's vertices -> the class of its first line
     resolved_folder = txt_path.parent.resolve()
@@ -178,7 +185,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         )
         # the same vertices as an earlier line under another class: an alternative class hypothesis of its instance
         key = np.packbits(mask).tobytes() + mask.shape[0].to_bytes(8, "little")
-        alternative.append(bool(mask.any()) and first_class_of.setdefault(key, nyu40) != nyu40)
+        another_class = bool(mask.any()) and first_class_of.setdefault(key, nyu40) != nyu40
+        alternative.append(another_class or _is_union_of_two(mask, nyu40, masks, ids, alternative))
         if num_vertices is None:
             num_vertices = mask.shape[0]
         if mask.shape[0] != num_vertices:
@@ -218,6 +226,17 @@ def _mask_path_inside(folder: Path, resolved_folder: Path, relative: str, where:
     if not inside:
         raise DataError(f"{where}: mask path {relative!r} leads out of {folder}")
     return path
+
+
+def _is_union_of_two(mask: np.ndarray, nyu40: int, masks: list[np.ndarray], ids: list[int], alternative: list[bool]) -> bool:
+    """Whether `mask` is the union of two earlier instances' masks (the lines before it, not alternatives) of its
+    class `nyu40`, each a non-empty part of it: a union hypothesis (`io.map_outputs.union_hypotheses`)."""
+    parts = [
+        m
+        for m, i, alt in zip(masks, ids, alternative)
+        if i == nyu40 and not alt and len(m) == len(mask) and m.any() and not np.array_equal(m, mask) and not (m & ~mask).any()
+    ]
+    return any(np.array_equal(a | b, mask) for k, a in enumerate(parts) for b in parts[k + 1 :])
 
 
 def read_mask_file(path: Path, listed_at: str = "", max_bytes: int = _MAX_MASK_BYTES) -> np.ndarray:

@@ -242,12 +242,15 @@ def benchmark_predictions(
     neighbours: int = 1,
     floor_vertices: np.ndarray | None = None,
     alternative_class_probability: float = 1.0,
+    faces: np.ndarray | None = None,
+    union_confidence_factor: float = 0.0,
 ) -> InstancePredictions:
     """Instances transferred to mesh vertices by radius search, with nyu40 ids and confidences.
 
     Each instance is one prediction under its most likely class (confidence `MapInstance.confidence`), then,
     after all of those, one more under each other benchmark class it has at least
-    `alternative_class_probability` of (`alternative_class_hypotheses`).
+    `alternative_class_probability` of (`alternative_class_hypotheses`), then, with the mesh's `faces` and a
+    `union_confidence_factor` above 0, the union of each two touching instances of one class (`union_hypotheses`).
 
     Wall and floor are not benchmark classes and are left out of the predictions. With
     `structure_claims_vertices` they first take part in the transfer (each vertex goes to its nearest
@@ -268,12 +271,55 @@ def benchmark_predictions(
     if floor_vertices is not None:
         masks &= ~np.asarray(floor_vertices, bool)[None, :]
     rows, classes, confidences = alternative_class_hypotheses(keep, label_sets, alternative_class_probability)
+    class_ids = np.array([i.class_index for i in keep], np.int64)
+    own_confidences = np.array([i.confidence for i in keep], np.float64)
+    pairs = np.zeros((0, 2), np.int64)
+    union_confidences = np.zeros(0)
+    if faces is not None and union_confidence_factor > 0:
+        pairs, union_confidences = union_hypotheses(masks, class_ids, own_confidences, faces, union_confidence_factor)
     return InstancePredictions(
-        masks=np.concatenate([masks, masks[rows]]),
-        nyu40_ids=np.concatenate([[label_sets.nyu40_ids[i.class_index] for i in keep], label_sets.nyu40_ids[classes]]),
-        confidences=np.concatenate([[i.confidence for i in keep], confidences]),
-        alternative=np.arange(len(keep) + len(rows)) >= len(keep),
+        masks=np.concatenate([masks, masks[rows], masks[pairs[:, 0]] | masks[pairs[:, 1]]]),
+        nyu40_ids=label_sets.nyu40_ids[np.concatenate([class_ids, classes, class_ids[pairs[:, 0]]])],
+        confidences=np.concatenate([own_confidences, confidences, union_confidences]),
+        alternative=np.arange(len(keep) + len(rows) + len(pairs)) >= len(keep),
     )
+
+
+def union_hypotheses(
+    masks: np.ndarray, class_ids: np.ndarray, confidences: np.ndarray, faces: np.ndarray, factor: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """`(pairs (U, 2), confidences (U,))`: the instances (rows of `masks (P, V)`, of classes `class_ids (P,)` and
+    confidences `(P,)`) two by two, `a < b`, where both are of one class and an edge of the mesh (`faces (F, 3)`)
+    joins a vertex of one to a vertex of the other; the confidence is `factor` times the lower of the two.
+
+    Why: the map splits an object whose masks cut it in two in most frames (an L-shaped sofa seen one arm at a
+    time), and two pieces side by side never pass the merge's overlap test. Neither piece passes IoU 0.5 with the
+    object; their union, submitted beside them and below both, does. Where the two are distinct objects (two
+    cabinets in a row), the union is a false positive ranked under both."""
+    masks = np.asarray(masks, bool)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    pairs: list[tuple[int, int]] = []
+    if len(masks) < 2 or len(faces) == 0:
+        return np.zeros((0, 2), np.int64), np.zeros(0)
+    ends = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    for c in np.unique(class_ids):
+        rows = np.flatnonzero(class_ids == c)
+        if len(rows) < 2:
+            continue
+        held = masks[rows]  # (R, V)
+        # the edges with both ends on this class's instances: the only ones that can join two of them
+        on_class = np.asarray(held.any(axis=0))
+        near = ends[on_class[ends[:, 0]] & on_class[ends[:, 1]]]
+        start, end = held[:, near[:, 0]], held[:, near[:, 1]]  # (R, E')
+        for a in range(len(rows)):
+            for b in range(a + 1, len(rows)):
+                if np.any((start[a] & end[b]) | (start[b] & end[a])):
+                    pairs.append((int(rows[a]), int(rows[b])))
+    if not pairs:
+        return np.zeros((0, 2), np.int64), np.zeros(0)
+    pairs.sort()
+    out = np.array(pairs, np.int64)
+    return out, factor * np.minimum(confidences[out[:, 0]], confidences[out[:, 1]])
 
 
 def alternative_class_hypotheses(

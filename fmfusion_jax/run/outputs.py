@@ -200,6 +200,8 @@ def score_instances(instances, gt, scene_name: str, config: PipelineConfig, labe
         config.export.transfer_neighbours,
         on_floor,
         config.export.alternative_class_probability,
+        gt.faces,
+        config.export.union_confidence_factor,
     )
     gt_ids = gt.benchmark_ids() if gt_ids is None else gt_ids
     return predictions, evaluate_scenes([(gt_ids, predictions)], scene_names=[scene_name])
@@ -483,8 +485,8 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
         ("benchmark/",),
         "ScanNet benchmark prediction files (`<scene>.txt`, `pred_mask/`) over the scene's `_vh_clean_2.ply` "
         "vertices, when the scene has ground truth: each instance under its most likely class, then under each "
-        "other class of at least 10 % (`export.alternative_class_probability`; a mask file per line, as the official "
-        "script needs)",
+        "other class of at least 10 % (`export.alternative_class_probability`), then each two touching instances of "
+        "one class as one (`export.union_confidence_factor`); a mask file per line, as the official script needs",
         _write_benchmark,
         uses=("scored",),
         lap="benchmark",
