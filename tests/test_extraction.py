@@ -14,6 +14,7 @@ from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.extraction import (
     _chunks,
+    _PoolColors,
     _dilated_by_one,
     _host_blocks,
     _pool_blocks,
@@ -295,6 +296,23 @@ def test_pool_colours_are_the_dense_colour_volume_bit_for_bit(chunk_blocks):
         np.testing.assert_array_equal(color[x, y, z], expected)
         checked += int((expected != 0).any(axis=1).sum())
     assert checked > 0
+
+
+@given(bs=st.sampled_from([2, 4, 6, 8, 10]), seed=st.integers(0, 2**16))
+def test_pool_colours_split_a_coordinate_as_floor_division_does(bs, seed):
+    """`_PoolColors` splits a chunk coordinate into block and voxel by a shift and a mask where the block size is a
+    power of two, by // and % otherwise: the same values as the oracle's // and % for every even block size."""
+    rng = np.random.default_rng(seed)
+    blocks = 3
+    color_rows = rng.random((5, bs**3, 3)).astype(np.float16)
+    row_of_block = rng.integers(-1, 5, (blocks, blocks, blocks))
+    local = _raster_blocks(np.arange(bs**3)[None], bs)[0]
+    colors = _PoolColors(color_rows, row_of_block, local, blocks * bs)
+    x, y, z = (rng.integers(0, blocks * bs, 200) for _ in range(3))
+    row = row_of_block[x // bs, y // bs, z // bs]
+    expected = color_rows[np.maximum(row, 0), local[x % bs, y % bs, z % bs]].astype(np.float32)
+    expected[row < 0] = 0.0
+    np.testing.assert_array_equal(colors[x, y, z], expected)
 
 
 @settings(max_examples=40, deadline=None)

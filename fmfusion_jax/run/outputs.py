@@ -336,7 +336,6 @@ def _write_map_state(context: OutputContext) -> None:
 
 
 def _write_benchmark(context: OutputContext) -> None:
-
     _, predictions, score = context.scored
     txt = write_benchmark_predictions(context.out_dir / "benchmark", context.scene.name, predictions)
     context.benchmark.update(
