@@ -263,8 +263,9 @@ class ExportConfig(_Section):
     )
     union_confidence_factor: Float = knob(
         0.25,
-        "benchmark: two touching instances of one class (a mesh edge joins them) are also submitted as one, at "
-        "this times the lower of their confidences: an object the map holds in two pieces is found (0: off)",
+        "benchmark: two touching instances of one class (a mesh edge joins them; the class of either one's class "
+        "hypothesis) are also submitted as one, at this times the lower of their confidences: an object the map "
+        "holds in two pieces is found (0: off)",
         ge=0,
         le=1,
     )

@@ -14,10 +14,10 @@ from fmfusion_jax.engine import tsdf
 from fmfusion_jax.engine.config import MapConfig
 from fmfusion_jax.engine.extraction import (
     _chunks,
-    _PoolColors,
     _dilated_by_one,
     _host_blocks,
     _pool_blocks,
+    _PoolColors,
     _raster_blocks,
     _sample_linear,
     _sample_on_edges,

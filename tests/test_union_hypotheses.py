@@ -61,6 +61,21 @@ def test_pairs_are_the_touching_instances_of_one_class(seed, num_instances, num_
         assert c <= min(confidences[a], confidences[b]) + 1e-12  # below both pieces
 
 
+@given(st.integers(0, 2**31 - 1), st.integers(2, 7))
+@settings(max_examples=40, deadline=None)
+def test_pairs_hold_at_least_one_primary_line(seed, num_lines):
+    """With `primary`, the pairs are the oracle's less those of two alternative class hypotheses."""
+    rng = np.random.default_rng(seed)
+    _, faces = grid_mesh(6, 5)
+    owner = rng.integers(-1, num_lines, 30)
+    masks = np.stack([owner == k for k in range(num_lines)])
+    class_ids = rng.integers(0, 2, num_lines)
+    primary = rng.random(num_lines) < 0.5
+    pairs, _ = union_hypotheses(masks, class_ids, rng.uniform(0.1, 1, num_lines), faces, 0.25, primary)
+    expected = {(a, b) for a, b in pairs_oracle(masks, class_ids, faces) if primary[a] or primary[b]}
+    assert {tuple(map(int, p)) for p in pairs} == expected
+
+
 def test_no_pairs_without_faces_or_with_one_instance():
     _, faces = grid_mesh(3, 3)
     masks = np.ones((1, 9), bool)
@@ -82,9 +97,12 @@ def sofa_scene():
     return vertices, faces, column, ids
 
 
-def instance(instance_id, class_name, points, existence=1.0):
+def instance(instance_id, class_name, points, existence=1.0, second=None):
+    """An instance sure of `class_name`; with `second`, 0.35 of it goes to that class instead."""
     distribution = np.full(LABELS.num_classes, 0.01)
     distribution[LABELS.class_index(class_name)] = 1.0
+    if second is not None:
+        distribution[LABELS.class_index(second)] = 0.6
     return MapInstance(
         instance_id,
         distribution / distribution.sum(),
@@ -123,6 +141,30 @@ def test_an_object_in_two_pieces_is_found_and_read_back_as_a_hypothesis(tmp_path
     assert back.num_instances == 4 and back.primary().num_predictions == 4
 
 
+def test_a_piece_fused_as_another_class_joins_under_its_class_hypothesis(tmp_path):
+    """The sofa's right arm fused as a chair (sofa its second class, at 0.35): its sofa line and the left piece make
+    the sofa; two alternative lines are not joined."""
+    vertices, faces, column, ids = sofa_scene()
+    left, right = vertices[column <= 6], vertices[(column >= 7) & (column <= 13)]
+    instances = [
+        instance(0, "sofa", left, 0.9),
+        instance(1, "chair", right, 0.7, second="sofa"),
+        instance(2, "chair", vertices[column >= 16], 0.8),
+    ]
+    kwargs = dict(label_sets=LABELS, vertices=vertices, radius=0.03, faces=faces, alternative_class_probability=0.1)
+    preds = benchmark_predictions(instances, union_confidence_factor=0.25, **kwargs)
+    sofa = LABELS.nyu40_ids[LABELS.class_index("sofa")]
+    assert preds.num_instances == 3 and preds.num_predictions == 5  # 3 instances, 1's sofa line, their sofa union
+    assert preds.nyu40_ids[3] == preds.nyu40_ids[4] == sofa
+    assert np.array_equal(preds.masks[4], preds.masks[0] | preds.masks[1])
+    assert preds.confidences[4] == pytest.approx(0.25 * min(preds.confidences[0], preds.confidences[3]))
+    without = benchmark_predictions(instances, union_confidence_factor=0.0, **kwargs)
+    assert evaluate_scenes([(ids, without)]).ap50["sofa"] == 0.0
+    assert evaluate_scenes([(ids, preds)]).ap50["sofa"] > 0.0
+    back = read_benchmark_predictions(write_benchmark_predictions(tmp_path, "s", preds), len(vertices))
+    assert back.alternative.tolist() == preds.alternative.tolist() == [False] * 3 + [True, True]
+
+
 def test_only_a_union_of_two_earlier_instances_of_its_class_reads_back_as_a_hypothesis(tmp_path):
     masks = np.zeros((6, 12), bool)
     masks[0, :3] = masks[1, 3:6] = masks[2, 6:9] = True  # instances: classes 3, 3, 4
@@ -132,3 +174,8 @@ def test_only_a_union_of_two_earlier_instances_of_its_class_reads_back_as_a_hypo
     preds = InstancePredictions(masks, [3, 3, 4, 3, 4, 3], [0.9, 0.8, 0.7, 0.4, 0.3, 0.2])
     back = read_benchmark_predictions(write_benchmark_predictions(tmp_path, "s", preds))
     assert back.alternative.tolist() == [False, False, False, True, False, False]
+    # with 1 also under class 4 (its class hypothesis) before it, the same line is the union of 1 and 2 under 4
+    masks = np.concatenate([masks[:3], masks[1:2], masks[4:5]])
+    preds = InstancePredictions(masks, [3, 3, 4, 4, 4], [0.9, 0.8, 0.7, 0.3, 0.1])
+    back = read_benchmark_predictions(write_benchmark_predictions(tmp_path / "b", "s", preds))
+    assert back.alternative.tolist() == [False, False, False, True, True]

@@ -9,8 +9,8 @@ line, one line per vertex of `<scene>_vh_clean_2.ply`, in the mesh's vertex orde
 its own: the official script keys the predictions by mask file. An instance may come again under another class,
 an *alternative* class hypothesis (the benchmark scores each line on its own, per class), with a copy of its mask:
 read back, a line whose mask equals an earlier line's and whose class differs is such an alternative. Two touching
-instances of one class may come again as one, a *union* hypothesis: read back, a line whose mask is the union of two
-earlier instances' masks of its class. Both kinds are hypotheses beside the map's instances (`alternative`).
+hypotheses of one class may come again as one, a *union* hypothesis: read back, a line whose mask is the union of two
+earlier lines' masks of its class (not unions themselves). Both kinds are hypotheses beside the map's instances (`alternative`).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ class InstancePredictions:
       confidences: `(P,)` float64 confidence of each prediction.
       alternative: `(P,)` bool, true for a hypothesis beside the instances: the same mask as an earlier
         prediction (its instance's most likely class) under another class, or the union of two earlier
-        instances of one class. None: no alternatives.
+        predictions of one class. None: no alternatives.
     """
 
     masks: np.ndarray
@@ -142,7 +142,7 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
       DataError: naming the file and line of a malformed entry, a missing mask file, a mask whose length is
         not `num_vertices` or whose values are not 0/1, or a mask file listed twice. A line whose mask equals an
         earlier line's, under another class, is an alternative class hypothesis, and one whose mask is the union of
-        two earlier instances' masks of its class a union hypothesis (both `InstancePredictions.alternative`).
+        two earlier lines' masks of its class a union hypothesis (both `InstancePredictions.alternative`).
     """
     txt_path = Path(txt_path)
     try:
@@ -155,6 +155,7 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
     ids: list[int] = []
     confidences: list[float] = []
     alternative: list[bool] = []
+    union: list[bool] = []  # the lines read as union hypotheses
     seen: dict[Path, int] = {}  # mask file -> line
     first_class_of: dict[bytes, int] = {}  # a mask's vertices -> the class of its first line
     resolved_folder = txt_path.parent.resolve()
@@ -186,7 +187,8 @@ def read_benchmark_predictions(txt_path: str | Path, num_vertices: int | None = 
         # the same vertices as an earlier line under another class: an alternative class hypothesis of its instance
         key = np.packbits(mask).tobytes() + mask.shape[0].to_bytes(8, "little")
         another_class = bool(mask.any()) and first_class_of.setdefault(key, nyu40) != nyu40
-        alternative.append(another_class or _is_union_of_two(mask, nyu40, masks, ids, alternative))
+        union.append(not another_class and _is_union_of_two(mask, nyu40, masks, ids, union))
+        alternative.append(another_class or union[-1])
         if num_vertices is None:
             num_vertices = mask.shape[0]
         if mask.shape[0] != num_vertices:
@@ -228,13 +230,13 @@ def _mask_path_inside(folder: Path, resolved_folder: Path, relative: str, where:
     return path
 
 
-def _is_union_of_two(mask: np.ndarray, nyu40: int, masks: list[np.ndarray], ids: list[int], alternative: list[bool]) -> bool:
-    """Whether `mask` is the union of two earlier instances' masks (the lines before it, not alternatives) of its
-    class `nyu40`, each a non-empty part of it: a union hypothesis (`io.map_outputs.union_hypotheses`)."""
+def _is_union_of_two(mask: np.ndarray, nyu40: int, masks: list[np.ndarray], ids: list[int], union: list[bool]) -> bool:
+    """Whether `mask` is the union of two earlier lines' masks of its class `nyu40` (instances or class hypotheses,
+    not unions themselves), each a non-empty part of it: a union hypothesis (`io.map_outputs.union_hypotheses`)."""
     parts = [
         m
-        for m, i, alt in zip(masks, ids, alternative)
-        if i == nyu40 and not alt and len(m) == len(mask) and m.any() and not np.array_equal(m, mask) and not (m & ~mask).any()
+        for m, i, joined in zip(masks, ids, union)
+        if i == nyu40 and not joined and len(m) == len(mask) and m.any() and not np.array_equal(m, mask) and not (m & ~mask).any()
     ]
     return any(np.array_equal(a | b, mask) for k, a in enumerate(parts) for b in parts[k + 1 :])
 

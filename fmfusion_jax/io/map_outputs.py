@@ -250,7 +250,8 @@ def benchmark_predictions(
     Each instance is one prediction under its most likely class (confidence `MapInstance.confidence`), then,
     after all of those, one more under each other benchmark class it has at least
     `alternative_class_probability` of (`alternative_class_hypotheses`), then, with the mesh's `faces` and a
-    `union_confidence_factor` above 0, the union of each two touching instances of one class (`union_hypotheses`).
+    `union_confidence_factor` above 0, the union of each two touching lines of one class, one of them an instance's
+    most likely class (`union_hypotheses`).
 
     Wall and floor are not benchmark classes and are left out of the predictions. With
     `structure_claims_vertices` they first take part in the transfer (each vertex goes to its nearest
@@ -271,31 +272,45 @@ def benchmark_predictions(
     if floor_vertices is not None:
         masks &= ~np.asarray(floor_vertices, bool)[None, :]
     rows, classes, confidences = alternative_class_hypotheses(keep, label_sets, alternative_class_probability)
-    class_ids = np.array([i.class_index for i in keep], np.int64)
-    own_confidences = np.array([i.confidence for i in keep], np.float64)
+    # the lines before the unions: each instance under its most likely class, then its class hypotheses
+    line_rows = np.concatenate([np.arange(len(keep)), rows]).astype(np.int64)
+    line_classes = np.concatenate([[i.class_index for i in keep], classes]).astype(np.int64)
+    line_confidences = np.concatenate([[i.confidence for i in keep], confidences]).astype(np.float64)
+    line_masks = masks[line_rows]
     pairs = np.zeros((0, 2), np.int64)
     union_confidences = np.zeros(0)
     if faces is not None and union_confidence_factor > 0:
-        pairs, union_confidences = union_hypotheses(masks, class_ids, own_confidences, faces, union_confidence_factor)
+        primary = np.arange(len(line_rows)) < len(keep)
+        pairs, union_confidences = union_hypotheses(
+            line_masks, line_classes, line_confidences, faces, union_confidence_factor, primary
+        )
     return InstancePredictions(
-        masks=np.concatenate([masks, masks[rows], masks[pairs[:, 0]] | masks[pairs[:, 1]]]),
-        nyu40_ids=label_sets.nyu40_ids[np.concatenate([class_ids, classes, class_ids[pairs[:, 0]]])],
-        confidences=np.concatenate([own_confidences, confidences, union_confidences]),
-        alternative=np.arange(len(keep) + len(rows) + len(pairs)) >= len(keep),
+        masks=np.concatenate([line_masks, line_masks[pairs[:, 0]] | line_masks[pairs[:, 1]]]),
+        nyu40_ids=label_sets.nyu40_ids[np.concatenate([line_classes, line_classes[pairs[:, 0]]])],
+        confidences=np.concatenate([line_confidences, union_confidences]),
+        alternative=np.arange(len(line_rows) + len(pairs)) >= len(keep),
     )
 
 
 def union_hypotheses(
-    masks: np.ndarray, class_ids: np.ndarray, confidences: np.ndarray, faces: np.ndarray, factor: float
+    masks: np.ndarray,
+    class_ids: np.ndarray,
+    confidences: np.ndarray,
+    faces: np.ndarray,
+    factor: float,
+    primary: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`(pairs (U, 2), confidences (U,))`: the instances (rows of `masks (P, V)`, of classes `class_ids (P,)` and
+    """`(pairs (U, 2), confidences (U,))`: the hypotheses (rows of `masks (P, V)`, of classes `class_ids (P,)` and
     confidences `(P,)`) two by two, `a < b`, where both are of one class and an edge of the mesh (`faces (F, 3)`)
     joins a vertex of one to a vertex of the other; the confidence is `factor` times the lower of the two.
+    `primary (P,)` bool: only pairs with at least one primary row (an instance under its most likely class; the
+    others are its alternative class hypotheses); None: every row is one.
 
     Why: the map splits an object whose masks cut it in two in most frames (an L-shaped sofa seen one arm at a
     time), and two pieces side by side never pass the merge's overlap test. Neither piece passes IoU 0.5 with the
     object; their union, submitted beside them and below both, does. Where the two are distinct objects (two
-    cabinets in a row), the union is a false positive ranked under both."""
+    cabinets in a row), the union is a false positive ranked under both. A piece whose labels lean to another class
+    (the sofa's arm fused as a chair, sofa its second class) joins under the class of its alternative hypothesis."""
     masks = np.asarray(masks, bool)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     pairs: list[tuple[int, int]] = []
@@ -313,6 +328,8 @@ def union_hypotheses(
         start, end = held[:, near[:, 0]], held[:, near[:, 1]]  # (R, E')
         for a in range(len(rows)):
             for b in range(a + 1, len(rows)):
+                if primary is not None and not (primary[rows[a]] or primary[rows[b]]):
+                    continue  # two alternatives: neither piece is its instance's most likely class
                 if np.any((start[a] & end[b]) | (start[b] & end[a])):
                     pairs.append((int(rows[a]), int(rows[b])))
     if not pairs:

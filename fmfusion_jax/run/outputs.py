@@ -482,10 +482,10 @@ OUTPUT_WRITERS: tuple[OutputWriter, ...] = (
     OutputWriter(
         "benchmark",
         ("benchmark/",),
-        "ScanNet benchmark prediction files (`<scene>.txt`, `pred_mask/`) over the scene's `_vh_clean_2.ply` "
-        "vertices, when the scene has ground truth: each instance under its most likely class, then under each "
-        "other class of at least 10 % (`export.alternative_class_probability`), then each two touching instances of "
-        "one class as one (`export.union_confidence_factor`); a mask file per line, as the official script needs",
+        "ScanNet benchmark prediction files (`<scene>.txt`, `pred_mask/`) over the scene's `_vh_clean_2.ply` vertices, "
+        "when the scene has ground truth: each instance under its most likely class, then under each other class of "
+        "at least 10 % (`export.alternative_class_probability`), then two touching instances of one class (or class "
+        "hypothesis) as one (`export.union_confidence_factor`); a mask file per line, as the official script needs",
         _write_benchmark,
         uses=("scored",),
         lap="benchmark",
