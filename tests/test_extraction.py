@@ -300,8 +300,8 @@ def test_pool_colours_are_the_dense_colour_volume_bit_for_bit(chunk_blocks):
 
 @given(bs=st.sampled_from([2, 4, 6, 8, 10]), seed=st.integers(0, 2**16))
 def test_pool_colours_split_a_coordinate_as_floor_division_does(bs, seed):
-    """`_PoolColors` splits a chunk coordinate into block and voxel by a shift and a mask where the block size is a
-    power of two, by // and % otherwise: the same values as the oracle's // and % for every even block size."""
+    """`_PoolColors` reads a chunk coordinate's block and voxel as the oracle's // and % do, for every even block
+    size."""
     rng = np.random.default_rng(seed)
     blocks = 3
     color_rows = rng.random((5, bs**3, 3)).astype(np.float16)

@@ -56,21 +56,12 @@ class _PoolColors:
         raster voxel -> its pool column."""
         self.color_rows, self.row_of_block, self.local, self.bs = color_rows, row_of_block, local, local.shape[0]
         self.shape, self.ndim = (n, n, n, color_rows.shape[-1]), 4
-        # a power-of-two block size (every map's: `state.local_voxel_index` needs an even one) splits a coordinate
-        # into block and voxel by a shift and a mask, ~10x faster than // and % over a room's million vertices
-        self.shift = self.bs.bit_length() - 1 if self.bs & (self.bs - 1) == 0 else None
 
     def __getitem__(self, index: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
         x, y, z = index
-        bs, shift = self.bs, self.shift
-        if shift is not None:
-            low = bs - 1
-            row = self.row_of_block[x >> shift, y >> shift, z >> shift]
-            voxel = self.local[x & low, y & low, z & low]
-        else:
-            row = self.row_of_block[x // bs, y // bs, z // bs]
-            voxel = self.local[x % bs, y % bs, z % bs]
-        values = self.color_rows[np.maximum(row, 0), voxel].astype(np.float32)
+        bs = self.bs
+        row = self.row_of_block[x // bs, y // bs, z // bs]
+        values = self.color_rows[np.maximum(row, 0), self.local[x % bs, y % bs, z % bs]].astype(np.float32)
         values[row < 0] = 0.0
         return values
 

@@ -322,7 +322,7 @@ def union_hypotheses(
         if len(rows) < 2:
             continue
         held = masks[rows]  # (R, V)
-        # the edges with both ends on this class's instances: the only ones that can join two of them
+        # the edges with both ends on this class's lines: the only ones that can join two of them
         on_class = np.asarray(held.any(axis=0))
         near = ends[on_class[ends[:, 0]] & on_class[ends[:, 1]]]
         start, end = held[:, near[:, 0]], held[:, near[:, 1]]  # (R, E')
